@@ -1,0 +1,35 @@
+"""Errors raised by the domain core.
+
+    InvisibleMapError            anything the core refuses, with a message fit for a person
+    ├── SessionFormatError       an upload that does not follow the app's format (DESIGN §2)
+    ├── GroundTruthFormatError   a ground-truth file in neither supported form
+    ├── MapFormatError           a saved map file that cannot be read back
+    └── ParameterError           an unknown or out-of-range SLAM parameter
+"""
+
+from __future__ import annotations
+
+
+class InvisibleMapError(Exception):
+    """Base of every error the core raises on bad input; ``str(err)`` is one readable line."""
+
+
+class SessionFormatError(InvisibleMapError):
+    """Raised when an upload is malformed; ``field`` names where (``tag_data[3][0].tag_pose``)."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        self.field = field
+        self.reason = reason
+        super().__init__(f"{field}: {reason}" if field else reason)
+
+
+class GroundTruthFormatError(InvisibleMapError):
+    """Raised when a ground-truth file is neither an RTAB-Map export nor the GT JSON form."""
+
+
+class MapFormatError(InvisibleMapError):
+    """Raised when a saved map JSON cannot be read back."""
+
+
+class ParameterError(InvisibleMapError):
+    """Raised for an unknown SLAM parameter name or a value out of its documented range."""

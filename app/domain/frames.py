@@ -1,0 +1,160 @@
+"""Rigid transforms as 4×4 numpy arrays, and the app's frame conventions.
+
+A pose of frame B in frame A is written ``A_T_B`` (a 4×4 homogeneous matrix); compose only when the
+inner names match: ``world_T_tag = world_T_phone @ phone_T_tag``. Rotations are ``A_R_B`` (3×3),
+translations ``A_t_B`` (3,). Quaternions carry their component order in their name: ``quat_xyzw``
+(the app's and ROS's order) or ``quat_wxyz`` (gtsam's constructor order).
+
+Conventions of the iPhone app (DESIGN §2):
+
+- ARKit world: right-handed, +y up (gravity-aligned). Phone frame: x right, y up, looking along −z.
+- ``tag_pose`` is ``camera_T_tag`` in the OpenCV camera convention (x right, y down, z forward), so
+  ``phone_T_tag = PHONE_T_CAMERA_CV @ camera_T_tag``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+#: ARKit phone frame (y up, −z forward) from the OpenCV camera frame (y down, +z forward).
+# fmt: off
+PHONE_T_CAMERA_CV: FloatArray = np.diag([1.0, -1.0, -1.0, 1.0])
+# fmt: on
+
+#: Largest ‖RᵀR − I‖ (max abs entry) accepted as a rotation; float32 data sits near 1e-6.
+ORTHONORMAL_TOLERANCE = 1e-2
+
+
+def pose_from_column_major(values: npt.ArrayLike) -> FloatArray:
+    """4×4 pose from 16 values flattened column by column (ARKit's ``simd_float4x4`` order)."""
+    return np.asarray(values, dtype=np.float64).reshape(4, 4).T.copy()
+
+
+def pose_from_row_major(values: npt.ArrayLike) -> FloatArray:
+    """4×4 pose from 16 values flattened row by row."""
+    return np.asarray(values, dtype=np.float64).reshape(4, 4).copy()
+
+
+def make_pose(A_R_B: npt.ArrayLike, A_t_B: npt.ArrayLike) -> FloatArray:
+    """``A_T_B`` from a 3×3 rotation and a translation (3,)."""
+    A_T_B = np.eye(4)
+    A_T_B[:3, :3] = np.asarray(A_R_B, dtype=np.float64)
+    A_T_B[:3, 3] = np.asarray(A_t_B, dtype=np.float64)
+    return A_T_B
+
+
+def se3_inverse(A_T_B: FloatArray) -> FloatArray:
+    """``B_T_A`` from ``A_T_B``; works on (4, 4) or stacked (..., 4, 4) poses."""
+    A_R_B = A_T_B[..., :3, :3]
+    B_R_A = np.swapaxes(A_R_B, -1, -2)
+    B_T_A = np.zeros_like(A_T_B)
+    B_T_A[..., :3, :3] = B_R_A
+    B_T_A[..., :3, 3] = -np.einsum("...ij,...j->...i", B_R_A, A_T_B[..., :3, 3])
+    B_T_A[..., 3, 3] = 1.0
+    return B_T_A
+
+
+def relative_se3(world_T_a: FloatArray, world_T_b: FloatArray) -> FloatArray:
+    """``a_T_b = world_T_a⁻¹ · world_T_b``."""
+    return se3_inverse(world_T_a) @ world_T_b
+
+
+def rigidity_defect(T: FloatArray) -> str | None:
+    """Why ``T`` is not a rigid transform (a readable reason), or None when it is one."""
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains a non-finite number"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-3):
+        return f"last row is {np.round(T[3], 6).tolist()}, expected [0, 0, 0, 1]"
+    R = T[:3, :3]
+    defect = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if defect > ORTHONORMAL_TOLERANCE:
+        return f"rotation not orthonormal (max |RᵀR − I| = {defect:.3g})"
+    if np.linalg.det(R) < 0:
+        return "rotation is a reflection (determinant < 0)"
+    return None
+
+
+def nearest_rotation(M: FloatArray) -> FloatArray:
+    """The rotation closest to ``M`` in the Frobenius norm (SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return np.asarray(U @ D @ Vt, dtype=np.float64)
+
+
+def orthonormalized(T: FloatArray) -> FloatArray:
+    """``T`` with its rotation projected onto SO(3) and its last row set to [0, 0, 0, 1]."""
+    out = T.copy()
+    out[:3, :3] = nearest_rotation(T[:3, :3])
+    out[3] = [0.0, 0.0, 0.0, 1.0]
+    return out
+
+
+def rotation_from_quat_xyzw(quat_xyzw: npt.ArrayLike) -> FloatArray:
+    """3×3 rotation from a quaternion in (x, y, z, w) order; normalizes it first."""
+    x, y, z, w = np.asarray(quat_xyzw, dtype=np.float64) / np.linalg.norm(quat_xyzw)
+    # fmt: off
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w),     2 * (x * z + y * w)],
+        [2 * (x * y + z * w),     1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w),     2 * (y * z + x * w),     1 - 2 * (x * x + y * y)],
+    ])
+    # fmt: on
+
+
+def quat_xyzw_from_rotation(R: FloatArray) -> FloatArray:
+    """Unit quaternion (x, y, z, w) with w ≥ 0 from a 3×3 rotation (Shepperd's method)."""
+    trace = float(np.trace(R))
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
+    quat_xyzw = np.array(q, dtype=np.float64)
+    quat_xyzw /= np.linalg.norm(quat_xyzw)
+    return -quat_xyzw if quat_xyzw[3] < 0 else quat_xyzw
+
+
+def rotation_about_x(angle_rad: float) -> FloatArray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rotation_about_y(angle_rad: float) -> FloatArray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rotation_about_z(angle_rad: float) -> FloatArray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_angle_rad(R: FloatArray) -> float:
+    """Angle of the rotation ``R`` in [0, π]."""
+    cos_angle = (float(np.trace(R)) - 1.0) / 2.0
+    return math.acos(min(1.0, max(-1.0, cos_angle)))
+
+
+def pose_to_xyz_quat_xyzw(T: FloatArray) -> list[float]:
+    """``[x, y, z, qx, qy, qz, qw]`` from a 4×4 pose (the ground-truth JSON form)."""
+    return [*T[:3, 3].tolist(), *quat_xyzw_from_rotation(T[:3, :3]).tolist()]
+
+
+def pose_from_xyz_quat_xyzw(values: npt.ArrayLike) -> FloatArray:
+    """4×4 pose from ``[x, y, z, qx, qy, qz, qw]``."""
+    v = np.asarray(values, dtype=np.float64)
+    return make_pose(rotation_from_quat_xyzw(v[3:7]), v[:3])

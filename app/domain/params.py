@@ -1,0 +1,160 @@
+"""SLAM hyperparameters and detection-rejection thresholds, each with its unit in its name.
+
+    SlamParams()                                        # the documented defaults
+    SlamParams().with_overrides({"tag_position_var_m2": "1e-4"})   # from ``--param NAME=VALUE``
+
+The paper's four hyperparameters are the four variances below (tag position, tag orientation,
+odometry linear, odometry angular) plus the gravity variance. Odometry variances are *rates*: the
+variance of the relative motion between two poses is the rate times the time between them, so the
+noise of an odometry factor grows with its time span (a random walk).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.domain.errors import ParameterError
+
+#: The app's printed AprilTags: side of the black square, m.
+DEFAULT_TAG_SIZE_M = 0.173
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SlamParams:
+    """Everything that changes the optimized map. All fields are keyword-only.
+
+    Noise (variances; σ = √var):
+        tag_position_var_m2         variance of a detected tag's position along each camera axis
+                                    *at 1 m distance*, m²; it grows with distance² (see
+                                    ``tag_depth_var_ratio`` for the depth axis).
+        tag_depth_var_ratio         how much larger the variance along the line of sight is than
+                                    across it (PnP depth is the weak axis), dimensionless ≥ 1.
+        tag_orientation_var_rad2    variance of a detected tag's orientation about each axis, rad².
+        odom_linear_var_m2_per_s    translation random-walk rate of the VIO odometry, m²/s.
+        odom_angular_var_rad2_per_s rotation random-walk rate of the VIO odometry, rad²/s.
+        gravity_var_rad2            variance of the phone's roll/pitch against gravity, rad².
+        huber_k                     Huber threshold on whitened tag residuals (σ units); 0 = off.
+
+    Rejection (a detection that fails any test is left out of the graph and reported):
+        max_reprojection_px         RMS distance between the detected corners and those projected
+                                    from ``tag_pose`` with the camera intrinsics and tag size, px.
+        max_view_angle_deg          angle between the tag's normal and the line to the camera, deg.
+        max_distance_m              camera-to-tag distance, m.
+
+    Geometry and solver:
+        tag_size_m                  side of the tags' black square, m; ``tag_sizes_m`` per tag id.
+        max_iterations              Levenberg–Marquardt iteration cap.
+        relative_error_tol          LM stops when the error drops by less than this fraction.
+        compute_marginals           whether to compute tag-pose covariances.
+    """
+
+    tag_position_var_m2: float = 1e-4
+    tag_depth_var_ratio: float = 10.0
+    tag_orientation_var_rad2: float = 1e-2
+    odom_linear_var_m2_per_s: float = 1e-3
+    odom_angular_var_rad2_per_s: float = 1e-4
+    gravity_var_rad2: float = 1e-4
+    huber_k: float = 1.345
+
+    max_reprojection_px: float = 4.0
+    max_view_angle_deg: float = 70.0
+    max_distance_m: float = 5.0
+
+    tag_size_m: float = DEFAULT_TAG_SIZE_M
+    tag_sizes_m: Mapping[int, float] = field(default_factory=dict)
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-5
+    compute_marginals: bool = True
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ParameterError(f"{f.name} must be finite, got {value}")
+        positive = [
+            "tag_position_var_m2",
+            "tag_orientation_var_rad2",
+            "odom_linear_var_m2_per_s",
+            "odom_angular_var_rad2_per_s",
+            "gravity_var_rad2",
+            "max_reprojection_px",
+            "max_distance_m",
+            "tag_size_m",
+            "relative_error_tol",
+        ]
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.tag_depth_var_ratio < 1:
+            raise ParameterError(f"tag_depth_var_ratio must be ≥ 1, got {self.tag_depth_var_ratio}")
+        if self.huber_k < 0:
+            raise ParameterError(f"huber_k must be ≥ 0 (0 disables it), got {self.huber_k}")
+        if not 0 < self.max_view_angle_deg <= 90:
+            raise ParameterError(
+                f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}"
+            )
+        if self.max_iterations < 1:
+            raise ParameterError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
+        for tag_id, size_m in self.tag_sizes_m.items():
+            if not size_m > 0:
+                raise ParameterError(f"tag_sizes_m[{tag_id}] must be > 0, got {size_m}")
+
+    def tag_size_for(self, tag_id: int) -> float:
+        """Side of tag ``tag_id``, m."""
+        return float(self.tag_sizes_m.get(tag_id, self.tag_size_m))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready parameters (tag ids become string keys)."""
+        out = dataclasses.asdict(self)
+        out["tag_sizes_m"] = {str(k): v for k, v in self.tag_sizes_m.items()}
+        return out
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> SlamParams:
+        """Inverse of :meth:`to_dict`; unknown names raise :class:`ParameterError`."""
+        return cls().with_overrides(values)
+
+    def with_overrides(self, overrides: Mapping[str, Any]) -> SlamParams:
+        """A copy with some fields replaced; values may be strings (``"1e-4"``, ``"true"``).
+
+        ``tag_sizes_m`` takes a mapping, or a string ``"300:0.15,301:0.2"``.
+        """
+        types = {f.name: f.type for f in dataclasses.fields(self)}
+        changes: dict[str, Any] = {}
+        for name, raw in overrides.items():
+            if name not in types:
+                known = ", ".join(sorted(types))
+                raise ParameterError(f"unknown parameter {name!r}; known: {known}")
+            changes[name] = _coerce(name, str(types[name]), raw)
+        return dataclasses.replace(self, **changes)
+
+
+def _coerce(name: str, type_name: str, raw: Any) -> Any:
+    try:
+        if type_name == "bool":
+            if isinstance(raw, bool):
+                return raw
+            text = str(raw).strip().lower()
+            if text in {"1", "true", "yes", "on"}:
+                return True
+            if text in {"0", "false", "no", "off"}:
+                return False
+            raise ValueError(f"not a boolean: {raw!r}")
+        if type_name == "int":
+            if isinstance(raw, float) and not raw.is_integer():
+                raise ValueError(f"not an integer: {raw!r}")
+            return int(raw)
+        if type_name == "float":
+            if isinstance(raw, bool):
+                raise ValueError(f"not a number: {raw!r}")
+            return float(raw)
+        if isinstance(raw, Mapping):
+            return {int(k): float(v) for k, v in raw.items()}
+        pairs = [p for p in str(raw).split(",") if p.strip()]
+        return {int(k): float(v) for k, v in (p.split(":") for p in pairs)}
+    except (TypeError, ValueError) as err:
+        raise ParameterError(f"parameter {name}: cannot use {raw!r} ({err})") from err
