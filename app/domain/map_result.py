@@ -1,9 +1,9 @@
 """What an optimization produces: the map, how it was made, and what was left out.
 
-    result = optimize_session(session, params)        # app.domain.slam
-    result.world_T_tag[result.tag_index(305)]         # optimized pose of tag 305, (4, 4)
-    result.tag_covariance[k]                          # (6, 6) [rot rad, trans m], tag frame
-    result.rejections                                 # why each left-out detection was left out
+result = optimize_session(session, params)        # app.domain.slam
+result.world_T_tag[result.tag_index(305)]         # optimized pose of tag 305, (4, 4)
+result.tag_covariance[k]                          # (6, 6) [rot rad, trans m], tag frame
+result.rejections                                 # why each left-out detection was left out
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ class FactorResiduals:
     gravity_chi2: (N,) one attitude factor per pose.
     tag_chi2: (U,) one per used detection, in ``detection_index`` order (before any robust kernel).
     tag_detection_index: (U,) which detection each tag factor came from.
+    tag_pose_index: (U,) the phone pose each tag factor hangs on.
     tag_translation_m: (U,) translation part of the tag factor's error, m.
     tag_rotation_rad: (U,) rotation part of the tag factor's error, rad.
     """
@@ -58,6 +59,7 @@ class FactorResiduals:
     gravity_chi2: FloatArray
     tag_chi2: FloatArray
     tag_detection_index: IntArray
+    tag_pose_index: IntArray
     tag_translation_m: FloatArray
     tag_rotation_rad: FloatArray
 
@@ -80,6 +82,8 @@ class OptimizationStats:
 class MapResult:
     """An optimized map of one session.
 
+    pose_id: (N,) the app's pose ids.
+    timestamp_s: (N,) s.
     world_T_phone: (N, 4, 4) optimized trajectory, map frame (y up), m.
     tag_ids: (K,) the tags in the map, sorted.
     world_T_tag: (K, 4, 4) optimized tag poses, m.
@@ -88,10 +92,14 @@ class MapResult:
     tag_covariance: (K, 6, 6) marginal covariance of each tag pose in its own frame, ordered
         [rotation (rad), translation (m)] as gtsam's Pose3 tangent; NaN when not computed.
     tag_detection_count: (K,) detections of each tag used in the graph.
+    poi_names: (P,) names of the points of interest.
+    world_T_poi: (P, 4, 4) points of interest on the optimized trajectory.
     """
 
     map_id: str
     params: SlamParams
+    pose_id: IntArray
+    timestamp_s: FloatArray
     world_T_phone: FloatArray
     tag_ids: IntArray
     world_T_tag: FloatArray
@@ -102,6 +110,8 @@ class MapResult:
     rejections: tuple[Rejection, ...]
     residuals: FactorResiduals
     stats: OptimizationStats
+    poi_names: tuple[str, ...] = ()
+    world_T_poi: FloatArray = field(default_factory=lambda: np.empty((0, 4, 4)))
     warnings: tuple[str, ...] = field(default=())
 
     def tag_index(self, tag_id: int) -> int:

@@ -74,7 +74,7 @@ class TagDetections:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PointOfInterest:
-    """A place the person named while mapping; ``phone_T_poi`` is relative to pose ``pose_index``."""
+    """A place named while mapping; ``phone_T_poi`` is relative to pose ``pose_index``."""
 
     name: str
     pose_index: int
@@ -165,8 +165,8 @@ def decode_json_bytes(raw: bytes, *, source: str = "upload") -> Any:
 def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session:
     """Parse the app's upload (a decoded JSON object) into a :class:`Session`.
 
-    ``correct_poi_pose_id``: the app writes a point of interest's ``pose_id`` one too high (it points
-    to the next pose); when True (the default) it is moved back by one.
+    ``correct_poi_pose_id``: the app writes a point of interest's ``pose_id`` one too high (it
+    points to the next pose); when True (the default) it is moved back by one.
     """
     if not isinstance(document, Mapping):
         raise SessionFormatError("", f"expected a JSON object, got {_json_type(document)}")
@@ -272,16 +272,16 @@ def _parse_detection(
     pose_id = _integer(detection, "pose_id", where)
     if pose_id not in index_of_pose_id:
         raise SessionFormatError(f"{where}.pose_id", f"no pose with id {pose_id} in pose_data")
-    camera_T_tag = _rigid(_matrix16(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose")
+    camera_T_tag = _rigid(
+        _matrix16(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose"
+    )
     intrinsics = _vector(detection, "camera_intrinsics", where, 4)
     if intrinsics[0] <= 0 or intrinsics[1] <= 0:
         raise SessionFormatError(
             f"{where}.camera_intrinsics", "focal lengths fx, fy must be positive"
         )
     corners = _vector(detection, "tag_corners_pixel_coordinates", where, 8).reshape(4, 2)
-    timestamp = (
-        _number(detection, "timestamp", where) if "timestamp" in detection else math.nan
-    )
+    timestamp = _number(detection, "timestamp", where) if "timestamp" in detection else math.nan
     return {
         "tag_id": tag_id,
         "pose_index": index_of_pose_id[pose_id],
@@ -426,7 +426,9 @@ def _matrix16(entry: Mapping[str, Any], key: str, where: str) -> FloatArray:
 
 def _numbers(value: Any, where: str, length: int) -> FloatArray:
     if not isinstance(value, list):
-        raise SessionFormatError(where, f"expected a list of {length} numbers, got {_json_type(value)}")
+        raise SessionFormatError(
+            where, f"expected a list of {length} numbers, got {_json_type(value)}"
+        )
     if len(value) != length:
         raise SessionFormatError(where, f"expected {length} numbers, got {len(value)}")
     for j, item in enumerate(value):
@@ -445,7 +447,7 @@ def _rigid(matrix: FloatArray, where: str) -> FloatArray:
 
 
 def first_observation_tag_poses(session: Session) -> dict[int, FloatArray]:
-    """The "pre-optimized" map: each tag's ``world_T_tag`` from its first detection on raw odometry."""
+    """The "pre-optimized" map: each tag's ``world_T_tag`` from its first raw detection."""
     world_T_tag = session.world_T_tag_observed()
     poses: dict[int, FloatArray] = {}
     for row, tag_id in enumerate(session.detections.tag_id):

@@ -1,0 +1,314 @@
+"""The ``invisible-map`` command.
+
+    invisible-map process SESSION [--gt GT] [--param NAME=VALUE …] [-o MAP.json]
+                          [--app-map FILE] [--plot FILE.png]
+    invisible-map evaluate SESSION… --gt GT [--gt GT …] [--param NAME=VALUE …] [--json]
+    invisible-map demo [--out DIR]
+
+Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
+(2 for a malformed command line, as argparse does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from tqdm import tqdm
+
+from app.domain.errors import InvisibleMapError, ParameterError
+from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.frames import FloatArray
+from app.domain.ground_truth import load_ground_truth
+from app.domain.map_io import map_to_app_format, map_to_json, save_json
+from app.domain.map_result import MapResult
+from app.domain.params import SlamParams
+from app.domain.session import Session, load_session
+from app.domain.slam import optimize_session
+
+PROGRAM = "invisible-map"
+#: The demo sessions and their ground truth, shipped in the repository (see data/README.md).
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+DEMO_SESSIONS = (
+    ("occam_room", "occam_room_tape.json"),
+    ("floor_2_straight", "rtabmap_mac_1_2.txt"),
+    ("straight_209_occam", "rtabmap_mac_1_2.txt"),
+    ("desnat_straight_once", "rtabmap_mac_1_2.txt"),
+    ("pgt_tester3", None),
+    ("singletag3times", None),
+    ("onetag", None),
+)
+
+
+class CommandError(Exception):
+    """A readable reason the command cannot go on."""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except (InvisibleMapError, CommandError) as err:
+        print(f"{PROGRAM}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        where = f" {err.filename}" if err.filename else ""
+        print(f"{PROGRAM}: error:{where}: {err.strerror or err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{PROGRAM}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROGRAM,
+        description="Graph SLAM on Invisible Map mapping sessions.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    process = commands.add_parser(
+        "process", help="optimize one session into a map", description="Optimize one session."
+    )
+    process.add_argument("session", type=Path, help="the app's upload (JSON, may be gzipped)")
+    process.add_argument("--gt", type=Path, help="ground truth (RTAB-Map export or GT JSON)")
+    _add_param_option(process)
+    process.add_argument("-o", "--output", type=Path, help="write our map JSON here")
+    process.add_argument("--app-map", type=Path, help="write the app's download format here")
+    process.add_argument("--plot", type=Path, help="write a top-down PNG here")
+    process.add_argument(
+        "--no-poi-correction",
+        action="store_true",
+        help="take points of interest's pose_id as written (the app writes it one too high)",
+    )
+    process.set_defaults(handler=_process)
+
+    evaluate = commands.add_parser(
+        "evaluate",
+        help="compare optimized maps with pre-optimized ones and ground truth",
+        description="Optimize each session and compare it with its pre-optimized map and with "
+        "ground truth. One --gt applies to every session; several pair up with the sessions "
+        "in order.",
+    )
+    evaluate.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
+    evaluate.add_argument("--gt", type=Path, action="append", required=True, metavar="GT")
+    _add_param_option(evaluate)
+    evaluate.add_argument("--json", action="store_true", help="print a JSON array, not a table")
+    evaluate.set_defaults(handler=_evaluate)
+
+    demo = commands.add_parser(
+        "demo",
+        help="process the demo sessions shipped in data/ and write maps, plots and a table",
+    )
+    demo.add_argument("--out", type=Path, default=Path("out"), help="output folder (./out)")
+    _add_param_option(demo)
+    demo.set_defaults(handler=_demo)
+    return parser
+
+
+def _add_param_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override a SLAM parameter (see SlamParams), e.g. tag_position_var_m2=1e-4",
+    )
+
+
+def _params(pairs: Sequence[str]) -> SlamParams:
+    overrides = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or not name.strip():
+            raise ParameterError(f"--param expects NAME=VALUE, got {pair!r}")
+        overrides[name.strip()] = value.strip()
+    return SlamParams().with_overrides(overrides)
+
+
+# --------------------------------------------------------------------------- process
+
+
+def _process(args: argparse.Namespace) -> int:
+    params = _params(args.param)
+    ground_truth = load_ground_truth(args.gt) if args.gt else None
+    session = load_session(args.session, correct_poi_pose_id=not args.no_poi_correction)
+    result = _optimize_with_progress(session, params)
+    evaluation = evaluate_map(session, result, ground_truth, dataset=args.session.stem)
+
+    if args.output:
+        save_json(map_to_json(result), args.output)
+    if args.app_map:
+        save_json(map_to_app_format(result), args.app_map)
+    if args.plot:
+        from app.plot import render_map_png
+
+        render_map_png(result, session, ground_truth=ground_truth, path=args.plot)
+
+    print(session)
+    print(
+        f"map: {len(result.tag_ids)} tags, {result.detections_used} detections used, "
+        f"{len(result.rejections)} rejected, {result.stats.iterations} LM iterations, "
+        f"error {result.stats.initial_error:.4g} → {result.stats.final_error:.4g}, "
+        f"{result.stats.optimize_ms:.1f} ms"
+    )
+    for reason, count in sorted(result.rejection_counts().items()):
+        print(f"rejected ({reason}): {count}")
+    for warning in result.warnings:
+        print(f"warning: {warning}")
+    print(f"shift metric: pre {_fmt(evaluation.shift_pre)}  opt {_fmt(evaluation.shift_opt)}")
+    if ground_truth is not None:
+        print(
+            f"ground-truth metric: pre {_fmt(evaluation.gt_metric_pre)}  "
+            f"opt {_fmt(evaluation.gt_metric_opt)}  "
+            f"({evaluation.tags_with_ground_truth} tags with ground truth)"
+        )
+        print(
+            f"tag RMSE: pre {_fmt(evaluation.tag_rmse_pre_m, 3)} m  "
+            f"opt {_fmt(evaluation.tag_rmse_opt_m, 3)} m"
+        )
+        if evaluation.ground_truth_ids_ignored:
+            print(_ignored_line(evaluation))
+    for path in (args.output, args.app_map, args.plot):
+        if path:
+            print(f"wrote {path}")
+    return 0
+
+
+def _optimize_with_progress(session: Session, params: SlamParams) -> MapResult:
+    with tqdm(
+        desc="optimizing", unit=" it", leave=False, disable=None, file=sys.stderr
+    ) as progress:
+
+        def on_iteration(_iteration: int, error: float) -> None:
+            progress.set_postfix(error=f"{error:.4g}")
+            progress.update(1)
+
+        return optimize_session(session, params, on_iteration=on_iteration)
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    params = _params(args.param)
+    ground_truth_paths: list[Path] = args.gt
+    if len(ground_truth_paths) not in (1, len(args.sessions)):
+        raise CommandError(
+            f"give one --gt for all sessions or one per session; got {len(ground_truth_paths)} "
+            f"for {len(args.sessions)} sessions"
+        )
+    truths = {path: load_ground_truth(path) for path in dict.fromkeys(ground_truth_paths)}
+    pairs = list(zip(args.sessions, ground_truth_paths * len(args.sessions), strict=False))
+    rows = []
+    for session_path, truth_path in tqdm(
+        pairs, desc="evaluating", unit=" session", leave=False, disable=None, file=sys.stderr
+    ):
+        rows.append(_evaluate_one(session_path, params, truths[truth_path]))
+    if args.json:
+        print(json.dumps([row.to_dict() for row in rows], indent=2))
+    else:
+        print(format_table(rows))
+        for row in rows:
+            if row.ground_truth_ids_ignored:
+                print(f"{row.dataset}: {_ignored_line(row)}")
+    return 0
+
+
+def _evaluate_one(
+    session_path: Path, params: SlamParams, ground_truth: dict[int, FloatArray] | None
+) -> Evaluation:
+    session = load_session(session_path)
+    result = optimize_session(session, params)
+    return evaluate_map(session, result, ground_truth, dataset=session_path.stem.split(".")[0])
+
+
+TABLE_COLUMNS = (
+    ("dataset", "dataset", "{}"),
+    ("poses", "poses", "{}"),
+    ("tags", "tags", "{}"),
+    ("used", "detections_used", "{}"),
+    ("rejected", "detections_rejected", "{}"),
+    ("opt ms", "optimize_ms", "{:.1f}"),
+    ("GT pre", "gt_metric_pre", "{:.4f}"),
+    ("GT opt", "gt_metric_opt", "{:.4f}"),
+    ("Δ GT", None, None),
+    ("RMSE pre m", "tag_rmse_pre_m", "{:.3f}"),
+    ("RMSE opt m", "tag_rmse_opt_m", "{:.3f}"),
+    ("shift pre", "shift_pre", "{:.4f}"),
+    ("shift opt", "shift_opt", "{:.4f}"),
+)
+
+
+def format_table(rows: Sequence[Evaluation]) -> str:
+    """A Markdown table of evaluation rows (also readable in a terminal)."""
+    header = [title for title, _, _ in TABLE_COLUMNS]
+    lines = [header]
+    for row in rows:
+        cells = []
+        for _, attribute, pattern in TABLE_COLUMNS:
+            if attribute is None:
+                change = (
+                    row.gt_metric_opt / row.gt_metric_pre - 1 if row.gt_metric_pre else math.nan
+                )
+                cells.append("—" if math.isnan(change) else f"{change:+.0%}")
+                continue
+            value = getattr(row, attribute)
+            is_nan = isinstance(value, float) and math.isnan(value)
+            cells.append("—" if is_nan else str(pattern).format(value))
+        lines.append(cells)
+    widths = [max(len(line[c]) for line in lines) for c in range(len(header))]
+    rendered = [
+        "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) + " |"
+        for line in lines
+    ]
+    rendered.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    return "\n".join(rendered)
+
+
+# --------------------------------------------------------------------------- demo
+
+
+def _demo(args: argparse.Namespace) -> int:
+    params = _params(args.param)
+    from app.plot import render_map_png
+
+    sessions_dir, truth_dir = DATA_DIR / "sessions", DATA_DIR / "ground_truth"
+    if not sessions_dir.is_dir():
+        raise CommandError(f"demo data not found at {sessions_dir}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, truth_file in tqdm(
+        DEMO_SESSIONS, desc="demo", unit=" session", disable=None, file=sys.stderr
+    ):
+        session = load_session(sessions_dir / f"{name}.json")
+        ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None
+        result = optimize_session(session, params)
+        save_json(map_to_json(result), args.out / f"{name}.map.json")
+        save_json(map_to_app_format(result), args.out / f"{name}.app-map.json")
+        render_map_png(result, session, ground_truth=ground_truth, path=args.out / f"{name}.png")
+        rows.append(evaluate_map(session, result, ground_truth, dataset=name))
+    table = format_table(rows)
+    (args.out / "evaluation.md").write_text(table + "\n")
+    print(table)
+    print(f"\nwrote maps (*.map.json), app maps (*.app-map.json) and plots (*.png) to {args.out}/")
+    return 0
+
+
+def _ignored_line(row: Evaluation) -> str:
+    ids = list(row.ground_truth_ids_ignored)
+    shown = ", ".join(str(i) for i in ids[:10]) + (", …" if len(ids) > 10 else "")
+    return f"{len(ids)} ground-truth tags are not in this map and were ignored ({shown})"
+
+
+def _fmt(value: float, digits: int = 4) -> str:
+    return "—" if math.isnan(value) else f"{value:.{digits}f}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

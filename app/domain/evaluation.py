@@ -1,0 +1,108 @@
+"""One row of the evaluation table: a map against the pre-optimized baseline and ground truth.
+
+    row = evaluate_map(session, result, ground_truth)     # ground_truth may be None
+    row.to_dict()                                         # the ``evaluate --json`` object
+
+The pre-optimized and optimized maps are compared on the *same* tags: the tags in the optimized
+map (a tag whose every detection was rejected is in neither). ``gt_metric_pre_all_tags`` is the
+baseline over every tag the session saw, as the reference numbers in the data README define it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app.domain.frames import FloatArray
+from app.domain.map_result import MapResult
+from app.domain.metrics import compare_tag_sets, ground_truth_metric, shift_metric, tag_rmse_m
+from app.domain.session import Session, first_observation_tag_poses
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Evaluation:
+    """Metrics of one map. NaN where a metric is undefined (no ground truth, too few tags)."""
+
+    dataset: str
+    poses: int
+    tags: int
+    detections_used: int
+    detections_rejected: int
+    optimize_ms: float
+    iterations: int
+    gt_metric_pre: float
+    gt_metric_opt: float
+    gt_metric_pre_all_tags: float
+    tag_rmse_pre_m: float
+    tag_rmse_opt_m: float
+    shift_pre: float
+    shift_opt: float
+    tags_with_ground_truth: int
+    ground_truth_ids_ignored: tuple[int, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN becomes None)."""
+        out = dataclasses.asdict(self)
+        out["ground_truth_ids_ignored"] = list(self.ground_truth_ids_ignored)
+        return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in out.items()}
+
+
+def evaluate_map(
+    session: Session,
+    result: MapResult,
+    ground_truth: Mapping[int, FloatArray] | None = None,
+    *,
+    dataset: str | None = None,
+) -> Evaluation:
+    """Compare ``result`` with the first-observation baseline, and with ``ground_truth``."""
+    optimized = result.tag_poses()
+    pre_same_tags = result.tag_poses_pre()
+    pre_all_tags = first_observation_tag_poses(session)
+    used = _used_mask(session, result)
+    nan = math.nan
+    if ground_truth:
+        comparison = compare_tag_sets(optimized, ground_truth)
+        gt_pre, gt_opt = (
+            ground_truth_metric(pre_same_tags, ground_truth),
+            ground_truth_metric(optimized, ground_truth),
+        )
+        gt_pre_all = ground_truth_metric(pre_all_tags, ground_truth)
+        rmse_pre, rmse_opt = (
+            tag_rmse_m(pre_same_tags, ground_truth),
+            tag_rmse_m(optimized, ground_truth),
+        )
+        with_truth, ignored = len(comparison.common), comparison.only_in_ground_truth
+    else:
+        gt_pre = gt_opt = gt_pre_all = rmse_pre = rmse_opt = nan
+        with_truth, ignored = 0, ()
+    return Evaluation(
+        dataset=dataset or session.map_id,
+        poses=session.num_poses,
+        tags=len(result.tag_ids),
+        detections_used=result.detections_used,
+        detections_rejected=len(result.rejections),
+        optimize_ms=result.stats.optimize_ms,
+        iterations=result.stats.iterations,
+        gt_metric_pre=gt_pre,
+        gt_metric_opt=gt_opt,
+        gt_metric_pre_all_tags=gt_pre_all,
+        tag_rmse_pre_m=rmse_pre,
+        tag_rmse_opt_m=rmse_opt,
+        shift_pre=shift_metric(session, pre_same_tags, detection_mask=used),
+        shift_opt=shift_metric(session, optimized, detection_mask=used),
+        tags_with_ground_truth=with_truth,
+        ground_truth_ids_ignored=tuple(ignored),
+    )
+
+
+def _used_mask(session: Session, result: MapResult) -> npt.NDArray[np.bool_]:
+    """(M,) True for the detections that entered the graph."""
+    used = np.zeros(len(session.detections), dtype=bool)
+    used[result.residuals.tag_detection_index] = True
+    return used

@@ -1,0 +1,229 @@
+"""Maps to and from JSON: our own lossless form, and the app's download format (DESIGN §7).
+
+    document = map_to_json(result)          # ours: everything in MapResult, round-trips
+    result = map_from_json(document)
+    app_map = map_to_app_format(result)     # what the iPhone app downloads
+
+Poses are written as ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion), map frame y up.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.domain.errors import InvisibleMapError, MapFormatError
+from app.domain.frames import (
+    FloatArray,
+    pose_from_xyz_quat_xyzw,
+    pose_to_xyz_quat_xyzw,
+    quat_xyzw_from_rotation,
+)
+from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
+from app.domain.params import SlamParams
+
+MAP_FORMAT = "invisible-map/map"
+MAP_FORMAT_VERSION = 1
+
+
+def map_to_json(result: MapResult) -> dict[str, Any]:
+    """Our map document: tags, trajectory, points of interest, parameters, statistics, residuals."""
+    residuals = result.residuals
+    return {
+        "format": MAP_FORMAT,
+        "format_version": MAP_FORMAT_VERSION,
+        "map_id": result.map_id,
+        "params": result.params.to_dict(),
+        "stats": {
+            "iterations": result.stats.iterations,
+            "initial_error": result.stats.initial_error,
+            "final_error": result.stats.final_error,
+            "build_ms": result.stats.build_ms,
+            "optimize_ms": result.stats.optimize_ms,
+            "marginals_ms": result.stats.marginals_ms,
+            "num_factors": result.stats.num_factors,
+            "num_variables": result.stats.num_variables,
+            "detections_used": result.detections_used,
+            "detections_rejected": len(result.rejections),
+        },
+        "tags": [
+            {
+                "id": int(tag_id),
+                "pose": pose_to_xyz_quat_xyzw(result.world_T_tag[k]),
+                "pose_pre_optimized": pose_to_xyz_quat_xyzw(result.world_T_tag_pre[k]),
+                "covariance_rot_rad_trans_m": _nan_to_none(result.tag_covariance[k]),
+                "detections": int(result.tag_detection_count[k]),
+            }
+            for k, tag_id in enumerate(result.tag_ids)
+        ],
+        "trajectory": {
+            "pose_id": result.pose_id.tolist(),
+            "timestamp_s": result.timestamp_s.tolist(),
+            "pose_xyz_quat_xyzw": [pose_to_xyz_quat_xyzw(T) for T in result.world_T_phone],
+        },
+        "points_of_interest": [
+            {"name": name, "pose": pose_to_xyz_quat_xyzw(result.world_T_poi[k])}
+            for k, name in enumerate(result.poi_names)
+        ],
+        "rejections": [
+            {
+                "detection_index": r.detection_index,
+                "tag_id": r.tag_id,
+                "pose_index": r.pose_index,
+                "reason": r.reason,
+                "value": r.value,
+                "limit": r.limit,
+                "detail": r.detail,
+            }
+            for r in result.rejections
+        ],
+        "residuals": {
+            "odometry_chi2": residuals.odometry_chi2.tolist(),
+            "gravity_chi2": residuals.gravity_chi2.tolist(),
+            "tag_chi2": residuals.tag_chi2.tolist(),
+            "tag_detection_index": residuals.tag_detection_index.tolist(),
+            "tag_pose_index": residuals.tag_pose_index.tolist(),
+            "tag_translation_m": residuals.tag_translation_m.tolist(),
+            "tag_rotation_rad": residuals.tag_rotation_rad.tolist(),
+        },
+        "warnings": list(result.warnings),
+    }
+
+
+def map_from_json(document: Any) -> MapResult:
+    """Read back a document written by :func:`map_to_json`."""
+    if not isinstance(document, Mapping) or document.get("format") != MAP_FORMAT:
+        raise MapFormatError(f"not an {MAP_FORMAT} document")
+    if document.get("format_version") != MAP_FORMAT_VERSION:
+        raise MapFormatError(
+            f"unsupported format_version {document.get('format_version')!r}, "
+            f"this build reads {MAP_FORMAT_VERSION}"
+        )
+    try:
+        tags = document["tags"]
+        trajectory = document["trajectory"]
+        stats = document["stats"]
+        residuals = document["residuals"]
+        pois = document["points_of_interest"]
+        return MapResult(
+            map_id=str(document["map_id"]),
+            params=SlamParams.from_dict(document["params"]),
+            pose_id=np.asarray(trajectory["pose_id"], dtype=np.int64),
+            timestamp_s=np.asarray(trajectory["timestamp_s"], dtype=np.float64),
+            world_T_phone=_poses(trajectory["pose_xyz_quat_xyzw"]),
+            tag_ids=np.asarray([t["id"] for t in tags], dtype=np.int64),
+            world_T_tag=_poses([t["pose"] for t in tags]),
+            world_T_tag_pre=_poses([t["pose_pre_optimized"] for t in tags]),
+            tag_covariance=np.asarray(
+                [_none_to_nan(t["covariance_rot_rad_trans_m"]) for t in tags], dtype=np.float64
+            ).reshape(-1, 6, 6),
+            tag_detection_count=np.asarray([t["detections"] for t in tags], dtype=np.int64),
+            detections_used=int(stats["detections_used"]),
+            rejections=tuple(
+                Rejection(
+                    detection_index=int(r["detection_index"]),
+                    tag_id=int(r["tag_id"]),
+                    pose_index=int(r["pose_index"]),
+                    reason=str(r["reason"]),
+                    value=float(r["value"]),
+                    limit=float(r["limit"]),
+                )
+                for r in document["rejections"]
+            ),
+            residuals=FactorResiduals(
+                odometry_chi2=np.asarray(residuals["odometry_chi2"], dtype=np.float64),
+                gravity_chi2=np.asarray(residuals["gravity_chi2"], dtype=np.float64),
+                tag_chi2=np.asarray(residuals["tag_chi2"], dtype=np.float64),
+                tag_detection_index=np.asarray(residuals["tag_detection_index"], dtype=np.int64),
+                tag_pose_index=np.asarray(residuals["tag_pose_index"], dtype=np.int64),
+                tag_translation_m=np.asarray(residuals["tag_translation_m"], dtype=np.float64),
+                tag_rotation_rad=np.asarray(residuals["tag_rotation_rad"], dtype=np.float64),
+            ),
+            stats=OptimizationStats(
+                iterations=int(stats["iterations"]),
+                initial_error=float(stats["initial_error"]),
+                final_error=float(stats["final_error"]),
+                build_ms=float(stats["build_ms"]),
+                optimize_ms=float(stats["optimize_ms"]),
+                marginals_ms=float(stats["marginals_ms"]),
+                num_factors=int(stats["num_factors"]),
+                num_variables=int(stats["num_variables"]),
+            ),
+            poi_names=tuple(str(p["name"]) for p in pois),
+            world_T_poi=_poses([p["pose"] for p in pois]),
+            warnings=tuple(str(w) for w in document.get("warnings", [])),
+        )
+    except InvisibleMapError as err:
+        raise MapFormatError(f"map document: {err}") from err
+    except (KeyError, TypeError, ValueError) as err:
+        raise MapFormatError(f"map document is missing or has a malformed {err}") from err
+
+
+def map_to_app_format(result: MapResult) -> dict[str, Any]:
+    """The app's download format (DESIGN §7).
+
+    ``adjChi2`` of a pose is the chi² of the odometry factors touching it; ``vizTags`` the number of
+    tag detections used from it. ``neighbors`` are the path-graph links: until the path graph
+    exists, the previous and next pose.
+    """
+    n = result.world_T_phone.shape[0]
+    adjacent_chi2 = np.zeros(n)
+    adjacent_chi2[1:] += result.residuals.odometry_chi2
+    adjacent_chi2[:-1] += result.residuals.odometry_chi2
+    visible_tags = np.bincount(result.residuals.tag_pose_index, minlength=n).astype(float)
+    pose_ids = result.pose_id.tolist()
+    return {
+        "tag_vertices": [
+            {"id": int(tag_id), **_translation_rotation(result.world_T_tag[k])}
+            for k, tag_id in enumerate(result.tag_ids)
+        ],
+        "odometry_vertices": [
+            {
+                "poseId": int(pose_ids[i]),
+                **_translation_rotation(result.world_T_phone[i]),
+                "adjChi2": float(adjacent_chi2[i]),
+                "vizTags": float(visible_tags[i]),
+                "neighbors": [int(pose_ids[j]) for j in (i - 1, i + 1) if 0 <= j < n],
+            }
+            for i in range(n)
+        ],
+        "waypoints_vertices": [
+            {"id": name, **_translation_rotation(result.world_T_poi[k])}
+            for k, name in enumerate(result.poi_names)
+        ],
+    }
+
+
+def save_json(document: Any, path: str | Path) -> None:
+    """Write ``document`` as JSON, atomically (a temporary file renamed into place)."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(json.dumps(document, separators=(",", ":"), allow_nan=False))
+    temporary.replace(path)
+
+
+def _translation_rotation(T: FloatArray) -> dict[str, dict[str, float]]:
+    x, y, z = (float(v) for v in T[:3, 3])
+    qx, qy, qz, qw = (float(v) for v in quat_xyzw_from_rotation(T[:3, :3]))
+    return {
+        "translation": {"x": x, "y": y, "z": z},
+        "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
+    }
+
+
+def _poses(rows: Sequence[Sequence[float]]) -> FloatArray:
+    if len(rows) == 0:
+        return np.empty((0, 4, 4))
+    return np.stack([pose_from_xyz_quat_xyzw(row) for row in rows])
+
+
+def _nan_to_none(matrix: FloatArray) -> list[list[float | None]]:
+    return [[None if np.isnan(v) else float(v) for v in row] for row in matrix]
+
+
+def _none_to_nan(rows: Sequence[Sequence[float | None]]) -> list[list[float]]:
+    return [[np.nan if v is None else float(v) for v in row] for row in rows]

@@ -1,0 +1,210 @@
+"""Map quality metrics, exactly as DESIGN §4 defines them.
+
+    ground_truth_metric(map_T_tag, gt_T_tag)    # the authors' anchor metric, dimensionless
+    tag_rmse_m(map_T_tag, gt_T_tag)             # anchor-free, m, after a best-fit rigid alignment
+    shift_metric(session, map_T_tag)            # no ground truth needed, dimensionless
+    compare_tag_sets(map_T_tag, gt_T_tag)       # which tags the comparison can use
+
+Maps and ground truths are ``{tag_id: world_T_tag}`` with 4x4 float64 poses (m). Lower is better for
+all three metrics; each is NaN when there is nothing to measure (too few common tags, no pairs).
+Tags present in only one of map and ground truth are ignored; :func:`compare_tag_sets` lists them
+so callers can report them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from app.domain.frames import FloatArray, se3_inverse
+from app.domain.session import Session
+
+BoolArray = npt.NDArray[np.bool_]
+
+#: Two ground-truth tags closer than this (m) give no ratio in the ground-truth metric.
+COINCIDENT_TAGS_M = 1e-9
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TagSetComparison:
+    """Tag ids of a map against a ground truth, each tuple sorted.
+
+    common: in both; the metrics use these only.
+    only_in_map: mapped tags the ground truth does not cover.
+    only_in_ground_truth: ground-truth tags the map lacks (unknown ids are ignored, not an error).
+    """
+
+    common: tuple[int, ...]
+    only_in_map: tuple[int, ...]
+    only_in_ground_truth: tuple[int, ...]
+
+
+def compare_tag_sets(
+    map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]
+) -> TagSetComparison:
+    """Which tags are in both the map and the ground truth, and which in only one of them."""
+    map_ids, gt_ids = {int(t) for t in map_T_tag}, {int(t) for t in gt_T_tag}
+    return TagSetComparison(
+        common=tuple(sorted(map_ids & gt_ids)),
+        only_in_map=tuple(sorted(map_ids - gt_ids)),
+        only_in_ground_truth=tuple(sorted(gt_ids - map_ids)),
+    )
+
+
+# --------------------------------------------------------------------------- ground-truth metric
+
+
+def ground_truth_metric(
+    map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]
+) -> float:
+    """The authors' ground-truth metric (DESIGN §4), dimensionless, lower is better.
+
+    Over the tags common to map and ground truth: each tag ``a`` in turn is the anchor, the ground
+    truth is aligned to the map by ``T = map_T_a · gt_T_a⁻¹`` (full SE(3)), and for every other tag
+    ``i`` the ratio ``‖(T·gt_i).t - map_i.t‖ / ‖(T·gt_i).t - map_a.t‖`` is taken (the error at ``i``
+    over the ground-truth distance from ``a`` to ``i``). The result is the mean over all ordered
+    pairs (a, i ≠ a), which equals the mean of the per-anchor means since each anchor has the same
+    number of partners. Pairs whose two ground-truth tags coincide (closer than
+    :data:`COINCIDENT_TAGS_M`) give no ratio and are left out.
+
+    Returns NaN with fewer than 2 common tags (no pair to measure).
+    """
+    common = compare_tag_sets(map_T_tag, gt_T_tag).common
+    if len(common) < 2:
+        return math.nan
+    map_poses = _stack(map_T_tag, common)
+    gt_poses = _stack(gt_T_tag, common)
+    # anchor_T[a] = map_T_a · gt_T_a⁻¹ maps ground-truth coordinates into the map for anchor a.
+    anchor_T = map_poses @ se3_inverse(gt_poses)
+    # aligned_t[a, i] = (anchor_T[a] · gt_i).t, shape (n, n, 3).
+    aligned_t = (
+        np.einsum("aij,kj->aki", anchor_T[:, :3, :3], gt_poses[:, :3, 3]) + anchor_T[:, None, :3, 3]
+    )
+    error_m = np.linalg.norm(aligned_t - map_poses[None, :, :3, 3], axis=-1)
+    reach_m = np.linalg.norm(aligned_t - map_poses[:, None, :3, 3], axis=-1)
+    usable = ~np.eye(len(common), dtype=bool) & (reach_m > COINCIDENT_TAGS_M)
+    if not usable.any():
+        return math.nan
+    return float(np.mean(error_m[usable] / reach_m[usable]))
+
+
+# --------------------------------------------------------------------------- tag RMSE
+
+
+def umeyama_rigid(source_xyz: npt.ArrayLike, target_xyz: npt.ArrayLike) -> FloatArray:
+    """``target_T_source``: the rotation and translation (no scale) that best map the source points
+    onto the target points in the least-squares sense (Umeyama 1991).
+
+    source_xyz, target_xyz: (N, 3) corresponding points, N ≥ 1. The result is always a proper
+    rotation (det +1), never a reflection. With N = 1 the rotation is undetermined (the identity
+    direction of the SVD is used) and the translation makes the points coincide; with N = 2 or
+    collinear points the rotation about their line is undetermined.
+    """
+    source = np.asarray(source_xyz, dtype=np.float64)
+    target = np.asarray(target_xyz, dtype=np.float64)
+    if source.ndim != 2 or source.shape[1] != 3 or source.shape != target.shape:
+        raise ValueError(
+            f"expected two (N, 3) point arrays of the same shape, got {source.shape} and "
+            f"{target.shape}"
+        )
+    if source.shape[0] == 0:
+        raise ValueError("need at least one point pair")
+    if not (np.all(np.isfinite(source)) and np.all(np.isfinite(target))):
+        raise ValueError("points contain a non-finite number")
+    source_mean = source.mean(axis=0)
+    target_mean = target.mean(axis=0)
+    covariance = (target - target_mean).T @ (source - source_mean) / source.shape[0]
+    U, _, Vt = np.linalg.svd(covariance)
+    reflection = float(np.sign(np.linalg.det(U) * np.linalg.det(Vt)))  # ±1: U, V orthogonal
+    target_R_source = U @ np.diag([1.0, 1.0, reflection]) @ Vt
+    target_T_source = np.eye(4)
+    target_T_source[:3, :3] = target_R_source
+    target_T_source[:3, 3] = target_mean - target_R_source @ source_mean
+    return target_T_source
+
+
+def tag_rmse_m(map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]) -> float:
+    """Anchor-free tag position error, m (DESIGN §4).
+
+    The map's tag positions (of the tags common to map and ground truth) are aligned to the ground
+    truth's by the best-fit rigid transform (:func:`umeyama_rigid`, no scale); the result is the
+    root-mean-square distance between aligned and ground-truth positions. Orientations are not used.
+
+    Returns NaN with fewer than 2 common tags (a single tag always aligns exactly, so 0 would be
+    meaningless).
+    """
+    common = compare_tag_sets(map_T_tag, gt_T_tag).common
+    if len(common) < 2:
+        return math.nan
+    map_xyz = _stack(map_T_tag, common)[:, :3, 3]
+    gt_xyz = _stack(gt_T_tag, common)[:, :3, 3]
+    gt_T_map = umeyama_rigid(map_xyz, gt_xyz)
+    aligned_xyz = map_xyz @ gt_T_map[:3, :3].T + gt_T_map[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((aligned_xyz - gt_xyz) ** 2, axis=1))))
+
+
+# --------------------------------------------------------------------------- shift metric
+
+
+def shift_metric(
+    session: Session,
+    map_T_tag: Mapping[int, FloatArray],
+    *,
+    detection_mask: BoolArray | None = None,
+) -> float:
+    """The shift metric (DESIGN §4): how far the map "jumps" between consecutive tag sightings.
+
+    Only single-tag detections count (frames with exactly one detection), in upload order; with
+    ``detection_mask`` ((M,) bool over ``session.detections``) only the masked ones, so
+    "consecutive" means consecutive among the masked single-tag detections. For each consecutive
+    pair of detections of *different* tags A then B::
+
+        rel_obs = world_T_B,obs · world_T_A,obs⁻¹    # raw observations, world_T_tag_observed()
+        rel_map = map_T_B · map_T_A⁻¹
+        shift   = rel_obs · rel_map⁻¹                # ratio = ‖shift.t‖ / ‖rel_obs.t‖
+
+    and the result is the mean ratio over pairs, dimensionless. A pair is skipped when A or B is
+    not in the map (the pair is not bridged to the next detection), or when ``‖rel_obs.t‖`` is 0.
+    Returns NaN when no pair is left.
+
+    Note that, as defined, ``rel_obs.t = t_B - R_B·R_Aᵀ·t_A`` depends on where the session's world
+    origin is; the metric assumes map and session share the session's world frame.
+    """
+    detections = session.detections
+    count = len(detections)
+    selected = detections.frame_size == 1
+    if detection_mask is not None:
+        mask = np.asarray(detection_mask)
+        if mask.shape != (count,) or mask.dtype != np.bool_:
+            raise ValueError(
+                f"detection_mask must be a bool array of shape ({count},), "
+                f"got {mask.dtype} {mask.shape}"
+            )
+        selected = selected & mask
+    rows = np.flatnonzero(selected)
+    ratios: list[float] = []
+    if rows.size >= 2:
+        world_T_tag_obs = (
+            session.world_T_phone[detections.pose_index[rows]] @ detections.phone_T_tag[rows]
+        )
+        tag_ids = [int(t) for t in detections.tag_id[rows]]
+        for k in range(len(rows) - 1):
+            tag_a, tag_b = tag_ids[k], tag_ids[k + 1]
+            if tag_a == tag_b or tag_a not in map_T_tag or tag_b not in map_T_tag:
+                continue
+            rel_obs = world_T_tag_obs[k + 1] @ se3_inverse(world_T_tag_obs[k])
+            rel_map = np.asarray(map_T_tag[tag_b]) @ se3_inverse(np.asarray(map_T_tag[tag_a]))
+            shift = rel_obs @ se3_inverse(rel_map)
+            reach_m = float(np.linalg.norm(rel_obs[:3, 3]))
+            if reach_m <= 0.0:
+                continue
+            ratios.append(float(np.linalg.norm(shift[:3, 3])) / reach_m)
+    return float(np.mean(ratios)) if ratios else math.nan
+
+
+def _stack(poses: Mapping[int, FloatArray], tag_ids: tuple[int, ...]) -> FloatArray:
+    return np.stack([np.asarray(poses[t], dtype=np.float64) for t in tag_ids])

@@ -1,0 +1,332 @@
+"""Graph SLAM on a mapping session with gtsam (DESIGN §3). All gtsam calls of the project live here.
+
+    result = optimize_session(session, SlamParams())
+
+Steps:
+ 1. screen detections (``screening.py``): the rejected never enter the graph;
+ 2. build the factor graph
+    2a. a prior on the first phone pose fixes the gauge,
+    2b. odometry: ``BetweenFactorPose3(X(t), X(t+1), world_T_phone_t⁻¹ · world_T_phone_t+1)`` with
+        variance growing linearly with the time between the poses,
+    2c. gravity: an ``AttitudeFactorPose3`` per pose holds the phone's up vector (ARKit's world +y,
+        seen in the phone frame) to the map's +y,
+    2d. tags: ``BetweenFactorPose3(X(a), L(b), phone_T_tag)`` per used detection, noise in the
+        camera frame (depth the weak axis, growing with distance²), under a Huber kernel;
+ 3. initial values: raw odometry for the poses, each tag's first used observation;
+ 4. Levenberg–Marquardt with a COLAMD ordering computed once;
+ 5. per-factor residuals and the marginal covariances of the tag poses.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from app.domain.frames import FloatArray, relative_se3
+from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats
+from app.domain.params import SlamParams
+from app.domain.screening import screen_detections
+from app.domain.session import Session, first_observation_tag_poses
+
+#: σ of the gauge prior on the first pose: rotation rad, translation m.
+GAUGE_PRIOR_SIGMA_RAD = 1e-6
+GAUGE_PRIOR_SIGMA_M = 1e-6
+#: Shortest time credited to an odometry step, s (repeated timestamps would give zero noise).
+MIN_ODOMETRY_DT_S = 1e-3
+#: The map's up direction, in the world frame (y up).
+WORLD_UP = np.array([0.0, 1.0, 0.0])
+
+#: Called with (iteration, error) after each LM iteration.
+IterationCallback = Callable[[int, float], None]
+
+
+def pose_sigmas(*, rot_rad: FloatArray | float, trans_m: FloatArray | float) -> FloatArray:
+    """Pose3 sigma vector in gtsam's tangent order ``[rot(3) rad, trans(3) m]``."""
+    rot = np.broadcast_to(np.asarray(rot_rad, dtype=np.float64), (3,))
+    trans = np.broadcast_to(np.asarray(trans_m, dtype=np.float64), (3,))
+    return np.concatenate([rot, trans])
+
+
+def to_pose3(T: FloatArray) -> gtsam.Pose3:
+    return gtsam.Pose3(T)
+
+
+def tag_covariance_in_tag_frame(camera_T_tag: FloatArray, params: SlamParams) -> FloatArray:
+    """(6, 6) covariance of a tag detection in the tag frame, ``[rot rad, trans m]``.
+
+    Position: variance ``tag_position_var_m2 · d²`` across the line of sight and
+    ``tag_depth_var_ratio`` times that along it (the OpenCV camera's z), d the distance in m.
+    Orientation: ``tag_orientation_var_rad2`` about each axis.
+    """
+    distance_m = float(np.linalg.norm(camera_T_tag[:3, 3]))
+    lateral_var_m2 = params.tag_position_var_m2 * max(distance_m, 0.1) ** 2
+    camera_cov_m2 = np.diag([1.0, 1.0, params.tag_depth_var_ratio]) * lateral_var_m2
+    camera_R_tag = camera_T_tag[:3, :3]
+    tag_cov_m2 = camera_R_tag.T @ camera_cov_m2 @ camera_R_tag
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = np.eye(3) * params.tag_orientation_var_rad2
+    covariance[3:, 3:] = tag_cov_m2
+    return covariance
+
+
+def optimize_session(
+    session: Session,
+    params: SlamParams | None = None,
+    *,
+    on_iteration: IterationCallback | None = None,
+) -> MapResult:
+    """Optimize ``session`` into a map. Never raises on a session the parser accepted."""
+    params = params or SlamParams()
+    started = time.perf_counter()
+    screening = screen_detections(session.detections, params)
+    problem = _build_problem(session, params, screening.used)
+    build_ms = (time.perf_counter() - started) * 1e3
+
+    started = time.perf_counter()
+    values, iterations, initial_error, final_error = _levenberg_marquardt(
+        problem.graph, problem.initial, params, on_iteration
+    )
+    optimize_ms = (time.perf_counter() - started) * 1e3
+
+    n = session.num_poses
+    world_T_phone = np.stack([values.atPose3(X(i)).matrix() for i in range(n)])
+    tag_ids = np.array(sorted(problem.tag_rows), dtype=np.int64)
+    world_T_tag = (
+        np.stack([values.atPose3(L(int(t))).matrix() for t in tag_ids])
+        if tag_ids.size
+        else np.empty((0, 4, 4))
+    )
+
+    started = time.perf_counter()
+    tag_covariance = _tag_marginals(problem.graph, values, tag_ids, params)
+    marginals_ms = (time.perf_counter() - started) * 1e3
+
+    pre = first_observation_tag_poses(session)
+    warnings = list(session.warnings) + list(screening.warnings)
+    dropped = sorted(set(pre) - set(problem.tag_rows))
+    if dropped:
+        warnings.append(f"tags {dropped} are not in the map: every detection of them was rejected")
+    return MapResult(
+        map_id=session.map_id,
+        params=params,
+        pose_id=session.pose_id,
+        timestamp_s=session.timestamp_s,
+        world_T_phone=world_T_phone,
+        tag_ids=tag_ids,
+        world_T_tag=world_T_tag,
+        world_T_tag_pre=(
+            np.stack([pre[int(t)] for t in tag_ids]) if tag_ids.size else np.empty((0, 4, 4))
+        ),
+        tag_covariance=tag_covariance,
+        tag_detection_count=np.array(
+            [len(problem.tag_rows[int(t)]) for t in tag_ids], dtype=np.int64
+        ),
+        detections_used=int(screening.used.sum()),
+        rejections=screening.rejections,
+        residuals=_residuals(problem, values),
+        stats=OptimizationStats(
+            iterations=iterations,
+            initial_error=initial_error,
+            final_error=final_error,
+            build_ms=build_ms,
+            optimize_ms=optimize_ms,
+            marginals_ms=marginals_ms,
+            num_factors=int(problem.graph.size()),
+            num_variables=int(problem.initial.size()),
+        ),
+        poi_names=tuple(poi.name for poi in session.pois),
+        world_T_poi=(
+            np.stack([world_T_phone[poi.pose_index] @ poi.phone_T_poi for poi in session.pois])
+            if session.pois
+            else np.empty((0, 4, 4))
+        ),
+        warnings=tuple(warnings),
+    )
+
+
+def linearize_and_solve_ms(session: Session, params: SlamParams | None = None) -> float:
+    """Wall time of one linearization and sparse solve of ``session``'s graph, ms.
+
+    The floor for LM: it cannot take less than one Gauss–Newton step on the same graph.
+    """
+    params = params or SlamParams()
+    screening = screen_detections(session.detections, params)
+    problem = _build_problem(session, params, screening.used)
+    ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(problem.graph)
+    started = time.perf_counter()
+    linear = problem.graph.linearize(problem.initial)
+    delta = linear.optimize(ordering)
+    problem.initial.retract(delta)
+    return (time.perf_counter() - started) * 1e3
+
+
+# --------------------------------------------------------------------------- building
+
+
+class _Problem:
+    """The factor graph, its initial values, and where each factor kind sits in it."""
+
+    def __init__(self) -> None:
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.initial = gtsam.Values()
+        self.odometry_slots: list[int] = []
+        self.gravity_slots: list[int] = []
+        self.tag_slots: list[int] = []
+        self.tag_factors: list[gtsam.BetweenFactorPose3] = []
+        self.tag_detection_rows: list[int] = []
+        self.tag_pose_indices: list[int] = []
+        self.tag_covariances: list[FloatArray] = []
+        self.tag_rows: dict[int, list[int]] = {}
+
+    def add(self, factor: gtsam.NonlinearFactor, slots: list[int]) -> None:
+        slots.append(int(self.graph.size()))
+        self.graph.add(factor)
+
+
+def _build_problem(session: Session, params: SlamParams, used: np.ndarray) -> _Problem:
+    problem = _Problem()
+    n = session.num_poses
+    world_T_phone = session.world_T_phone
+
+    # 2a. gauge prior
+    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
+        pose_sigmas(rot_rad=GAUGE_PRIOR_SIGMA_RAD, trans_m=GAUGE_PRIOR_SIGMA_M)
+    )
+    problem.graph.add(gtsam.PriorFactorPose3(X(0), to_pose3(world_T_phone[0]), prior_noise))
+
+    # 2b. odometry, noise growing with the time between poses
+    dt_s = np.maximum(np.diff(session.timestamp_s), MIN_ODOMETRY_DT_S)
+    noise_by_dt: dict[float, gtsam.noiseModel.Base] = {}
+    for i in range(n - 1):
+        key_dt = round(float(dt_s[i]), 4)
+        noise = noise_by_dt.get(key_dt)
+        if noise is None:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(
+                pose_sigmas(
+                    rot_rad=math.sqrt(params.odom_angular_var_rad2_per_s * key_dt),
+                    trans_m=math.sqrt(params.odom_linear_var_m2_per_s * key_dt),
+                )
+            )
+            noise_by_dt[key_dt] = noise
+        phone_T_next = relative_se3(world_T_phone[i], world_T_phone[i + 1])
+        problem.add(
+            gtsam.BetweenFactorPose3(X(i), X(i + 1), to_pose3(phone_T_next), noise),
+            problem.odometry_slots,
+        )
+
+    # 2c. gravity: the measured up direction in the phone frame, held to the map's up
+    gravity_noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(params.gravity_var_rad2))
+    world_up = gtsam.Unit3(WORLD_UP)
+    phone_up = np.einsum("nji,j->ni", world_T_phone[:, :3, :3], WORLD_UP)
+    for i in range(n):
+        problem.add(
+            gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, gtsam.Unit3(phone_up[i])),
+            problem.gravity_slots,
+        )
+
+    for i in range(n):
+        problem.initial.insert(X(i), to_pose3(world_T_phone[i]))
+
+    # 2d. tags
+    detections = session.detections
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
+    for row in np.flatnonzero(used):
+        tag_id = int(detections.tag_id[row])
+        pose_index = int(detections.pose_index[row])
+        covariance = tag_covariance_in_tag_frame(detections.camera_T_tag[row], params)
+        noise = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        if huber is not None:
+            noise = gtsam.noiseModel.Robust.Create(huber, noise)
+        phone_T_tag = detections.phone_T_tag[row]
+        factor = gtsam.BetweenFactorPose3(X(pose_index), L(tag_id), to_pose3(phone_T_tag), noise)
+        problem.add(factor, problem.tag_slots)
+        problem.tag_factors.append(factor)
+        problem.tag_detection_rows.append(int(row))
+        problem.tag_pose_indices.append(pose_index)
+        problem.tag_covariances.append(covariance)
+        if tag_id not in problem.tag_rows:
+            problem.tag_rows[tag_id] = []
+            problem.initial.insert(L(tag_id), to_pose3(world_T_phone[pose_index] @ phone_T_tag))
+        problem.tag_rows[tag_id].append(int(row))
+    return problem
+
+
+# --------------------------------------------------------------------------- solving
+
+
+def _levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    initial: gtsam.Values,
+    params: SlamParams,
+    on_iteration: IterationCallback | None,
+) -> tuple[gtsam.Values, int, float, float]:
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setMaxIterations(params.max_iterations)
+    lm_params.setRelativeErrorTol(params.relative_error_tol)
+    lm_params.setAbsoluteErrorTol(0.0)
+    lm_params.setOrdering(gtsam.Ordering.ColamdNonlinearFactorGraph(graph))
+    if on_iteration is not None:
+        lm_params.iterationHook = lambda iteration, _before, after: on_iteration(
+            int(iteration), float(after)
+        )
+    initial_error = float(graph.error(initial))
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm_params)
+    values = optimizer.optimize()
+    return values, int(optimizer.iterations()), initial_error, float(optimizer.error())
+
+
+def _tag_marginals(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    tag_ids: np.ndarray,
+    params: SlamParams,
+) -> FloatArray:
+    covariance = np.full((tag_ids.size, 6, 6), np.nan)
+    if not params.compute_marginals or tag_ids.size == 0:
+        return covariance
+    try:
+        marginals = gtsam.Marginals(graph, values)
+    except RuntimeError:  # an indeterminate system; leave NaN rather than fail the map
+        return covariance
+    for k, tag_id in enumerate(tag_ids):
+        covariance[k] = marginals.marginalCovariance(L(int(tag_id)))
+    return covariance
+
+
+def _residuals(problem: _Problem, values: gtsam.Values) -> FactorResiduals:
+    graph = problem.graph
+    odometry_chi2 = np.array([2.0 * graph.at(s).error(values) for s in problem.odometry_slots])
+    gravity_chi2 = np.array([2.0 * graph.at(s).error(values) for s in problem.gravity_slots])
+    tag_errors = (
+        np.stack([factor.unwhitenedError(values) for factor in problem.tag_factors])
+        if problem.tag_slots
+        else np.empty((0, 6))
+    )
+    tag_chi2 = np.array(
+        [
+            float(e @ np.linalg.solve(cov, e))
+            for e, cov in zip(tag_errors, problem.tag_covariances, strict=True)
+        ]
+    )
+    return FactorResiduals(
+        odometry_chi2=odometry_chi2.reshape(-1),
+        gravity_chi2=gravity_chi2.reshape(-1),
+        tag_chi2=tag_chi2.reshape(-1),
+        tag_detection_index=np.array(problem.tag_detection_rows, dtype=np.int64),
+        tag_pose_index=np.array(problem.tag_pose_indices, dtype=np.int64),
+        tag_translation_m=np.linalg.norm(tag_errors[:, 3:], axis=1),
+        tag_rotation_rad=np.linalg.norm(tag_errors[:, :3], axis=1),
+    )
+
+
+__all__ = [
+    "linearize_and_solve_ms",
+    "optimize_session",
+    "pose_sigmas",
+    "tag_covariance_in_tag_frame",
+]
