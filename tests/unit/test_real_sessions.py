@@ -1,0 +1,40 @@
+"""The issue's accuracy targets on the real sessions, with the default parameters.
+
+Optimized maps must beat the pre-optimized ones (first observation of each tag) on the
+ground-truth metric on occam_room, floor_2_straight and straight_209_occam, and on no session may
+optimization make the ground-truth metric or the tag RMSE more than 10% worse.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from app.domain.evaluation import evaluate_map
+from app.domain.ground_truth import load_ground_truth
+from app.domain.session import load_session
+from app.domain.slam import optimize_session
+
+DATA = Path(__file__).parents[2] / "data"
+CASES = [
+    ("occam_room", "occam_room_tape.json", True),
+    ("floor_2_straight", "rtabmap_mac_1_2.txt", True),
+    ("straight_209_occam", "rtabmap_mac_1_2.txt", True),
+    ("desnat_straight_once", "rtabmap_mac_1_2.txt", False),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "truth", "must_improve"), CASES)
+def test_default_parameters_meet_the_accuracy_targets(name, truth, must_improve):
+    session = load_session(DATA / "sessions" / f"{name}.json")
+    ground_truth = load_ground_truth(DATA / "ground_truth" / truth)
+    row = evaluate_map(session, optimize_session(session), ground_truth)
+
+    if must_improve:
+        assert row.gt_metric_opt < row.gt_metric_pre
+    assert row.gt_metric_opt <= 1.10 * row.gt_metric_pre
+    assert row.tag_rmse_opt_m <= 1.10 * row.tag_rmse_pre_m
+    # Screening must not gut the map: at least 90% of the tags the session saw are kept.
+    assert row.tags >= 0.9 * len(session.tag_ids)
