@@ -73,6 +73,8 @@ def rigidity_defect(T: FloatArray) -> str | None:
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-3):
         return f"last row is {np.round(T[3], 6).tolist()}, expected [0, 0, 0, 1]"
     R = T[:3, :3]
+    if np.max(np.abs(R)) > 1.0 + ORTHONORMAL_TOLERANCE:  # no rotation has an entry above 1
+        return f"rotation not orthonormal (entry {float(np.max(np.abs(R))):.3g} exceeds 1)"
     defect = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if defect > ORTHONORMAL_TOLERANCE:
         return f"rotation not orthonormal (max |RᵀR − I| = {defect:.3g})"

@@ -102,8 +102,10 @@ class SlamParams:
         if self.max_iterations < 1:
             raise ParameterError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
         for tag_id, size_m in self.tag_sizes_m.items():
-            if not size_m > 0:
-                raise ParameterError(f"tag_sizes_m[{tag_id}] must be > 0, got {size_m}")
+            if not 0 < size_m < math.inf:
+                raise ParameterError(
+                    f"tag_sizes_m[{tag_id}] must be finite and > 0, got {size_m}"
+                )
 
     def tag_size_for(self, tag_id: int) -> float:
         """Side of tag ``tag_id``, m."""

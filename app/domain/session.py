@@ -33,6 +33,9 @@ from app.domain.frames import (
 
 IntArray = npt.NDArray[np.int64]
 
+#: Largest id accepted: integers a JSON number can hold exactly (2^53).
+MAX_ID = 2**53
+
 #: The app misspelt this key in at least one real upload; both spellings are read.
 LOCATION_KEYS = ("location_data", "location_ data")
 
@@ -151,6 +154,8 @@ def decode_json_bytes(raw: bytes, *, source: str = "upload") -> Any:
             raise SessionFormatError("", f"{source} is not valid gzip: {err}") from err
     try:
         return json.loads(raw)
+    except RecursionError as err:
+        raise SessionFormatError("", f"{source} is nested too deeply to be a session") from err
     except UnicodeDecodeError as err:
         raise SessionFormatError("", f"{source} is not UTF-8 text: {err.reason}") from err
     except json.JSONDecodeError as err:
@@ -394,6 +399,8 @@ def _integer(entry: Mapping[str, Any], key: str, where: str) -> int:
         raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {_json_type(value)}")
     if isinstance(value, float) and not value.is_integer():
         raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {value}")
+    if not -MAX_ID <= value <= MAX_ID:
+        raise SessionFormatError(f"{where}.{key}", f"integer out of range (|value| > 2^53): {value}")
     return int(value)
 
 

@@ -222,3 +222,27 @@ def test_warm_start_with_wrong_shape_is_refused():
     session = load_session(DATA / "sessions" / "onetag.json")
     with pytest.raises(ValueError, match="initial_world_T_phone"):
         optimize_session(session, initial_world_T_phone=np.zeros((3, 4, 4)))
+
+
+def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
+    """The Schur-complement shortcut gives what gtsam.Marginals gives on the full graph."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from app.domain import slam
+    from app.domain.screening import screen_detections
+
+    session = load_session(DATA / "sessions" / "occam_room.json")
+    params = SlamParams()
+    result = optimize_session(session, params)
+    problem = slam._build_problem(session, params, screen_detections(session.detections, params).used)
+    values = gtsam.Values()
+    for i in range(session.num_poses):
+        values.insert(X(i), gtsam.Pose3(result.world_T_phone[i]))
+    for k, tag_id in enumerate(result.tag_ids):
+        values.insert(L(int(tag_id)), gtsam.Pose3(result.world_T_tag[k]))
+    reference = gtsam.Marginals(problem.graph, values)
+    for k, tag_id in enumerate(result.tag_ids):
+        np.testing.assert_allclose(
+            result.tag_covariance[k], reference.marginalCovariance(L(int(tag_id))), atol=1e-10
+        )
