@@ -62,7 +62,9 @@ def render_map_png(
         pre_xz = result.world_T_tag_pre[tags_here][:, [0, 2], 3]
         axis.scatter(*pre_xz.T, marker="x", color=PRE_TAG_COLOUR, label="tags, pre-optimized")
         tag_xz = result.world_T_tag[tags_here][:, [0, 2], 3]
-        axis.scatter(*tag_xz.T, marker="s", s=28, color=TAG_COLOUR, label="tags, optimized (2σ from start)")
+        axis.scatter(
+            *tag_xz.T, marker="s", s=28, color=TAG_COLOUR, label="tags, optimized (2σ from start)"
+        )
         for k in np.flatnonzero(tags_here):
             _draw_position_ellipse(axis, result, int(k))
             x, z = result.world_T_tag[k, [0, 2], 3]

@@ -40,11 +40,10 @@ TARGETS = "targets: real session LM ≤ 50 ms; 10k ≤ 600 ms; 100k ≤ 10 s and
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """Run one case in this process and measure it."""
     sys.path.insert(0, str(REPO))
+    from app.domain.params import SlamParams
     from app.domain.session import load_session, parse_session
     from app.domain.simulate import SimulationConfig, simulate_session
     from app.domain.slam import linearize_and_solve_ms, optimize_session
-
-    from app.domain.params import SlamParams
 
     params = SlamParams(compute_marginals=case.get("marginals", True))
     if case["kind"] == "synthetic":
@@ -119,8 +118,10 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     lines = [[title for title, _, _ in columns]]
     lines += [[pattern.format(row[key]) for _, key, pattern in columns] for row in rows]
     widths = [max(len(line[c]) for line in lines) for c in range(len(columns))]
-    rendered = ["| " + " | ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True))
-                + " |" for line in lines]
+    rendered = [
+        "| " + " | ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True)) + " |"
+        for line in lines
+    ]
     rendered.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
     return "\n".join(rendered)
 

@@ -103,9 +103,7 @@ class SlamParams:
             raise ParameterError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
         for tag_id, size_m in self.tag_sizes_m.items():
             if not 0 < size_m < math.inf:
-                raise ParameterError(
-                    f"tag_sizes_m[{tag_id}] must be finite and > 0, got {size_m}"
-                )
+                raise ParameterError(f"tag_sizes_m[{tag_id}] must be finite and > 0, got {size_m}")
 
     def tag_size_for(self, tag_id: int) -> float:
         """Side of tag ``tag_id``, m."""

@@ -400,7 +400,9 @@ def _integer(entry: Mapping[str, Any], key: str, where: str) -> int:
     if isinstance(value, float) and not value.is_integer():
         raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {value}")
     if not -MAX_ID <= value <= MAX_ID:
-        raise SessionFormatError(f"{where}.{key}", f"integer out of range (|value| > 2^53): {value}")
+        raise SessionFormatError(
+            f"{where}.{key}", f"integer out of range (|value| > 2^53): {value}"
+        )
     return int(value)
 
 

@@ -68,8 +68,9 @@ def test_noiseless_simulation_recovered_from_a_perturbed_start(noiseless):
     truth = np.stack([noiseless.world_T_tag_true[int(t)] for t in result.tag_ids])
     assert positions_error_m(result.world_T_tag, truth) < 1e-6
     rotation_error = np.einsum("kji,kjl->kil", result.world_T_tag[:, :3, :3], truth[:, :3, :3])
-    np.testing.assert_allclose(rotation_error, np.broadcast_to(np.eye(3), rotation_error.shape),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        rotation_error, np.broadcast_to(np.eye(3), rotation_error.shape), atol=1e-6
+    )
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -92,8 +93,7 @@ def test_outliers_are_contained_by_screening_and_huber():
     protected = optimize_session(session)
     unprotected = optimize_session(
         session,
-        SlamParams(huber_k=0.0, max_reprojection_px=1e6, max_view_angle_deg=90,
-                   max_distance_m=1e6),
+        SlamParams(huber_k=0.0, max_reprojection_px=1e6, max_view_angle_deg=90, max_distance_m=1e6),
     )
     protected_m, _ = tag_errors_m(protected, sim)
     unprotected_m, _ = tag_errors_m(unprotected, sim)
@@ -118,8 +118,9 @@ def test_corners_that_disagree_with_the_pose_are_rejected_for_reprojection():
     good = copy.deepcopy(document["tag_data"][0][0])
     bad = copy.deepcopy(good)
     corners = bad["tag_corners_pixel_coordinates"]
-    bad["tag_corners_pixel_coordinates"] = [c + (40.0 if i % 2 == 0 else 0.0)
-                                            for i, c in enumerate(corners[:2])] + corners[2:]
+    bad["tag_corners_pixel_coordinates"] = [
+        c + (40.0 if i % 2 == 0 else 0.0) for i, c in enumerate(corners[:2])
+    ] + corners[2:]
     document["tag_data"] = [[good], [good], [bad]]
     result = optimize_session(parse_session(document))
     assert [(r.detection_index, r.reason) for r in result.rejections] == [(2, "reprojection")]
@@ -130,9 +131,7 @@ def test_corners_that_disagree_with_the_pose_are_rejected_for_reprojection():
 
 def test_grazing_and_far_detections_are_rejected_with_their_reason():
     document = _onetag_document()
-    result = optimize_session(
-        parse_session(document), SlamParams(max_view_angle_deg=1.0)
-    )
+    result = optimize_session(parse_session(document), SlamParams(max_view_angle_deg=1.0))
     assert [r.reason for r in result.rejections] == ["view_angle"]
     result = optimize_session(parse_session(document), SlamParams(max_distance_m=0.1))
     assert [r.reason for r in result.rejections] == ["distance"]
@@ -225,7 +224,7 @@ def test_warm_start_with_wrong_shape_is_refused():
 
 
 def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
-    """The Schur-complement shortcut gives what gtsam.Marginals gives on the full graph."""
+    """The covariances are those of the graph at the solution (rebuilt independently here)."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -235,7 +234,9 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
     session = load_session(DATA / "sessions" / "occam_room.json")
     params = SlamParams()
     result = optimize_session(session, params)
-    problem = slam._build_problem(session, params, screen_detections(session.detections, params).used)
+    problem = slam._build_problem(
+        session, params, screen_detections(session.detections, params).used
+    )
     values = gtsam.Values()
     for i in range(session.num_poses):
         values.insert(X(i), gtsam.Pose3(result.world_T_phone[i]))
