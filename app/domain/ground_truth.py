@@ -20,10 +20,8 @@ field such as ``poses[3].pose[5]``, a file) and why.
 
 from __future__ import annotations
 
-import gzip
 import json
 import math
-import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -41,6 +39,7 @@ from app.domain.frames import (
     rotation_about_z,
     rotation_from_quat_xyzw,
 )
+from app.domain.json_values import gunzip_if_compressed, json_type_name
 
 #: Rotation taking RTAB-Map's z-up axes to the app's y-up world axes: quaternion (x, y, z, w) =
 #: (-0.5, 0.5, 0.5, 0.5), i.e. x_app = -y_rtab, y_app = z_rtab, z_app = -x_rtab.
@@ -139,12 +138,12 @@ def parse_ground_truth_json(document: Any) -> dict[int, FloatArray]:
     or repeated tag id, a zero quaternion, or no poses at all. Unknown keys are ignored.
     """
     if not isinstance(document, Mapping):
-        raise GroundTruthFormatError(f"expected a JSON object, got {_json_type(document)}")
+        raise GroundTruthFormatError(f"expected a JSON object, got {json_type_name(document)}")
     if "poses" not in document:
         raise GroundTruthFormatError("poses: missing")
     entries = document["poses"]
     if not isinstance(entries, list):
-        raise GroundTruthFormatError(f"poses: expected a list, got {_json_type(entries)}")
+        raise GroundTruthFormatError(f"poses: expected a list, got {json_type_name(entries)}")
     if not entries:
         raise GroundTruthFormatError("poses: empty, no tag poses")
     poses: dict[int, FloatArray] = {}
@@ -152,7 +151,9 @@ def parse_ground_truth_json(document: Any) -> dict[int, FloatArray]:
     for i, entry in enumerate(entries):
         where = f"poses[{i}]"
         if not isinstance(entry, Mapping):
-            raise GroundTruthFormatError(f"{where}: expected an object, got {_json_type(entry)}")
+            raise GroundTruthFormatError(
+                f"{where}: expected an object, got {json_type_name(entry)}"
+            )
         tag_id = _json_tag_id(entry, where)
         if tag_id in poses:
             raise GroundTruthFormatError(
@@ -169,7 +170,7 @@ def _json_tag_id(entry: Mapping[str, Any], where: str) -> int:
     value = entry["tag_id"]
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise GroundTruthFormatError(
-            f"{where}.tag_id: expected an integer, got {_json_type(value)}"
+            f"{where}.tag_id: expected an integer, got {json_type_name(value)}"
         )
     if isinstance(value, float) and not value.is_integer():
         raise GroundTruthFormatError(f"{where}.tag_id: expected an integer, got {value}")
@@ -186,7 +187,7 @@ def _json_pose(entry: Mapping[str, Any], where: str) -> FloatArray:
     if not isinstance(value, list):
         raise GroundTruthFormatError(
             f"{where}: expected a list of 7 numbers [x, y, z, qx, qy, qz, qw], "
-            f"got {_json_type(value)}"
+            f"got {json_type_name(value)}"
         )
     if len(value) != 7:
         raise GroundTruthFormatError(
@@ -194,7 +195,9 @@ def _json_pose(entry: Mapping[str, Any], where: str) -> FloatArray:
         )
     for j, item in enumerate(value):
         if isinstance(item, bool) or not isinstance(item, (int, float)):
-            raise GroundTruthFormatError(f"{where}[{j}]: expected a number, got {_json_type(item)}")
+            raise GroundTruthFormatError(
+                f"{where}[{j}]: expected a number, got {json_type_name(item)}"
+            )
         if not math.isfinite(item):
             raise GroundTruthFormatError(f"{where}[{j}]: non-finite number {item}")
     values = np.asarray(value, dtype=np.float64)
@@ -268,11 +271,10 @@ def parse_ground_truth_text(text: str) -> dict[int, FloatArray]:
 
 
 def _decode(raw: bytes) -> str:
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as err:
-            raise GroundTruthFormatError(f"not valid gzip: {err}") from err
+    try:
+        raw = gunzip_if_compressed(raw)
+    except ValueError as err:
+        raise GroundTruthFormatError(f"not valid gzip: {err}") from err
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -281,19 +283,3 @@ def _decode(raw: bytes) -> str:
 
 def _shorten(text: str, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
-
-
-def _json_type(value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, (int, float)):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, Mapping):
-        return "an object"
-    if isinstance(value, list):
-        return "a list"
-    return type(value).__name__

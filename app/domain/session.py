@@ -11,11 +11,9 @@ Everything downstream reads these arrays; nobody walks the dicts again. Any malf
 
 from __future__ import annotations
 
-import gzip
 import json
 import math
-import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +28,7 @@ from app.domain.frames import (
     orthonormalized,
     rigidity_defect,
 )
+from app.domain.json_values import gunzip_if_compressed, json_type_name
 
 IntArray = npt.NDArray[np.int64]
 
@@ -147,11 +146,10 @@ def read_json_document(path: str | Path) -> Any:
 
 def decode_json_bytes(raw: bytes, *, source: str = "upload") -> Any:
     """Decode (gunzipping if needed) and parse JSON bytes."""
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as err:
-            raise SessionFormatError("", f"{source} is not valid gzip: {err}") from err
+    try:
+        raw = gunzip_if_compressed(raw)
+    except ValueError as err:
+        raise SessionFormatError("", f"{source} is not valid gzip: {err}") from err
     try:
         return json.loads(raw)
     except RecursionError as err:
@@ -174,7 +172,7 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     points to the next pose); when True (the default) it is moved back by one.
     """
     if not isinstance(document, Mapping):
-        raise SessionFormatError("", f"expected a JSON object, got {_json_type(document)}")
+        raise SessionFormatError("", f"expected a JSON object, got {json_type_name(document)}")
     map_id = document.get("map_id")
     if not isinstance(map_id, str) or not map_id.strip():
         raise SessionFormatError("map_id", "missing or not a non-empty string")
@@ -361,30 +359,14 @@ def _empty_detections() -> TagDetections:
 # --------------------------------------------------------------------------- field readers
 
 
-def _json_type(value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, (int, float)):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, Mapping):
-        return "an object"
-    if isinstance(value, Sequence):
-        return "a list"
-    return type(value).__name__
-
-
 def _require_list(value: Any, where: str) -> None:
     if not isinstance(value, list):
-        raise SessionFormatError(where, f"expected a list, got {_json_type(value)}")
+        raise SessionFormatError(where, f"expected a list, got {json_type_name(value)}")
 
 
 def _require_object(value: Any, where: str) -> None:
     if not isinstance(value, Mapping):
-        raise SessionFormatError(where, f"expected an object, got {_json_type(value)}")
+        raise SessionFormatError(where, f"expected an object, got {json_type_name(value)}")
 
 
 def _field(entry: Mapping[str, Any], key: str, where: str) -> Any:
@@ -396,7 +378,9 @@ def _field(entry: Mapping[str, Any], key: str, where: str) -> Any:
 def _integer(entry: Mapping[str, Any], key: str, where: str) -> int:
     value = _field(entry, key, where)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {_json_type(value)}")
+        raise SessionFormatError(
+            f"{where}.{key}", f"expected an integer, got {json_type_name(value)}"
+        )
     if isinstance(value, float) and not value.is_integer():
         raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {value}")
     if not -MAX_ID <= value <= MAX_ID:
@@ -409,7 +393,9 @@ def _integer(entry: Mapping[str, Any], key: str, where: str) -> int:
 def _number(entry: Mapping[str, Any], key: str, where: str) -> float:
     value = _field(entry, key, where)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SessionFormatError(f"{where}.{key}", f"expected a number, got {_json_type(value)}")
+        raise SessionFormatError(
+            f"{where}.{key}", f"expected a number, got {json_type_name(value)}"
+        )
     if not math.isfinite(value):
         raise SessionFormatError(f"{where}.{key}", f"non-finite number {value}")
     return float(value)
@@ -436,13 +422,15 @@ def _matrix16(entry: Mapping[str, Any], key: str, where: str) -> FloatArray:
 def _numbers(value: Any, where: str, length: int) -> FloatArray:
     if not isinstance(value, list):
         raise SessionFormatError(
-            where, f"expected a list of {length} numbers, got {_json_type(value)}"
+            where, f"expected a list of {length} numbers, got {json_type_name(value)}"
         )
     if len(value) != length:
         raise SessionFormatError(where, f"expected {length} numbers, got {len(value)}")
     for j, item in enumerate(value):
         if isinstance(item, bool) or not isinstance(item, (int, float)):
-            raise SessionFormatError(f"{where}[{j}]", f"expected a number, got {_json_type(item)}")
+            raise SessionFormatError(
+                f"{where}[{j}]", f"expected a number, got {json_type_name(item)}"
+            )
         if not math.isfinite(item):
             raise SessionFormatError(f"{where}[{j}]", f"non-finite number {item}")
     return np.asarray(value, dtype=np.float64)

@@ -1,0 +1,41 @@
+"""Small helpers for reading JSON documents that people and phones send us.
+
+json_type_name([1, 2])          # "a list", for messages like "expected an object, got a list"
+gunzip_if_compressed(raw)       # the bytes, decompressed when they start with gzip's magic
+"""
+
+from __future__ import annotations
+
+import gzip
+import zlib
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+GZIP_MAGIC = b"\x1f\x8b"
+
+
+def json_type_name(value: Any) -> str:
+    """How a decoded JSON value reads in an error message: "null", "a number", "an object", …"""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, Mapping):
+        return "an object"
+    if isinstance(value, Sequence):
+        return "a list"
+    return type(value).__name__
+
+
+def gunzip_if_compressed(raw: bytes) -> bytes:
+    """``raw`` gunzipped if it is gzip, else unchanged; ValueError (with the reason) if corrupt."""
+    if raw[:2] != GZIP_MAGIC:
+        return raw
+    try:
+        return gzip.decompress(raw)
+    except (OSError, EOFError, zlib.error) as err:
+        raise ValueError(str(err)) from err
