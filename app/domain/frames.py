@@ -70,8 +70,11 @@ def rigidity_defect(T: FloatArray) -> str | None:
         return f"expected a 4x4 matrix, got shape {T.shape}"
     if not np.all(np.isfinite(T)):
         return "contains a non-finite number"
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-3):
-        return f"last row is {np.round(T[3], 6).tolist()}, expected [0, 0, 0, 1]"
+    last_row = np.array([0.0, 0.0, 0.0, 1.0])
+    # np.allclose's test (|a − b| ≤ atol + rtol·|b|), written out: allclose overflows on 1e302.
+    if np.any(np.abs(T[3] - last_row) > 1e-3 + 1e-5 * last_row):
+        shown = ", ".join(f"{v:.6g}" for v in T[3])
+        return f"last row is [{shown}], expected [0, 0, 0, 1]"
     R = T[:3, :3]
     if np.max(np.abs(R)) > 1.0 + ORTHONORMAL_TOLERANCE:  # no rotation has an entry above 1
         return f"rotation not orthonormal (entry {float(np.max(np.abs(R))):.3g} exceeds 1)"

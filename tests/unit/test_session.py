@@ -1043,3 +1043,11 @@ def test_any_cut_of_a_real_file_is_a_format_error(cut_at):
     raw = (SESSIONS_DIR / "onetag.json").read_bytes()
     with pytest.raises(SessionFormatError):
         parse_session(decode_json_bytes(raw[: len(raw) * cut_at // 401]))
+
+
+def test_huge_last_row_entry_is_a_format_error_without_warnings():
+    """Found by Hypothesis: 1.8e302 in a pose's last entry overflowed np.allclose."""
+    document = make_upload(num_poses=3)
+    document["pose_data"][0]["pose"][15] = 1.797693134862316e302
+    with pytest.raises(SessionFormatError, match=r"pose_data\[0\]\.pose: last row"):
+        parse_session(document)
