@@ -163,3 +163,41 @@ def pose_from_xyz_quat_xyzw(values: npt.ArrayLike) -> FloatArray:
     """4×4 pose from ``[x, y, z, qx, qy, qz, qw]``."""
     v = np.asarray(values, dtype=np.float64)
     return make_pose(rotation_from_quat_xyzw(v[3:7]), v[:3])
+
+
+# --------------------------------------------------------------------------- tags seen by a camera
+
+#: Tag-frame (x, y) signs of corners 0..3 (DESIGN §2): (−,−), (+,−), (+,+), (−,+) times s/2.
+TAG_CORNER_SIGNS: FloatArray = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+#: Smallest depth divided by in a projection, m (a point on the image plane projects far away).
+MIN_PROJECTION_DEPTH_M = 1e-9
+
+
+def tag_corners_in_tag_frame(size_m: npt.ArrayLike) -> FloatArray:
+    """(..., 4, 3) corners 0..3 of tags of side ``size_m`` (a scalar or (...,) array), tag frame."""
+    half_m = np.asarray(size_m, dtype=np.float64)[..., None, None] / 2.0
+    corners = np.zeros((*half_m.shape[:-2], 4, 3))
+    corners[..., :2] = TAG_CORNER_SIGNS * half_m
+    return corners
+
+
+def tag_corners_in_camera(camera_T_tag: FloatArray, size_m: npt.ArrayLike) -> FloatArray:
+    """(M, 4, 3) corners of tags of side ``size_m`` (scalar or (M,)) posed at ``camera_T_tag``."""
+    corners_tag = tag_corners_in_tag_frame(size_m)
+    camera_R_tag = camera_T_tag[:, :3, :3]
+    p_camera = corners_tag @ np.swapaxes(camera_R_tag, -1, -2) + camera_T_tag[:, None, :3, 3]
+    return np.asarray(p_camera, dtype=np.float64)
+
+
+def project_pinhole_px(p_camera: FloatArray, intrinsics: npt.ArrayLike) -> FloatArray:
+    """(..., 2) pixels ``u = fx·X/Z + cx, v = fy·Y/Z + cy`` of (..., 3) OpenCV-camera points.
+
+    ``intrinsics`` (fx, fy, cx, cy) in px, shape (4,) or broadcastable to ``p_camera``'s leading
+    dimensions plus 4 (e.g. (M, 1, 4) for (M, 4, 3) points).
+    """
+    fx, fy, cx, cy = np.moveaxis(np.asarray(intrinsics, dtype=np.float64), -1, 0)
+    depth = p_camera[..., 2]
+    depth = np.where(np.abs(depth) < MIN_PROJECTION_DEPTH_M, MIN_PROJECTION_DEPTH_M, depth)
+    u = fx * p_camera[..., 0] / depth + cx
+    v = fy * p_camera[..., 1] / depth + cy
+    return np.stack([u, v], axis=-1)

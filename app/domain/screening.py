@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from app.domain.frames import FloatArray
+from app.domain.frames import FloatArray, project_pinhole_px, tag_corners_in_camera
 from app.domain.map_result import Rejection
 from app.domain.params import SlamParams
 from app.domain.session import TagDetections
@@ -61,26 +61,10 @@ class Screening:
     warnings: tuple[str, ...]
 
 
-def tag_corners_in_tag_frame(size_m: FloatArray) -> FloatArray:
-    """(M, 4, 3) the corners 0..3 of tags of side ``size_m`` (M,), in the tag frame."""
-    half = np.asarray(size_m, dtype=np.float64)[:, None] / 2.0
-    signs = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-    corners = np.zeros((half.shape[0], 4, 3))
-    corners[:, :, :2] = signs[None] * half[:, :, None]
-    return corners
-
-
 def project_tag_corners(detections: TagDetections, size_m: FloatArray) -> FloatArray:
     """(M, 4, 2) pixel positions of each detection's corners from its ``camera_T_tag``."""
-    corners_tag = tag_corners_in_tag_frame(size_m)
-    camera_R_tag = detections.camera_T_tag[:, :3, :3]
-    camera_t_tag = detections.camera_T_tag[:, :3, 3]
-    p_camera = np.einsum("mij,mkj->mki", camera_R_tag, corners_tag) + camera_t_tag[:, None, :]
-    fx, fy, cx, cy = (detections.intrinsics[:, i, None] for i in range(4))
-    depth = np.where(np.abs(p_camera[..., 2]) < 1e-9, 1e-9, p_camera[..., 2])
-    u = fx * p_camera[..., 0] / depth + cx
-    v = fy * p_camera[..., 1] / depth + cy
-    return np.stack([u, v], axis=-1)
+    corners_camera = tag_corners_in_camera(detections.camera_T_tag, size_m)
+    return project_pinhole_px(corners_camera, detections.intrinsics[:, None, :])
 
 
 def measure_detections(detections: TagDetections, params: SlamParams) -> DetectionGeometry:

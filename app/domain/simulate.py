@@ -41,7 +41,14 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.errors import ParameterError
-from app.domain.frames import PHONE_T_CAMERA_CV, FloatArray, se3_inverse
+from app.domain.frames import (
+    PHONE_T_CAMERA_CV,
+    FloatArray,
+    project_pinhole_px,
+    se3_inverse,
+    tag_corners_in_camera,
+    tag_corners_in_tag_frame,
+)
 from app.domain.ground_truth import ground_truth_to_json
 
 IntArray = npt.NDArray[np.int64]
@@ -819,10 +826,10 @@ def _visible_pairs(
     camera_T_tag = (
         PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone[pose_index]) @ world_T_tags[tag_row]
     )
-    corners_camera = _corners_in_camera(camera_T_tag, config.tag_size_m)
+    corners_camera = tag_corners_in_camera(camera_T_tag, config.tag_size_m)
     in_front = np.all(corners_camera[:, :, 2] > 1e-3, axis=1)
     pose_index, tag_row = pose_index[in_front], tag_row[in_front]
-    corners_px = _project(corners_camera[in_front], config.camera_intrinsics)
+    corners_px = project_pinhole_px(corners_camera[in_front], config.camera_intrinsics)
     width, height = config.image_size_px
     inside = np.all(
         (corners_px[:, :, 0] >= 0)
@@ -913,8 +920,8 @@ def _measure(
         camera_T_tag[bad, :3, 3] = moved
 
     corners_from = np.where(is_outlier[:, None, None], camera_T_tag_true, camera_T_tag)
-    corners_px = _project(
-        _corners_in_camera(corners_from, config.tag_size_m), config.camera_intrinsics
+    corners_px = project_pinhole_px(
+        tag_corners_in_camera(corners_from, config.tag_size_m), config.camera_intrinsics
     )
     return _Measurements(
         camera_T_tag=camera_T_tag,
@@ -933,7 +940,7 @@ def _joint_covariance(camera_T_tag: FloatArray, config: SimulationConfig) -> Flo
     m = camera_T_tag.shape[0]
     fx, fy, _, _ = config.camera_intrinsics
     R = camera_T_tag[:, :3, :3]
-    rotated = np.einsum("nij,kj->nki", R, _tag_corners(config.tag_size_m)[:, :3])  # (M, 4, 3)
+    rotated = np.einsum("nij,kj->nki", R, tag_corners_in_tag_frame(config.tag_size_m))  # (M, 4, 3)
     points = rotated + camera_T_tag[:, None, :3, 3]
     X, Y, Z = points[..., 0], points[..., 1], points[..., 2]
     d_uv_d_point = np.zeros((m, 4, 2, 3))
@@ -1079,29 +1086,6 @@ def _smooth_noise(
     white = rng.standard_normal(n + 2 * half_width)
     smooth = np.convolve(white, kernel, mode="valid") / float(np.linalg.norm(kernel))
     return np.asarray(sigma * smooth, dtype=np.float64)
-
-
-def _tag_corners(tag_size_m: float) -> FloatArray:
-    """(4, 4) homogeneous tag-frame corners 0..3 (DESIGN §2), s = ``tag_size_m``."""
-    h = tag_size_m / 2
-    return np.array([[-h, -h, 0.0, 1.0], [h, -h, 0.0, 1.0], [h, h, 0.0, 1.0], [-h, h, 0.0, 1.0]])
-
-
-def _corners_in_camera(camera_T_tag: FloatArray, tag_size_m: float) -> FloatArray:
-    """(M, 4, 3) the tag corners in the (OpenCV) camera frame."""
-    corners = np.einsum("nij,kj->nki", camera_T_tag, _tag_corners(tag_size_m))
-    return np.asarray(corners[..., :3], dtype=np.float64)
-
-
-def _project(
-    points_camera: FloatArray, intrinsics: tuple[float, float, float, float]
-) -> FloatArray:
-    """(..., 2) pixels u = fx·X/Z + cx, v = fy·Y/Z + cy of (..., 3) OpenCV camera points."""
-    fx, fy, cx, cy = intrinsics
-    Z = points_camera[..., 2]
-    u = fx * points_camera[..., 0] / Z + cx
-    v = fy * points_camera[..., 1] / Z + cy
-    return np.stack([u, v], axis=-1)
 
 
 def _skew(v: FloatArray) -> FloatArray:
