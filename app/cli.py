@@ -29,6 +29,7 @@ from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
 from app.domain.session import Session, load_session
 from app.domain.slam import optimize_session
+from app.tables import render_markdown_table
 
 PROGRAM = "invisible-map"
 #: The demo sessions and their ground truth, shipped in the repository (see data/README.md).
@@ -262,13 +263,7 @@ def format_table(rows: Sequence[Evaluation]) -> str:
             is_nan = isinstance(value, float) and math.isnan(value)
             cells.append("—" if is_nan else str(pattern).format(value))
         lines.append(cells)
-    widths = [max(len(line[c]) for line in lines) for c in range(len(header))]
-    rendered = [
-        "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) + " |"
-        for line in lines
-    ]
-    rendered.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    return "\n".join(rendered)
+    return render_markdown_table(lines)
 
 
 # --------------------------------------------------------------------------- demo

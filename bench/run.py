@@ -30,6 +30,14 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
+
+from app.domain.params import SlamParams  # noqa: E402
+from app.domain.session import load_session, parse_session  # noqa: E402
+from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.slam import linearize_and_solve_ms, optimize_session  # noqa: E402
+from app.tables import render_markdown_table  # noqa: E402
+
 SESSIONS = REPO / "data" / "sessions"
 SYNTHETIC_POSES = (1_000, 10_000, 100_000)
 #: Corridor grid per walk length, so longer walks map a larger building (more tags).
@@ -39,12 +47,6 @@ TARGETS = "targets: real session LM ≤ 50 ms; 10k ≤ 600 ms; 100k ≤ 10 s and
 
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """Run one case in this process and measure it."""
-    sys.path.insert(0, str(REPO))
-    from app.domain.params import SlamParams
-    from app.domain.session import load_session, parse_session
-    from app.domain.simulate import SimulationConfig, simulate_session
-    from app.domain.slam import linearize_and_solve_ms, optimize_session
-
     params = SlamParams(compute_marginals=case.get("marginals", True))
     if case["kind"] == "synthetic":
         config = SimulationConfig(
@@ -117,13 +119,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     ]
     lines = [[title for title, _, _ in columns]]
     lines += [[pattern.format(row[key]) for _, key, pattern in columns] for row in rows]
-    widths = [max(len(line[c]) for line in lines) for c in range(len(columns))]
-    rendered = [
-        "| " + " | ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True)) + " |"
-        for line in lines
-    ]
-    rendered.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    return "\n".join(rendered)
+    return render_markdown_table(lines, justify="right")
 
 
 def main() -> int:
