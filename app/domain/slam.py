@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -195,22 +196,21 @@ def linearize_and_solve_ms(session: Session, params: SlamParams | None = None) -
 
 
 class _Problem:
-    """The factor graph, its initial values, and where each factor kind sits in it."""
+    """The factor graph, its initial values, and its factors by kind (for the residuals)."""
 
     def __init__(self) -> None:
         self.graph = gtsam.NonlinearFactorGraph()
         self.initial = gtsam.Values()
-        self.odometry_slots: list[int] = []
-        self.gravity_slots: list[int] = []
-        self.tag_slots: list[int] = []
+        self.odometry_factors: list[gtsam.BetweenFactorPose3] = []
+        self.gravity_factors: list[gtsam.AttitudeFactorPose3] = []
         self.tag_factors: list[gtsam.BetweenFactorPose3] = []
         self.tag_detection_rows: list[int] = []
         self.tag_pose_indices: list[int] = []
         self.tag_covariances: list[FloatArray] = []
         self.tag_rows: dict[int, list[int]] = {}
 
-    def add(self, factor: gtsam.NonlinearFactor, slots: list[int]) -> None:
-        slots.append(int(self.graph.size()))
+    def add(self, factor: gtsam.NonlinearFactor, of_kind: list[Any]) -> None:
+        of_kind.append(factor)
         self.graph.add(factor)
 
 
@@ -243,7 +243,7 @@ def _build_problem(
         phone_T_next = relative_se3(world_T_phone[i], world_T_phone[i + 1])
         problem.add(
             gtsam.BetweenFactorPose3(X(i), X(i + 1), to_pose3(phone_T_next), noise),
-            problem.odometry_slots,
+            problem.odometry_factors,
         )
 
     # 2c. gravity: the measured up direction in the phone frame, held to the map's up
@@ -253,7 +253,7 @@ def _build_problem(
     for i in range(n):
         problem.add(
             gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, gtsam.Unit3(phone_up[i])),
-            problem.gravity_slots,
+            problem.gravity_factors,
         )
 
     for i in range(n):
@@ -271,8 +271,7 @@ def _build_problem(
             noise = gtsam.noiseModel.Robust.Create(huber, noise)
         phone_T_tag = detections.phone_T_tag[row]
         factor = gtsam.BetweenFactorPose3(X(pose_index), L(tag_id), to_pose3(phone_T_tag), noise)
-        problem.add(factor, problem.tag_slots)
-        problem.tag_factors.append(factor)
+        problem.add(factor, problem.tag_factors)
         problem.tag_detection_rows.append(int(row))
         problem.tag_pose_indices.append(pose_index)
         problem.tag_covariances.append(covariance)
@@ -332,12 +331,11 @@ def _tag_marginals(
 
 
 def _residuals(problem: _Problem, values: gtsam.Values) -> FactorResiduals:
-    graph = problem.graph
-    odometry_chi2 = np.array([2.0 * graph.at(s).error(values) for s in problem.odometry_slots])
-    gravity_chi2 = np.array([2.0 * graph.at(s).error(values) for s in problem.gravity_slots])
+    odometry_chi2 = np.array([2.0 * factor.error(values) for factor in problem.odometry_factors])
+    gravity_chi2 = np.array([2.0 * factor.error(values) for factor in problem.gravity_factors])
     tag_errors = (
         np.stack([factor.unwhitenedError(values) for factor in problem.tag_factors])
-        if problem.tag_slots
+        if problem.tag_factors
         else np.empty((0, 6))
     )
     tag_chi2 = np.array(
