@@ -1,0 +1,88 @@
+"""Settings from the environment (pydantic-settings), checked once at start-up.
+
+Variables (defaults in brackets): ``DATABASE_URL`` [a SQLite file in the data directory],
+``INVISIBLE_MAP_DATA_DIR`` [./var], ``INVISIBLE_MAP_ADMIN_KEY`` [unset: accepted as an admin key
+when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
+``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
+[256 MiB: the body after gunzip], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
+[5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
+``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
+doubling per attempt].
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import AliasChoices, Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+SQLITE_FILE_NAME = "invisible-map.sqlite3"
+MIN_ADMIN_KEY_LENGTH = 16
+
+
+class Settings(BaseSettings):
+    """Everything the API, the workers and the CLI read from the environment."""
+
+    model_config = SettingsConfigDict(env_prefix="INVISIBLE_MAP_", extra="ignore")
+
+    database_url: str = Field(
+        default="",
+        validation_alias=AliasChoices("DATABASE_URL", "INVISIBLE_MAP_DATABASE_URL"),
+        description="SQLAlchemy URL; empty means a SQLite file in data_dir",
+    )
+    data_dir: Path = Path("var")
+    admin_key: str | None = None
+    workers: int = Field(default=1, ge=0, le=64)
+    max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
+    max_session_bytes: int = Field(default=256 * 2**20, gt=0)
+    lease_s: float = Field(default=30.0, gt=0)
+    heartbeat_s: float = Field(default=5.0, gt=0)
+    poll_s: float = Field(default=0.25, gt=0)
+    max_attempts: int = Field(default=3, ge=1)
+    retry_backoff_s: float = Field(default=2.0, ge=0)
+
+    @field_validator("database_url")
+    @classmethod
+    def _psycopg_driver(cls, url: str) -> str:
+        """``postgres://`` and ``postgresql://`` mean psycopg 3 here (SQLAlchemy's default is 2)."""
+        for prefix in ("postgres://", "postgresql://"):
+            if url.startswith(prefix):
+                return "postgresql+psycopg://" + url.removeprefix(prefix)
+        return url
+
+    @field_validator("admin_key")
+    @classmethod
+    def _long_enough(cls, key: str | None) -> str | None:
+        if key is not None and len(key) < MIN_ADMIN_KEY_LENGTH:
+            raise ValueError(
+                f"INVISIBLE_MAP_ADMIN_KEY must be at least {MIN_ADMIN_KEY_LENGTH} characters"
+            )
+        return key or None
+
+    @model_validator(mode="after")
+    def _heartbeat_within_lease(self) -> Settings:
+        if self.heartbeat_s >= self.lease_s:
+            raise ValueError(
+                f"INVISIBLE_MAP_HEARTBEAT_S ({self.heartbeat_s} s) must be shorter than "
+                f"INVISIBLE_MAP_LEASE_S ({self.lease_s} s)"
+            )
+        return self
+
+    @property
+    def resolved_database_url(self) -> str:
+        """``database_url``, or the embedded SQLite file in ``data_dir``."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / SQLITE_FILE_NAME).resolve()}"
+
+    @property
+    def is_sqlite(self) -> bool:
+        return self.resolved_database_url.startswith("sqlite")
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process's settings (cached; tests build their own ``Settings``)."""
+    return Settings()

@@ -1,0 +1,133 @@
+"""API keys: ``im_<prefix>_<secret>``. Only the SHA-256 of the whole key is stored; the prefix
+(public, unique) finds the row and the digests are compared in constant time. Keys are 190 bits of
+randomness, so a fast hash is enough (there is nothing to brute-force as with passwords).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.storage.orm import ApiKey, Role, utc_now
+
+KEY_SCHEME = "im"
+#: ``uploaded_by`` of uploads made with ``INVISIBLE_MAP_ADMIN_KEY``.
+ENVIRONMENT_ADMIN = "env-admin"
+
+
+class KeyNotFound(LookupError):
+    """Raised when no API key has the given id."""
+
+    def __init__(self, key_id: int) -> None:
+        super().__init__(f"API key {key_id} not found")
+        self.key_id = key_id
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class KeyInfo:
+    """An API key as listed (never with its secret)."""
+
+    id: int
+    name: str
+    role: Role
+    prefix: str
+    created_at: datetime
+    expires_at: datetime | None
+    revoked_at: datetime | None
+    last_used_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row: ApiKey) -> KeyInfo:
+        return cls(
+            id=row.id,
+            name=row.name,
+            role=Role(row.role),
+            prefix=row.prefix,
+            created_at=row.created_at,
+            expires_at=row.expires_at,
+            revoked_at=row.revoked_at,
+            last_used_at=row.last_used_at,
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Principal:
+    """Who made a request: ``subject`` is ``key:<id>`` or :data:`ENVIRONMENT_ADMIN`."""
+
+    subject: str
+    role: Role
+    key_id: int | None = None
+
+    @property
+    def is_admin(self) -> bool:
+        return self.role is Role.ADMIN
+
+
+def create_key(
+    session: Session, *, name: str, role: Role, expires_at: datetime | None = None
+) -> tuple[KeyInfo, str]:
+    """Store a new key; returns it and its secret (shown once, never stored)."""
+    prefix = secrets.token_hex(4)
+    key = f"{KEY_SCHEME}_{prefix}_{secrets.token_urlsafe(24)}"
+    row = ApiKey(
+        name=name,
+        role=role.value,
+        prefix=prefix,
+        secret_sha256=_digest(key),
+        created_at=utc_now(),
+        expires_at=expires_at,
+    )
+    session.add(row)
+    session.flush()
+    return KeyInfo.from_row(row), key
+
+
+def authenticate(
+    session: Session, key: str, *, admin_key: str | None = None, now: datetime | None = None
+) -> Principal | None:
+    """The principal a presented key stands for, or None if it is unknown, revoked or expired."""
+    now = now or utc_now()
+    if admin_key is not None and hmac.compare_digest(_digest(key), _digest(admin_key)):
+        return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
+    scheme, _, rest = key.partition("_")
+    prefix, _, secret = rest.partition("_")
+    if scheme != KEY_SCHEME or not prefix or not secret:
+        return None
+    row = session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
+    if row is None or not hmac.compare_digest(row.secret_sha256, _digest(key)):
+        return None
+    if row.revoked_at is not None or (row.expires_at is not None and row.expires_at <= now):
+        return None
+    return Principal(subject=f"key:{row.id}", role=Role(row.role), key_id=row.id)
+
+
+def touch(session: Session, key_id: int, *, now: datetime | None = None) -> None:
+    """Record that a key was used."""
+    row = session.get(ApiKey, key_id)
+    if row is not None:
+        row.last_used_at = now or utc_now()
+
+
+def list_keys(session: Session) -> list[KeyInfo]:
+    return [KeyInfo.from_row(row) for row in session.scalars(select(ApiKey).order_by(ApiKey.id))]
+
+
+def revoke_key(session: Session, key_id: int, *, now: datetime | None = None) -> KeyInfo:
+    """Revoke a key (idempotent: revoking a revoked key keeps its first revocation time)."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise KeyNotFound(key_id)
+    if row.revoked_at is None:
+        row.revoked_at = now or utc_now()
+    session.flush()
+    return KeyInfo.from_row(row)
+
+
+def _digest(key: str) -> str:
+    return hashlib.sha256(key.encode("utf-8", "surrogatepass")).hexdigest()

@@ -1,0 +1,313 @@
+"""Maps and their versions: what a worker stores, what the API reads.
+
+A map belongs to one session. Each successful build job adds a *version* (numbered 1, 2, … per
+map); the newest version is the map's current one. A version keeps our lossless map document
+(``app.domain.map_io.map_to_json``, gzip-compressed), the plot, the parameters, statistics and
+metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from app.domain.evaluation import Evaluation
+from app.domain.frames import pose_to_xyz_quat_xyzw
+from app.domain.map_io import map_to_json
+from app.domain.map_result import MapResult
+from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
+
+
+class MapNotFound(LookupError):
+    """Raised when no map (or no such version of it) exists."""
+
+    def __init__(self, map_id: int, number: int | None = None) -> None:
+        what = f"map {map_id}" if number is None else f"version {number} of map {map_id}"
+        super().__init__(f"{what} not found")
+        self.map_id = map_id
+        self.number = number
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class VersionInfo:
+    """One version of a map, without its (large) map document and plot."""
+
+    id: int
+    map_id: int
+    number: int
+    job_id: int | None
+    created_at: datetime
+    params: dict[str, Any]
+    statistics: dict[str, Any]
+    metrics: dict[str, Any]
+    tag_count: int
+    detections_used: int
+    detections_rejected: int
+    rejections: list[dict[str, Any]]
+    warnings: list[str]
+    content_sha256: str
+
+    @classmethod
+    def from_row(cls, row: MapVersion) -> VersionInfo:
+        return cls(
+            id=row.id,
+            map_id=row.map_id,
+            number=row.number,
+            job_id=row.job_id,
+            created_at=row.created_at,
+            params=dict(row.params),
+            statistics=dict(row.statistics),
+            metrics=dict(row.metrics),
+            tag_count=row.tag_count,
+            detections_used=row.detections_used,
+            detections_rejected=row.detections_rejected,
+            rejections=list(row.rejections),
+            warnings=list(row.warnings),
+            content_sha256=row.content_sha256,
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MapInfo:
+    """A map with its current version (None until the first build succeeds)."""
+
+    id: int
+    name: str
+    session_id: int
+    created_at: datetime
+    version_count: int
+    current: VersionInfo | None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TagPose:
+    """A tag in a map version: position (m) and orientation (quaternion x, y, z, w), map frame."""
+
+    tag_id: int
+    position_m: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+    detection_count: int
+    covariance: list[float] | None
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def create_map(session: Session, *, name: str, session_id: int) -> int:
+    row = MapRow(name=name, session_id=session_id, created_at=utc_now())
+    session.add(row)
+    session.flush()
+    return row.id
+
+
+def store_version(
+    session: Session,
+    *,
+    map_id: int,
+    job_id: int | None,
+    result: MapResult,
+    evaluation: Evaluation,
+    path_length_m: float,
+    plot_png: bytes | None,
+) -> VersionInfo:
+    """Add the next version of ``map_id`` in the caller's transaction."""
+    number = 1 + (
+        session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id)) or 0
+    )
+    document = map_to_json(result)
+    encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
+    metrics = {
+        "shift_pre": _finite_or_none(evaluation.shift_pre),
+        "shift_opt": _finite_or_none(evaluation.shift_opt),
+    }
+    statistics = {
+        "poses": int(result.pose_id.shape[0]),
+        "path_length_m": path_length_m,
+        "tags": len(result.tag_ids),
+        "points_of_interest": len(result.poi_names),
+        "detections_used": result.detections_used,
+        "detections_rejected": len(result.rejections),
+        "rejection_counts": dict(result.rejection_counts()),
+        "iterations": result.stats.iterations,
+        "initial_error": result.stats.initial_error,
+        "final_error": result.stats.final_error,
+        "build_ms": result.stats.build_ms,
+        "optimize_ms": result.stats.optimize_ms,
+        "marginals_ms": result.stats.marginals_ms,
+    }
+    row = MapVersion(
+        map_id=map_id,
+        number=number,
+        job_id=job_id,
+        created_at=utc_now(),
+        params=result.params.to_dict(),
+        statistics=statistics,
+        metrics=metrics,
+        shift_metric=metrics["shift_opt"],
+        tag_count=len(result.tag_ids),
+        detections_used=result.detections_used,
+        detections_rejected=len(result.rejections),
+        rejections=document["rejections"],
+        warnings=list(result.warnings),
+        map_json_gzip=gzip.compress(encoded, compresslevel=6, mtime=0),
+        plot_png=plot_png,
+        content_sha256=hashlib.sha256(encoded).hexdigest(),
+    )
+    session.add(row)
+    session.flush()
+    for k, tag_id in enumerate(result.tag_ids):
+        x, y, z, qx, qy, qz, qw = pose_to_xyz_quat_xyzw(result.world_T_tag[k])
+        covariance = result.tag_covariance[k]
+        session.add(
+            MapTag(
+                map_version_id=row.id,
+                tag_id=int(tag_id),
+                x_m=x,
+                y_m=y,
+                z_m=z,
+                qx=qx,
+                qy=qy,
+                qz=qz,
+                qw=qw,
+                detection_count=int(result.tag_detection_count[k]),
+                covariance=None
+                if not bool(math.isfinite(covariance.sum()))
+                else [float(v) for v in covariance.ravel()],
+            )
+        )
+    session.flush()
+    return VersionInfo.from_row(row)
+
+
+def delete_map(session: Session, map_id: int) -> None:
+    """Delete a map and its versions (the session and its raw upload stay)."""
+    if session.get(MapRow, map_id) is None:
+        raise MapNotFound(map_id)
+    session.execute(delete(MapRow).where(MapRow.id == map_id))
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def get_map(session: Session, map_id: int) -> MapInfo:
+    row = session.get(MapRow, map_id)
+    if row is None:
+        raise MapNotFound(map_id)
+    return _map_info(session, row)
+
+
+def list_maps(
+    session: Session, *, limit: int = 50, offset: int = 0, tag_id: int | None = None
+) -> tuple[list[MapInfo], int]:
+    """Maps, newest first, and how many there are; with ``tag_id``, only maps whose current
+    version contains that tag."""
+    query = select(MapRow)
+    if tag_id is not None:
+        query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
+    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset))
+    return [_map_info(session, row) for row in rows], total
+
+
+def list_versions(session: Session, map_id: int) -> list[VersionInfo]:
+    if session.get(MapRow, map_id) is None:
+        raise MapNotFound(map_id)
+    rows = session.scalars(
+        select(MapVersion).where(MapVersion.map_id == map_id).order_by(MapVersion.number)
+    )
+    return [VersionInfo.from_row(row) for row in rows]
+
+
+def get_version(session: Session, map_id: int, number: int | None = None) -> VersionInfo:
+    """A version of a map; the current one when ``number`` is None. Raises MapNotFound."""
+    return VersionInfo.from_row(_version_row(session, map_id, number))
+
+
+def map_document(session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
+    """The version's map document (``app.domain.map_io`` format)."""
+    row = _version_row(session, map_id, number)
+    document: dict[str, Any] = json.loads(gzip.decompress(row.map_json_gzip))
+    return document
+
+
+def plot_png(session: Session, map_id: int, number: int | None = None) -> bytes | None:
+    return _version_row(session, map_id, number).plot_png
+
+
+def tag_poses(session: Session, version_id: int) -> list[TagPose]:
+    rows = session.scalars(
+        select(MapTag).where(MapTag.map_version_id == version_id).order_by(MapTag.tag_id)
+    )
+    return [
+        TagPose(
+            tag_id=row.tag_id,
+            position_m=(row.x_m, row.y_m, row.z_m),
+            quat_xyzw=(row.qx, row.qy, row.qz, row.qw),
+            detection_count=row.detection_count,
+            covariance=row.covariance,
+        )
+        for row in rows
+    ]
+
+
+def _version_row(session: Session, map_id: int, number: int | None) -> MapVersion:
+    if session.get(MapRow, map_id) is None:
+        raise MapNotFound(map_id)
+    query = select(MapVersion).where(MapVersion.map_id == map_id)
+    if number is None:
+        query = query.order_by(MapVersion.number.desc()).limit(1)
+    else:
+        query = query.where(MapVersion.number == number)
+    row = session.scalar(query)
+    if row is None:
+        raise MapNotFound(map_id, number)
+    return row
+
+
+def _map_info(session: Session, row: MapRow) -> MapInfo:
+    count = session.scalar(
+        select(func.count()).select_from(MapVersion).where(MapVersion.map_id == row.id)
+    )
+    current = session.scalar(
+        select(MapVersion)
+        .where(MapVersion.map_id == row.id)
+        .order_by(MapVersion.number.desc())
+        .limit(1)
+    )
+    return MapInfo(
+        id=row.id,
+        name=row.name,
+        session_id=row.session_id,
+        created_at=row.created_at,
+        version_count=count or 0,
+        current=VersionInfo.from_row(current) if current is not None else None,
+    )
+
+
+def _maps_with_tag_in_current_version(tag_id: int) -> Any:
+    newest = (
+        select(MapVersion.map_id, func.max(MapVersion.number).label("number"))
+        .group_by(MapVersion.map_id)
+        .subquery()
+    )
+    return (
+        select(MapVersion.map_id)
+        .join(
+            newest,
+            (newest.c.map_id == MapVersion.map_id) & (newest.c.number == MapVersion.number),
+        )
+        .join(MapTag, MapTag.map_version_id == MapVersion.id)
+        .where(MapTag.tag_id == tag_id)
+    )
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None

@@ -1,0 +1,280 @@
+"""SQLAlchemy 2 models. Alembic migrations in ``migrations/`` create these tables (never
+``create_all``); ``tests/migrations`` checks that the two agree.
+
+Tables (singular, snake_case): ``api_key``, ``session`` with its ``session_upload`` (the raw
+upload, gzip-compressed, written once), ``map``, ``map_version`` with one ``map_tag`` row per tag,
+``job`` (the queue) and ``worker`` (who is alive and what it runs).
+"""
+
+from __future__ import annotations
+
+import enum
+from datetime import UTC, datetime
+from typing import Any, ClassVar
+
+from sqlalchemy import (
+    JSON,
+    CheckConstraint,
+    Dialect,
+    Float,
+    ForeignKey,
+    Index,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import DateTime, TypeDecorator
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timezone-aware UTC datetime on every backend.
+
+    PostgreSQL stores ``timestamptz``; SQLite has no time zones, so the value is stored as naive
+    UTC (fixed-width text, which compares in time order) and given back its UTC zone on the way out.
+    """
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError(f"naive datetime {value!r}: use timezone-aware UTC datetimes")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(
+        self,
+        value: datetime | None,
+        dialect: Dialect,  # noqa: ARG002
+    ) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+JSONValue = JSON().with_variant(JSONB(), "postgresql")
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map: ClassVar[dict[Any, Any]] = {
+        datetime: UTCDateTime(),
+        dict[str, Any]: JSONValue,
+    }
+
+
+def utc_now() -> datetime:
+    return datetime.now(UTC)
+
+
+class Role(enum.StrEnum):
+    """What an API key may do."""
+
+    #: upload sessions and read maps (the phone app)
+    DEVICE = "device"
+    #: everything a device may, plus manage jobs, maps and keys
+    ADMIN = "admin"
+
+
+class JobState(enum.StrEnum):
+    """A job's life: queued → running → succeeded | failed | canceled (retry: back to queued)."""
+
+    #: waiting for a worker (possibly not before ``run_after``)
+    QUEUED = "queued"
+    #: claimed by a worker holding a lease
+    RUNNING = "running"
+    #: finished; its result is stored
+    SUCCEEDED = "succeeded"
+    #: failed for good (a permanent error, or ``max_attempts`` transient ones)
+    FAILED = "failed"
+    #: canceled before or while running
+    CANCELED = "canceled"
+
+
+TERMINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELED})
+
+
+def _in(column: str, values: list[str]) -> str:
+    return f"{column} IN ({', '.join(repr(v) for v in values)})"
+
+
+class ApiKey(Base):
+    """An API key. Only a SHA-256 of its secret part is stored; ``prefix`` finds the row."""
+
+    __tablename__ = "api_key"
+    __table_args__ = (CheckConstraint(_in("role", [r.value for r in Role]), name="role"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100))
+    role: Mapped[str] = mapped_column(String(16))
+    prefix: Mapped[str] = mapped_column(String(16), unique=True)
+    secret_sha256: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    expires_at: Mapped[datetime | None]
+    revoked_at: Mapped[datetime | None]
+    last_used_at: Mapped[datetime | None]
+
+
+class SessionRow(Base):
+    """A mapping session as uploaded, with statistics computed when it was parsed."""
+
+    __tablename__ = "session"
+    __table_args__ = (UniqueConstraint("uploaded_by", "idempotency_key"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_name: Mapped[str] = mapped_column(String(200))
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    uploaded_by: Mapped[str] = mapped_column(String(64))
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    raw_sha256: Mapped[str] = mapped_column(String(64))
+    raw_size_bytes: Mapped[int]
+    stored_size_bytes: Mapped[int]
+    pose_count: Mapped[int]
+    detection_count: Mapped[int]
+    tag_count: Mapped[int]
+    poi_count: Mapped[int]
+    duration_s: Mapped[float] = mapped_column(Float)
+    path_length_m: Mapped[float] = mapped_column(Float)
+    tag_ids: Mapped[list[int]] = mapped_column(JSONValue)
+    warnings: Mapped[list[str]] = mapped_column(JSONValue)
+
+
+class SessionUpload(Base):
+    """The raw upload, gzip-compressed, written once and never changed."""
+
+    __tablename__ = "session_upload"
+
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), primary_key=True
+    )
+    raw_gzip: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class MapRow(Base):
+    """A map: one session's map, in versions (the latest succeeded one is current)."""
+
+    __tablename__ = "map"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), index=True
+    )
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class Job(Base):
+    """A unit of work in the durable queue. Every state change is one committed transaction.
+
+    ``lease_token`` grows by one at every claim; a worker's writes name the token they hold, so a
+    worker whose lease expired (and whose job was requeued or claimed again) cannot write.
+    """
+
+    __tablename__ = "job"
+    __table_args__ = (
+        CheckConstraint(_in("state", [s.value for s in JobState]), name="state"),
+        CheckConstraint("progress >= 0 AND progress <= 1", name="progress"),
+        Index("ix_job_claim", "state", "run_after", "priority"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16), default=JobState.QUEUED.value)
+    map_id: Mapped[int | None] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    session_id: Mapped[int | None] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), index=True
+    )
+    params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    priority: Mapped[int] = mapped_column(default=0)
+    attempts: Mapped[int] = mapped_column(default=0)
+    max_attempts: Mapped[int] = mapped_column(default=3)
+    run_after: Mapped[datetime] = mapped_column(default=utc_now)
+    lease_owner: Mapped[str | None] = mapped_column(String(100))
+    lease_token: Mapped[int] = mapped_column(default=0)
+    lease_expires_at: Mapped[datetime | None]
+    cancel_requested: Mapped[bool] = mapped_column(default=False)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    stage: Mapped[str | None] = mapped_column(String(32))
+    error: Mapped[str | None] = mapped_column(Text)
+    log_tail: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class MapVersion(Base):
+    """One optimization of a map's session: the result, its parameters, statistics and metrics."""
+
+    __tablename__ = "map_version"
+    __table_args__ = (UniqueConstraint("map_id", "number"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    number: Mapped[int]
+    job_id: Mapped[int | None] = mapped_column(
+        ForeignKey("job.id", ondelete="SET NULL"), unique=True
+    )
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    params: Mapped[dict[str, Any]]
+    statistics: Mapped[dict[str, Any]]
+    metrics: Mapped[dict[str, Any]]
+    shift_metric: Mapped[float | None] = mapped_column(Float)
+    tag_count: Mapped[int]
+    detections_used: Mapped[int]
+    detections_rejected: Mapped[int]
+    rejections: Mapped[list[dict[str, Any]]] = mapped_column(JSONValue)
+    warnings: Mapped[list[str]] = mapped_column(JSONValue)
+    map_json_gzip: Mapped[bytes] = mapped_column(LargeBinary)
+    plot_png: Mapped[bytes | None] = mapped_column(LargeBinary)
+    content_sha256: Mapped[str] = mapped_column(String(64))
+
+
+class MapTag(Base):
+    """A tag's optimized pose in one map version (so "which maps have tag 305?" is a query)."""
+
+    __tablename__ = "map_tag"
+    __table_args__ = (UniqueConstraint("map_version_id", "tag_id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_version_id: Mapped[int] = mapped_column(ForeignKey("map_version.id", ondelete="CASCADE"))
+    tag_id: Mapped[int] = mapped_column(index=True)
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    z_m: Mapped[float] = mapped_column(Float)
+    qx: Mapped[float] = mapped_column(Float)
+    qy: Mapped[float] = mapped_column(Float)
+    qz: Mapped[float] = mapped_column(Float)
+    qw: Mapped[float] = mapped_column(Float)
+    detection_count: Mapped[int]
+    #: 6×6 covariance, [rotation rad, translation m] in the tag frame, row-major; null if unknown
+    covariance: Mapped[list[float] | None] = mapped_column(JSONValue)
+
+
+class WorkerRow(Base):
+    """A worker process, as it last reported itself."""
+
+    __tablename__ = "worker"
+
+    id: Mapped[str] = mapped_column(String(100), primary_key=True)
+    hostname: Mapped[str] = mapped_column(String(255))
+    pid: Mapped[int]
+    started_at: Mapped[datetime] = mapped_column(default=utc_now)
+    heartbeat_at: Mapped[datetime] = mapped_column(default=utc_now)
+    current_job_id: Mapped[int | None]
+    jobs_done: Mapped[int] = mapped_column(default=0)
+    state: Mapped[str] = mapped_column(String(16), default="idle")

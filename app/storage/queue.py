@@ -1,0 +1,625 @@
+"""The durable job queue, in the ``job`` table.
+
+Every state change is one committed transaction. A worker *claims* a queued job in one statement
+(``UPDATE … WHERE id = (SELECT … FOR UPDATE SKIP LOCKED LIMIT 1) RETURNING …`` on PostgreSQL; the
+same statement on SQLite, where ``BEGIN IMMEDIATE`` serializes writers) and gets a :class:`Lease`
+that expires unless renewed by :func:`heartbeat`. Each claim increments ``lease_token``; every
+later write by the worker names its token and requires an unexpired lease (*fencing*), so a worker
+that lost its lease — it stalled, or the reaper requeued its job, or another worker claimed it —
+gets :class:`LeaseLost` instead of writing. :func:`reap_expired` requeues (or fails, after
+``max_attempts``) jobs whose lease ran out.
+
+Exceptions::
+
+    QueueError
+    ├── LeaseLost          a fenced write found the lease gone
+    ├── JobNotFound        no job with that id
+    └── InvalidTransition  cancel/retry asked of a job whose state does not allow it
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import ColumnElement, and_, func, select, update
+from sqlalchemy.orm import Session
+
+from app.storage.db import Database
+from app.storage.orm import TERMINAL_STATES, Job, JobState, WorkerRow, utc_now
+
+#: How many lines of a job's log are kept on its row.
+LOG_TAIL_LINES = 40
+
+
+class QueueError(Exception):
+    """Base of the queue's errors."""
+
+
+class LeaseLost(QueueError):
+    """Raised when a worker writes to a job whose lease it no longer holds."""
+
+    def __init__(self, job_id: int) -> None:
+        super().__init__(f"job {job_id}: lease lost (expired, requeued or claimed by another)")
+        self.job_id = job_id
+
+
+class JobNotFound(QueueError):
+    """Raised when no job has the given id."""
+
+    def __init__(self, job_id: int) -> None:
+        super().__init__(f"job {job_id} not found")
+        self.job_id = job_id
+
+
+class InvalidTransition(QueueError):
+    """Raised when an action (cancel, retry) is not allowed in the job's current state."""
+
+    def __init__(self, job_id: int, state: str, action: str) -> None:
+        super().__init__(f"job {job_id} is {state}: cannot {action} it")
+        self.job_id = job_id
+        self.state = state
+        self.action = action
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class JobInfo:
+    """A job as the API shows it."""
+
+    id: int
+    kind: str
+    state: JobState
+    map_id: int | None
+    session_id: int | None
+    params: dict[str, Any]
+    attempts: int
+    max_attempts: int
+    progress: float
+    stage: str | None
+    error: str | None
+    log_tail: str
+    cancel_requested: bool
+    lease_owner: str | None
+    created_at: datetime
+    run_after: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime
+
+    @classmethod
+    def from_row(cls, row: Job) -> JobInfo:
+        return cls(
+            id=row.id,
+            kind=row.kind,
+            state=JobState(row.state),
+            map_id=row.map_id,
+            session_id=row.session_id,
+            params=dict(row.params),
+            attempts=row.attempts,
+            max_attempts=row.max_attempts,
+            progress=row.progress,
+            stage=row.stage,
+            error=row.error,
+            log_tail=row.log_tail,
+            cancel_requested=row.cancel_requested,
+            lease_owner=row.lease_owner,
+            created_at=row.created_at,
+            run_after=row.run_after,
+            started_at=row.started_at,
+            finished_at=row.finished_at,
+            updated_at=row.updated_at,
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Lease:
+    """What a worker holds while it runs a job: the job's inputs and the fencing token."""
+
+    job_id: int
+    token: int
+    owner: str
+    kind: str
+    map_id: int | None
+    session_id: int | None
+    params: dict[str, Any]
+    attempt: int
+    max_attempts: int
+    log_tail: str
+
+
+# --------------------------------------------------------------------------- the API's side
+
+
+def enqueue(
+    session: Session,
+    *,
+    kind: str,
+    map_id: int | None,
+    session_id: int | None,
+    params: dict[str, Any] | None = None,
+    max_attempts: int = 3,
+    priority: int = 0,
+    now: datetime | None = None,
+) -> int:
+    """Add a queued job in the caller's transaction; returns its id."""
+    now = now or utc_now()
+    job = Job(
+        kind=kind,
+        state=JobState.QUEUED.value,
+        map_id=map_id,
+        session_id=session_id,
+        params=params or {},
+        max_attempts=max_attempts,
+        priority=priority,
+        run_after=now,
+        created_at=now,
+        updated_at=now,
+        log_tail=_log_line(now, "queued"),
+    )
+    session.add(job)
+    session.flush()
+    return job.id
+
+
+def get_job(session: Session, job_id: int) -> JobInfo:
+    row = session.get(Job, job_id)
+    if row is None:
+        raise JobNotFound(job_id)
+    return JobInfo.from_row(row)
+
+
+def list_jobs(
+    session: Session,
+    *,
+    state: JobState | None = None,
+    map_id: int | None = None,
+    limit: int = 50,
+    offset: int = 0,
+) -> tuple[list[JobInfo], int]:
+    """Jobs, newest first, and how many match in all."""
+    conditions: list[ColumnElement[bool]] = []
+    if state is not None:
+        conditions.append(Job.state == state.value)
+    if map_id is not None:
+        conditions.append(Job.map_id == map_id)
+    where = and_(*conditions) if conditions else and_(True)
+    total = session.scalar(select(func.count()).select_from(Job).where(where)) or 0
+    rows = session.scalars(
+        select(Job).where(where).order_by(Job.id.desc()).limit(limit).offset(offset)
+    )
+    return [JobInfo.from_row(row) for row in rows], total
+
+
+def count_by_state(session: Session) -> dict[str, int]:
+    counts = {state.value: 0 for state in JobState}
+    for state, count in session.execute(select(Job.state, func.count()).group_by(Job.state)):
+        counts[state] = count
+    return counts
+
+
+def request_cancel(session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
+    """Cancel a queued job now; ask a running one to stop at its next stage boundary."""
+    now = now or utc_now()
+    row = _locked(session, job_id)
+    if row.state == JobState.QUEUED:
+        row.state = JobState.CANCELED.value
+        row.finished_at = now
+        row.log_tail = _append(row.log_tail, now, "canceled while queued")
+    elif row.state == JobState.RUNNING:
+        row.cancel_requested = True
+        row.log_tail = _append(row.log_tail, now, "cancel requested")
+    else:
+        raise InvalidTransition(job_id, row.state, "cancel")
+    row.updated_at = now
+    session.flush()
+    return JobInfo.from_row(row)
+
+
+def retry(session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
+    """Queue a failed or canceled job again, with a fresh count of attempts."""
+    now = now or utc_now()
+    row = _locked(session, job_id)
+    if row.state not in (JobState.FAILED, JobState.CANCELED):
+        raise InvalidTransition(job_id, row.state, "retry")
+    row.state = JobState.QUEUED.value
+    row.attempts = 0
+    row.error = None
+    row.progress = 0.0
+    row.stage = None
+    row.cancel_requested = False
+    row.started_at = None
+    row.finished_at = None
+    row.run_after = now
+    row.updated_at = now
+    row.log_tail = _append(row.log_tail, now, "retry requested")
+    session.flush()
+    return JobInfo.from_row(row)
+
+
+def cancel_unfinished_for_map(session: Session, map_id: int, *, now: datetime | None = None) -> int:
+    """Cancel a map's queued jobs and ask its running ones to stop; returns how many."""
+    now = now or utc_now()
+    queued = session.execute(
+        update(Job)
+        .where(Job.map_id == map_id, Job.state == JobState.QUEUED.value)
+        .values(state=JobState.CANCELED.value, finished_at=now, updated_at=now)
+    ).rowcount
+    running = session.execute(
+        update(Job)
+        .where(Job.map_id == map_id, Job.state == JobState.RUNNING.value)
+        .values(cancel_requested=True, updated_at=now)
+    ).rowcount
+    return int(queued or 0) + int(running or 0)
+
+
+def _locked(session: Session, job_id: int) -> Job:
+    row = session.scalar(select(Job).where(Job.id == job_id).with_for_update())
+    if row is None:
+        raise JobNotFound(job_id)
+    return row
+
+
+# --------------------------------------------------------------------------- the worker's side
+
+
+def claim(
+    db: Database,
+    *,
+    worker_id: str,
+    lease_s: float,
+    kinds: tuple[str, ...] | None = None,
+    now: datetime | None = None,
+) -> Lease | None:
+    """Take the next runnable job (highest priority, then oldest), or None if there is none."""
+    now = now or utc_now()
+    candidate = (
+        select(Job.id)
+        .where(Job.state == JobState.QUEUED.value, Job.run_after <= now)
+        .order_by(Job.priority.desc(), Job.id)
+        .limit(1)
+        .with_for_update(skip_locked=True)
+    )
+    if kinds is not None:
+        candidate = candidate.where(Job.kind.in_(kinds))
+    statement = (
+        update(Job)
+        .where(Job.id == candidate.scalar_subquery(), Job.state == JobState.QUEUED.value)
+        .values(
+            state=JobState.RUNNING.value,
+            lease_owner=worker_id,
+            lease_token=Job.lease_token + 1,
+            lease_expires_at=now + timedelta(seconds=lease_s),
+            attempts=Job.attempts + 1,
+            started_at=now,
+            updated_at=now,
+            progress=0.0,
+            stage=None,
+        )
+        .returning(
+            Job.id,
+            Job.lease_token,
+            Job.kind,
+            Job.map_id,
+            Job.session_id,
+            Job.params,
+            Job.attempts,
+            Job.max_attempts,
+            Job.log_tail,
+        )
+    )
+    with db.transaction() as session:
+        row = session.execute(statement).one_or_none()
+        if row is None:
+            return None
+        line = f"attempt {row.attempts} of {row.max_attempts} started by {worker_id}"
+        log_tail = _append(row.log_tail, now, line)
+        session.execute(update(Job).where(Job.id == row.id).values(log_tail=log_tail))
+    return Lease(
+        job_id=row.id,
+        token=row.lease_token,
+        owner=worker_id,
+        kind=row.kind,
+        map_id=row.map_id,
+        session_id=row.session_id,
+        params=dict(row.params),
+        attempt=row.attempts,
+        max_attempts=row.max_attempts,
+        log_tail=log_tail,
+    )
+
+
+def _fenced(lease: Lease, now: datetime) -> ColumnElement[bool]:
+    """The WHERE clause of every write a worker makes: its lease is still its own and valid."""
+    return and_(
+        Job.id == lease.job_id,
+        Job.lease_token == lease.token,
+        Job.state == JobState.RUNNING.value,
+        Job.lease_expires_at > now,
+    )
+
+
+def heartbeat(db: Database, lease: Lease, *, lease_s: float, now: datetime | None = None) -> bool:
+    """Extend the lease; returns whether a cancel was requested. Raises LeaseLost."""
+    now = now or utc_now()
+    with db.transaction() as session:
+        cancel = session.execute(
+            update(Job)
+            .where(_fenced(lease, now))
+            .values(lease_expires_at=now + timedelta(seconds=lease_s), updated_at=now)
+            .returning(Job.cancel_requested)
+        ).scalar_one_or_none()
+    if cancel is None:
+        raise LeaseLost(lease.job_id)
+    return bool(cancel)
+
+
+def report_progress(
+    db: Database,
+    lease: Lease,
+    *,
+    progress: float,
+    stage: str,
+    log_tail: str,
+    now: datetime | None = None,
+) -> bool:
+    """Write progress (0–1), the stage and the log tail; returns whether a cancel was requested.
+    Raises LeaseLost."""
+    now = now or utc_now()
+    with db.transaction() as session:
+        cancel = session.execute(
+            update(Job)
+            .where(_fenced(lease, now))
+            .values(
+                progress=min(max(progress, 0.0), 1.0),
+                stage=stage,
+                log_tail=log_tail,
+                updated_at=now,
+            )
+            .returning(Job.cancel_requested)
+        ).scalar_one_or_none()
+    if cancel is None:
+        raise LeaseLost(lease.job_id)
+    return bool(cancel)
+
+
+def finish(session: Session, lease: Lease, *, log_tail: str, now: datetime | None = None) -> None:
+    """Mark the job succeeded inside the caller's transaction (the one storing its result), so
+    the result commits only if the lease still holds. Raises LeaseLost (roll back then)."""
+    now = now or utc_now()
+    updated = session.execute(
+        update(Job)
+        .where(_fenced(lease, now))
+        .values(
+            state=JobState.SUCCEEDED.value,
+            progress=1.0,
+            stage=None,
+            error=None,
+            finished_at=now,
+            updated_at=now,
+            lease_owner=None,
+            lease_expires_at=None,
+            log_tail=_append(log_tail, now, "succeeded"),
+        )
+        .returning(Job.id)
+    ).scalar_one_or_none()
+    if updated is None:
+        raise LeaseLost(lease.job_id)
+
+
+def fail(
+    db: Database,
+    lease: Lease,
+    *,
+    error: str,
+    permanent: bool,
+    backoff_s: float,
+    log_tail: str,
+    now: datetime | None = None,
+) -> JobState:
+    """Record a failed attempt: requeue with exponential backoff if the error is transient and
+    attempts remain, else fail for good. Returns the new state. Raises LeaseLost."""
+    now = now or utc_now()
+    if permanent or lease.attempt >= lease.max_attempts:
+        state = JobState.FAILED
+        why = "permanent error" if permanent else f"attempt {lease.attempt} of {lease.max_attempts}"
+        values: dict[str, Any] = {"finished_at": now, "log_tail": _append(log_tail, now, why)}
+    else:
+        state = JobState.QUEUED
+        delay_s = backoff_s * 2 ** (lease.attempt - 1)
+        values = {
+            "run_after": now + timedelta(seconds=delay_s),
+            "log_tail": _append(log_tail, now, f"retrying in {delay_s:g} s"),
+        }
+    return _end_attempt(db, lease, state, now, error=error, **values)
+
+
+def mark_canceled(
+    db: Database, lease: Lease, *, log_tail: str, now: datetime | None = None
+) -> None:
+    """The worker stopped a job whose cancel was requested. Raises LeaseLost."""
+    now = now or utc_now()
+    line = _append(log_tail, now, "canceled")
+    _end_attempt(db, lease, JobState.CANCELED, now, finished_at=now, log_tail=line)
+
+
+def release(db: Database, lease: Lease, *, log_tail: str, now: datetime | None = None) -> None:
+    """Give a job back unfinished (graceful shutdown): queued again, the attempt not counted."""
+    now = now or utc_now()
+    line = _append(log_tail, now, f"released by {lease.owner} (shutting down)")
+    _end_attempt(
+        db, lease, JobState.QUEUED, now, run_after=now, attempts=Job.attempts - 1, log_tail=line
+    )
+
+
+def _end_attempt(
+    db: Database, lease: Lease, state: JobState, now: datetime, **values: Any
+) -> JobState:
+    with db.transaction() as session:
+        updated = session.execute(
+            update(Job)
+            .where(_fenced(lease, now))
+            .values(
+                state=state.value,
+                lease_owner=None,
+                lease_expires_at=None,
+                updated_at=now,
+                **values,
+            )
+            .returning(Job.id)
+        ).scalar_one_or_none()
+    if updated is None:
+        raise LeaseLost(lease.job_id)
+    return state
+
+
+def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None) -> int:
+    """Requeue running jobs whose lease expired (their worker died or stalled); fail those out of
+    attempts and cancel those whose cancel was requested. Returns how many jobs were reaped."""
+    now = now or utc_now()
+    expired = and_(Job.state == JobState.RUNNING.value, Job.lease_expires_at <= now)
+    lost = "lease expired (worker lost)"
+    common = {"lease_owner": None, "lease_expires_at": None, "updated_at": now}
+    with db.transaction() as session:
+        canceled = session.execute(
+            update(Job)
+            .where(expired, Job.cancel_requested.is_(True))
+            .values(state=JobState.CANCELED.value, finished_at=now, **common)
+        ).rowcount
+        failed = session.execute(
+            update(Job)
+            .where(expired, Job.attempts >= Job.max_attempts)
+            .values(
+                state=JobState.FAILED.value,
+                finished_at=now,
+                error=f"{lost} on the last attempt",
+                log_tail=Job.log_tail + _log_line(now, f"{lost}; no attempts left"),
+                **common,
+            )
+        ).rowcount
+        requeued = session.execute(
+            update(Job)
+            .where(expired)
+            .values(
+                state=JobState.QUEUED.value,
+                run_after=now + timedelta(seconds=backoff_s),
+                log_tail=Job.log_tail + _log_line(now, f"{lost}; requeued"),
+                **common,
+            )
+        ).rowcount
+    return int(canceled or 0) + int(failed or 0) + int(requeued or 0)
+
+
+# --------------------------------------------------------------------------- workers
+
+
+def register_worker(
+    db: Database, *, worker_id: str, hostname: str, pid: int, now: datetime | None = None
+) -> None:
+    now = now or utc_now()
+    with db.transaction() as session:
+        session.merge(
+            WorkerRow(
+                id=worker_id,
+                hostname=hostname,
+                pid=pid,
+                started_at=now,
+                heartbeat_at=now,
+                current_job_id=None,
+                jobs_done=0,
+                state="idle",
+            )
+        )
+
+
+def worker_heartbeat(
+    db: Database,
+    *,
+    worker_id: str,
+    state: str,
+    current_job_id: int | None,
+    jobs_done: int,
+    now: datetime | None = None,
+) -> None:
+    now = now or utc_now()
+    with db.transaction() as session:
+        session.execute(
+            update(WorkerRow)
+            .where(WorkerRow.id == worker_id)
+            .values(
+                heartbeat_at=now, state=state, current_job_id=current_job_id, jobs_done=jobs_done
+            )
+        )
+
+
+def unregister_worker(db: Database, *, worker_id: str) -> None:
+    with db.transaction() as session:
+        row = session.get(WorkerRow, worker_id)
+        if row is not None:
+            session.delete(row)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WorkerInfo:
+    id: str
+    hostname: str
+    pid: int
+    state: str
+    current_job_id: int | None
+    jobs_done: int
+    started_at: datetime
+    heartbeat_at: datetime
+
+
+def alive_workers(
+    session: Session, *, within_s: float, now: datetime | None = None
+) -> list[WorkerInfo]:
+    """Workers that reported in the last ``within_s`` seconds."""
+    now = now or utc_now()
+    rows = session.scalars(
+        select(WorkerRow)
+        .where(WorkerRow.heartbeat_at >= now - timedelta(seconds=within_s))
+        .order_by(WorkerRow.id)
+    )
+    return [
+        WorkerInfo(
+            id=row.id,
+            hostname=row.hostname,
+            pid=row.pid,
+            state=row.state,
+            current_job_id=row.current_job_id,
+            jobs_done=row.jobs_done,
+            started_at=row.started_at,
+            heartbeat_at=row.heartbeat_at,
+        )
+        for row in rows
+    ]
+
+
+# --------------------------------------------------------------------------- log tail
+
+
+def _log_line(now: datetime, message: str) -> str:
+    return f"{now.strftime('%Y-%m-%dT%H:%M:%S')}Z {message}\n"
+
+
+def _append(log_tail: str, now: datetime, message: str) -> str:
+    lines = (log_tail + _log_line(now, message)).splitlines(keepends=True)
+    return "".join(lines[-LOG_TAIL_LINES:])
+
+
+def append_log(log_tail: str, message: str, *, now: datetime | None = None) -> str:
+    """``log_tail`` with one more timestamped line, keeping the last :data:`LOG_TAIL_LINES`."""
+    return _append(log_tail, now or utc_now(), message)
+
+
+__all__ = [
+    "TERMINAL_STATES",
+    "InvalidTransition",
+    "JobInfo",
+    "JobNotFound",
+    "Lease",
+    "LeaseLost",
+    "QueueError",
+    "WorkerInfo",
+]

@@ -1,0 +1,1 @@
+"""Alembic migrations: ``app/storage/migrate.py`` runs them; ``alembic.ini`` is for the CLI."""

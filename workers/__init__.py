@@ -1,0 +1,1 @@
+"""Workers: processes that claim jobs from the database queue and run them (``workers/main.py``)."""
