@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, and_, func, select, update
+from sqlalchemy import ColumnElement, CursorResult, Executable, and_, func, select, update
 from sqlalchemy.orm import Session
 
 from app.storage.db import Database
@@ -240,17 +240,25 @@ def retry(session: Session, job_id: int, *, now: datetime | None = None) -> JobI
 def cancel_unfinished_for_map(session: Session, map_id: int, *, now: datetime | None = None) -> int:
     """Cancel a map's queued jobs and ask its running ones to stop; returns how many."""
     now = now or utc_now()
-    queued = session.execute(
+    queued = _rowcount(
+        session,
         update(Job)
         .where(Job.map_id == map_id, Job.state == JobState.QUEUED.value)
-        .values(state=JobState.CANCELED.value, finished_at=now, updated_at=now)
-    ).rowcount
-    running = session.execute(
+        .values(state=JobState.CANCELED.value, finished_at=now, updated_at=now),
+    )
+    running = _rowcount(
+        session,
         update(Job)
         .where(Job.map_id == map_id, Job.state == JobState.RUNNING.value)
-        .values(cancel_requested=True, updated_at=now)
-    ).rowcount
-    return int(queued or 0) + int(running or 0)
+        .values(cancel_requested=True, updated_at=now),
+    )
+    return queued + running
+
+
+def _rowcount(session: Session, statement: Executable) -> int:
+    result = session.execute(statement)
+    assert isinstance(result, CursorResult)
+    return int(result.rowcount or 0)
 
 
 def _locked(session: Session, job_id: int) -> Job:
@@ -343,11 +351,12 @@ def heartbeat(db: Database, lease: Lease, *, lease_s: float, now: datetime | Non
     """Extend the lease; returns whether a cancel was requested. Raises LeaseLost."""
     now = now or utc_now()
     with db.transaction() as session:
-        cancel = session.execute(
+        cancel = _rowcount(
+            session,
             update(Job)
             .where(_fenced(lease, now))
             .values(lease_expires_at=now + timedelta(seconds=lease_s), updated_at=now)
-            .returning(Job.cancel_requested)
+            .returning(Job.cancel_requested),
         ).scalar_one_or_none()
     if cancel is None:
         raise LeaseLost(lease.job_id)
@@ -367,7 +376,8 @@ def report_progress(
     Raises LeaseLost."""
     now = now or utc_now()
     with db.transaction() as session:
-        cancel = session.execute(
+        cancel = _rowcount(
+            session,
             update(Job)
             .where(_fenced(lease, now))
             .values(
@@ -376,7 +386,7 @@ def report_progress(
                 log_tail=log_tail,
                 updated_at=now,
             )
-            .returning(Job.cancel_requested)
+            .returning(Job.cancel_requested),
         ).scalar_one_or_none()
     if cancel is None:
         raise LeaseLost(lease.job_id)
@@ -387,7 +397,8 @@ def finish(session: Session, lease: Lease, *, log_tail: str, now: datetime | Non
     """Mark the job succeeded inside the caller's transaction (the one storing its result), so
     the result commits only if the lease still holds. Raises LeaseLost (roll back then)."""
     now = now or utc_now()
-    updated = session.execute(
+    updated = _rowcount(
+        session,
         update(Job)
         .where(_fenced(lease, now))
         .values(
@@ -401,7 +412,7 @@ def finish(session: Session, lease: Lease, *, log_tail: str, now: datetime | Non
             lease_expires_at=None,
             log_tail=_append(log_tail, now, "succeeded"),
         )
-        .returning(Job.id)
+        .returning(Job.id),
     ).scalar_one_or_none()
     if updated is None:
         raise LeaseLost(lease.job_id)
@@ -456,7 +467,8 @@ def _end_attempt(
     db: Database, lease: Lease, state: JobState, now: datetime, **values: Any
 ) -> JobState:
     with db.transaction() as session:
-        updated = session.execute(
+        updated = _rowcount(
+            session,
             update(Job)
             .where(_fenced(lease, now))
             .values(
@@ -466,7 +478,7 @@ def _end_attempt(
                 updated_at=now,
                 **values,
             )
-            .returning(Job.id)
+            .returning(Job.id),
         ).scalar_one_or_none()
     if updated is None:
         raise LeaseLost(lease.job_id)
@@ -481,12 +493,14 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
     lost = "lease expired (worker lost)"
     common = {"lease_owner": None, "lease_expires_at": None, "updated_at": now}
     with db.transaction() as session:
-        canceled = session.execute(
+        canceled = _rowcount(
+            session,
             update(Job)
             .where(expired, Job.cancel_requested.is_(True))
-            .values(state=JobState.CANCELED.value, finished_at=now, **common)
-        ).rowcount
-        failed = session.execute(
+            .values(state=JobState.CANCELED.value, finished_at=now, **common),
+        )
+        failed = _rowcount(
+            session,
             update(Job)
             .where(expired, Job.attempts >= Job.max_attempts)
             .values(
@@ -495,9 +509,10 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
                 error=f"{lost} on the last attempt",
                 log_tail=Job.log_tail + _log_line(now, f"{lost}; no attempts left"),
                 **common,
-            )
-        ).rowcount
-        requeued = session.execute(
+            ),
+        )
+        requeued = _rowcount(
+            session,
             update(Job)
             .where(expired)
             .values(
@@ -505,9 +520,9 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
                 run_after=now + timedelta(seconds=backoff_s),
                 log_tail=Job.log_tail + _log_line(now, f"{lost}; requeued"),
                 **common,
-            )
-        ).rowcount
-    return int(canceled or 0) + int(failed or 0) + int(requeued or 0)
+            ),
+        )
+    return canceled + failed + requeued
 
 
 # --------------------------------------------------------------------------- workers
