@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, CursorResult, Executable, and_, func, select, update
+from sqlalchemy import ColumnElement, Update, and_, func, select, update
 from sqlalchemy.orm import Session
 
 from app.storage.db import Database
@@ -255,10 +255,9 @@ def cancel_unfinished_for_map(session: Session, map_id: int, *, now: datetime | 
     return queued + running
 
 
-def _rowcount(session: Session, statement: Executable) -> int:
-    result = session.execute(statement)
-    assert isinstance(result, CursorResult)
-    return int(result.rowcount or 0)
+def _rowcount(session: Session, statement: Update) -> int:
+    """How many rows an UPDATE changed (via RETURNING, which both backends support)."""
+    return len(session.execute(statement.returning(Job.id)).all())
 
 
 def _locked(session: Session, job_id: int) -> Job:
@@ -351,8 +350,7 @@ def heartbeat(db: Database, lease: Lease, *, lease_s: float, now: datetime | Non
     """Extend the lease; returns whether a cancel was requested. Raises LeaseLost."""
     now = now or utc_now()
     with db.transaction() as session:
-        cancel = _rowcount(
-            session,
+        cancel = session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(lease_expires_at=now + timedelta(seconds=lease_s), updated_at=now)
@@ -376,8 +374,7 @@ def report_progress(
     Raises LeaseLost."""
     now = now or utc_now()
     with db.transaction() as session:
-        cancel = _rowcount(
-            session,
+        cancel = session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(
@@ -397,8 +394,7 @@ def finish(session: Session, lease: Lease, *, log_tail: str, now: datetime | Non
     """Mark the job succeeded inside the caller's transaction (the one storing its result), so
     the result commits only if the lease still holds. Raises LeaseLost (roll back then)."""
     now = now or utc_now()
-    updated = _rowcount(
-        session,
+    updated = session.execute(
         update(Job)
         .where(_fenced(lease, now))
         .values(
@@ -467,8 +463,7 @@ def _end_attempt(
     db: Database, lease: Lease, state: JobState, now: datetime, **values: Any
 ) -> JobState:
     with db.transaction() as session:
-        updated = _rowcount(
-            session,
+        updated = session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(
