@@ -4,6 +4,7 @@
                           [--app-map FILE] [--plot FILE.png]
     invisible-map evaluate SESSION… --gt GT [--gt GT …] [--param NAME=VALUE …] [--json]
     invisible-map demo [--out DIR]
+    invisible-map serve | worker | migrate | keys …   (the server: see app/server_cli.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
@@ -29,6 +30,7 @@ from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
 from app.domain.session import Session, load_session
 from app.domain.slam import optimize_session
+from app.server_cli import ServerCommandError, add_server_commands
 from app.tables import render_markdown_table
 
 PROGRAM = "invisible-map"
@@ -54,7 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args))
-    except (InvisibleMapError, CommandError) as err:
+    except (InvisibleMapError, CommandError, ServerCommandError) as err:
         print(f"{PROGRAM}: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:
@@ -109,6 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", type=Path, default=Path("out"), help="output folder (./out)")
     _add_param_option(demo)
     demo.set_defaults(handler=_demo)
+    add_server_commands(commands)
     return parser
 
 

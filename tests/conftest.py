@@ -1,10 +1,132 @@
-"""Shared test helpers: where the repository and its shipped data are."""
+"""Shared test fixtures: where the repository and its data are, and fresh databases.
+
+Database fixtures: every database test runs on SQLite and on the local PostgreSQL.
+
+Each test gets a fresh, migrated database: on SQLite a copy of a template file migrated once per
+run; on PostgreSQL ``CREATE DATABASE … TEMPLATE`` of a template database migrated once per run,
+dropped at the end. PostgreSQL is found at ``TEST_POSTGRES_URL`` (default
+``postgresql+psycopg://postgres@127.0.0.1:5432/postgres``). Where it is unreachable the PostgreSQL
+half is skipped, with the reason, unless ``INVISIBLE_MAP_REQUIRE_POSTGRES=1`` (CI sets it), which
+makes it an error.
+"""
 
 from __future__ import annotations
 
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from sqlalchemy import create_engine, make_url, text
+from sqlalchemy.engine import URL
+
+from app.storage.db import Database
+from app.storage.migrate import upgrade_to_head
+
+POSTGRES_ADMIN_URL = os.environ.get(
+    "TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
+)
+REQUIRE_POSTGRES = os.environ.get("INVISIBLE_MAP_REQUIRE_POSTGRES") == "1"
+RUN_ID = uuid.uuid4().hex[:8]
+
+
+def _admin_engine():  # type: ignore[no-untyped-def]
+    return create_engine(POSTGRES_ADMIN_URL, isolation_level="AUTOCOMMIT", pool_pre_ping=True)
+
+
+def postgres_unavailable_reason() -> str | None:
+    """None if the local PostgreSQL answers, else why not."""
+    try:
+        engine = _admin_engine()
+        with engine.connect() as connection:
+            connection.execute(text("SELECT 1"))
+        engine.dispose()
+    except Exception as err:
+        return (
+            f"PostgreSQL at {make_url(POSTGRES_ADMIN_URL).render_as_string()} unreachable: "
+            + (str(err).splitlines()[0])
+        )
+    return None
+
+
+def _database_url(name: str) -> URL:
+    return make_url(POSTGRES_ADMIN_URL).set(database=name)
+
+
+@pytest.fixture(scope="session")
+def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("sqlite-template") / "template.sqlite3"
+    database = Database(f"sqlite:///{path}")
+    upgrade_to_head(database)
+    database.dispose()
+    return path
+
+
+@pytest.fixture(scope="session")
+def postgres_template() -> Iterator[str]:
+    reason = postgres_unavailable_reason()
+    if reason is not None:
+        if REQUIRE_POSTGRES:
+            pytest.fail(f"INVISIBLE_MAP_REQUIRE_POSTGRES=1 but {reason}")
+        pytest.skip(f"PostgreSQL half skipped: {reason}")
+    name = f"im_test_tpl_{RUN_ID}"
+    admin = _admin_engine()
+    with admin.connect() as connection:
+        connection.execute(text(f'CREATE DATABASE "{name}"'))
+    database = Database(_database_url(name).render_as_string(hide_password=False))
+    upgrade_to_head(database)
+    database.dispose()
+    yield name
+    with admin.connect() as connection:
+        connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    admin.dispose()
+
+
+def fresh_database_url(
+    backend: str, request: pytest.FixtureRequest, tmp_path: Path
+) -> Iterator[str]:
+    """A migrated, empty database of ``backend``; dropped (PostgreSQL) after the test."""
+    if backend == "sqlite":
+        template: Path = request.getfixturevalue("sqlite_template")
+        path = tmp_path / "test.sqlite3"
+        shutil.copyfile(template, path)
+        yield f"sqlite:///{path}"
+        return
+    template_name: str = request.getfixturevalue("postgres_template")
+    name = f"im_test_{RUN_ID}_{uuid.uuid4().hex[:8]}"
+    admin = _admin_engine()
+    with admin.connect() as connection:
+        connection.execute(text(f'CREATE DATABASE "{name}" TEMPLATE "{template_name}"'))
+    try:
+        yield _database_url(name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@pytest.fixture(
+    params=[pytest.param(b, marks=pytest.mark.db) for b in ("sqlite", "postgresql")]
+)
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh migrated database, once on SQLite and once on PostgreSQL."""
+    yield from fresh_database_url(request.param, request, tmp_path)
+
+
+@pytest.fixture
+def postgres_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh migrated PostgreSQL database (for tests that are about PostgreSQL only)."""
+    yield from fresh_database_url("postgresql", request, tmp_path)
+
+
+@pytest.fixture
+def db(database_url: str) -> Iterator[Database]:
+    database = Database(database_url)
+    yield database
+    database.dispose()
+
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA_DIR = REPO_ROOT / "data"

@@ -1,0 +1,268 @@
+"""The server's subcommands of ``invisible-map``.
+
+    invisible-map serve [--host H] [--port P] [--workers N] [--demo] [--no-migrate]
+    invisible-map worker [--processes N]
+    invisible-map migrate
+    invisible-map keys create --role device|admin [--name NAME] [--expires-in-days D]
+    invisible-map keys list
+    invisible-map keys revoke ID
+
+All read their settings from the environment (``app/config.py``: ``DATABASE_URL``,
+``INVISIBLE_MAP_DATA_DIR``, ``INVISIBLE_MAP_ADMIN_KEY``, …). Heavy imports (FastAPI, SQLAlchemy)
+happen inside the handlers so that the offline commands stay quick to start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import secrets
+import sys
+from datetime import timedelta
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from app.config import Settings
+    from app.storage.db import Database
+
+
+class ServerCommandError(Exception):
+    """A readable reason a server command cannot go on (printed as one line)."""
+
+
+def add_server_commands(commands: Any) -> None:
+    """Register serve, worker, migrate and keys on the ``invisible-map`` subparsers."""
+    serve = commands.add_parser(
+        "serve",
+        help="run the API, with its worker processes (embedded mode)",
+        description="Run the REST API. Migrates the database first and starts --workers worker "
+        "processes (default INVISIBLE_MAP_WORKERS, 1); --workers 0 runs the API alone.",
+    )
+    serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (127.0.0.1)")
+    serve.add_argument("--port", type=int, default=8000, help="port (8000)")
+    serve.add_argument("--workers", type=int, help="worker processes to start with the API")
+    serve.add_argument(
+        "--demo", action="store_true", help="upload the demo sessions in data/ if not there yet"
+    )
+    serve.add_argument(
+        "--no-migrate", action="store_true", help="do not run the migrations at start"
+    )
+    serve.set_defaults(handler=_serve)
+
+    worker = commands.add_parser(
+        "worker",
+        help="run worker processes that take jobs from the database",
+        description="Claim and run jobs from the database queue until SIGTERM (finish the "
+        "current job) or a second SIGTERM (release it).",
+    )
+    worker.add_argument("--processes", type=int, default=1, help="worker processes (1)")
+    worker.set_defaults(handler=_worker)
+
+    migrate = commands.add_parser("migrate", help="bring the database schema up to date")
+    migrate.set_defaults(handler=_migrate)
+
+    keys = commands.add_parser("keys", help="create, list and revoke API keys")
+    key_commands = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    create = key_commands.add_parser("create", help="create a key and print it (shown once)")
+    create.add_argument("--role", required=True, choices=["device", "admin"])
+    create.add_argument("--name", default="", help="what the key is for")
+    create.add_argument("--expires-in-days", type=float, help="expire the key after D days")
+    create.set_defaults(handler=_keys_create)
+    listing = key_commands.add_parser("list", help="list keys (never their secrets)")
+    listing.set_defaults(handler=_keys_list)
+    revoke = key_commands.add_parser("revoke", help="revoke a key by id")
+    revoke.add_argument("key_id", type=int, metavar="ID")
+    revoke.set_defaults(handler=_keys_revoke)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _settings(**overrides: Any) -> Settings:
+    from pydantic import ValidationError
+
+    from app.config import Settings
+
+    try:
+        settings = Settings()
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(part) for part in first["loc"]) or "settings"
+        raise ServerCommandError(f"{where}: {first['msg']}") from err
+    return settings.model_copy(update=overrides) if overrides else settings
+
+
+def _database(settings: Settings) -> Database:
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from app.storage.db import Database
+
+    try:
+        database = Database(settings.resolved_database_url)
+        database.ping()
+    except (SQLAlchemyError, ValueError) as err:
+        raise ServerCommandError(
+            f"cannot use the database {_safe_url(settings)}: {_first_line(err)}"
+        ) from err
+    return database
+
+
+def _migrate_database(database: Database, settings: Settings) -> str:
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from app.storage.migrate import current_revision, upgrade_to_head
+
+    try:
+        upgrade_to_head(database)
+        return current_revision(database) or "empty"
+    except SQLAlchemyError as err:
+        raise ServerCommandError(
+            f"cannot migrate the database {_safe_url(settings)}: {_first_line(err)}"
+        ) from err
+
+
+def _safe_url(settings: Settings) -> str:
+    from sqlalchemy import make_url
+
+    try:
+        return make_url(settings.resolved_database_url).render_as_string(hide_password=True)
+    except Exception:  # an unparsable URL: show nothing of it
+        return "(DATABASE_URL)"
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(getattr(err, "orig", None) or err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from app.main import create_app
+    from workers.main import start_worker_processes, stop_worker_processes
+
+    if not 0 < args.port < 65536:
+        raise ServerCommandError(f"--port must be 1–65535, got {args.port}")
+    overrides: dict[str, Any] = {}
+    if args.workers is not None:
+        if not 0 <= args.workers <= 64:
+            raise ServerCommandError(f"--workers must be 0–64, got {args.workers}")
+        overrides["workers"] = args.workers
+    settings = _settings(**overrides)
+    generated_key = settings.admin_key is None
+    if generated_key:
+        settings = settings.model_copy(
+            update={"admin_key": "im_admin_" + secrets.token_urlsafe(24)}
+        )
+    database = _database(settings)
+    if not args.no_migrate:
+        revision = _migrate_database(database, settings)
+        print(f"database {_safe_url(settings)} at revision {revision}", file=sys.stderr)
+    if args.demo:
+        from app.demo_data import upload_demo_sessions
+
+        added = upload_demo_sessions(database, settings)
+        print(f"demo sessions: {added} uploaded (the others were there already)", file=sys.stderr)
+    database.dispose()
+
+    processes = start_worker_processes(settings, settings.workers)
+    url = f"http://{args.host}:{args.port}"
+    print(f"Invisible Map server at {url}  (API docs: {url}/docs)")
+    if generated_key:
+        print(f"admin key for this run: {settings.admin_key}")
+        print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
+    print(f"worker processes: {len(processes)}", flush=True)
+    try:
+        uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    finally:
+        stop_worker_processes(processes, timeout_s=30.0)
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from workers.main import run_worker_processes
+
+    if not 1 <= args.processes <= 64:
+        raise ServerCommandError(f"--processes must be 1–64, got {args.processes}")
+    settings = _settings()
+    _database(settings).dispose()
+    return run_worker_processes(settings, args.processes)
+
+
+def _migrate(_args: argparse.Namespace) -> int:
+    settings = _settings()
+    database = _database(settings)
+    revision = _migrate_database(database, settings)
+    database.dispose()
+    print(f"database {_safe_url(settings)} at revision {revision}")
+    return 0
+
+
+def _keys_create(args: argparse.Namespace) -> int:
+    from app.storage import keys
+    from app.storage.orm import Role, utc_now
+
+    if args.expires_in_days is not None and not args.expires_in_days > 0:
+        raise ServerCommandError(f"--expires-in-days must be > 0, got {args.expires_in_days}")
+    if len(args.name) > 100:
+        raise ServerCommandError(f"--name is {len(args.name)} characters; at most 100")
+    expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
+    database = _open_migrated(_settings())
+    with database.transaction() as session:
+        info, secret = keys.create_key(
+            session, name=args.name, role=Role(args.role), expires_at=expires_at
+        )
+    database.dispose()
+    print(
+        f"created {info.role.value} key {info.id}"
+        + (f" ({info.name})" if info.name else "")
+        + (f", expires {info.expires_at:%Y-%m-%d %H:%M} UTC" if info.expires_at else "")
+        + "; it is shown only now:",
+        file=sys.stderr,
+    )
+    print(secret)
+    return 0
+
+
+def _keys_list(_args: argparse.Namespace) -> int:
+    from app.storage import keys
+
+    database = _open_migrated(_settings())
+    with database.read() as session:
+        rows = keys.list_keys(session)
+    database.dispose()
+    for info in rows:
+        status = "revoked" if info.revoked_at else "active"
+        print(f"{info.id}\t{info.role.value}\tim_{info.prefix}_…\t{status}\t{info.name}")
+    if not rows:
+        print("no API keys", file=sys.stderr)
+    return 0
+
+
+def _keys_revoke(args: argparse.Namespace) -> int:
+    from app.storage import keys
+
+    database = _open_migrated(_settings())
+    try:
+        with database.transaction() as session:
+            info = keys.revoke_key(session, args.key_id)
+    except keys.KeyNotFound as err:
+        raise ServerCommandError(str(err)) from err
+    finally:
+        database.dispose()
+    print(f"revoked key {info.id} (im_{info.prefix}_…)")
+    return 0
+
+
+def _open_migrated(settings: Settings) -> Database:
+    from app.storage.migrate import is_current
+
+    database = _database(settings)
+    if not is_current(database):
+        database.dispose()
+        raise ServerCommandError(
+            f"the database {_safe_url(settings)} is not migrated; run `invisible-map migrate`"
+        )
+    return database

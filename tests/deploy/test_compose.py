@@ -1,0 +1,130 @@
+"""docker-compose.yml and the Dockerfile, checked with parsers (no Docker engine runs here)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from app import cli
+from app.config import Settings
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    document = yaml.safe_load((REPO_ROOT / "docker-compose.yml").read_text())
+    assert isinstance(document, dict)
+    return document
+
+
+@pytest.fixture(scope="module")
+def services(compose: dict[str, Any]) -> dict[str, Any]:
+    return compose["services"]
+
+
+def test_the_four_services_are_there(services):
+    assert set(services) == {"postgres", "migrate", "api", "worker"}
+
+
+def test_postgres_is_health_checked_and_persistent(compose, services):
+    postgres = services["postgres"]
+    assert "pg_isready" in " ".join(postgres["healthcheck"]["test"])
+    assert any(volume.startswith("pgdata:") for volume in postgres["volumes"])
+    assert "pgdata" in compose["volumes"]
+
+
+def test_migration_runs_once_after_postgres_is_healthy(services):
+    migrate = services["migrate"]
+    assert migrate["depends_on"]["postgres"]["condition"] == "service_healthy"
+    assert migrate["restart"] == "no"
+    assert migrate["command"][:2] == ["invisible-map", "migrate"]
+
+
+@pytest.mark.parametrize("name", ["api", "worker"])
+def test_api_and_workers_wait_for_the_migration(services, name):
+    condition = services[name]["depends_on"]["migrate"]["condition"]
+    assert condition == "service_completed_successfully"
+
+
+def test_worker_can_be_scaled(services):
+    worker = services["worker"]
+    # `--scale worker=N` needs no fixed container name and no published host port.
+    assert "container_name" not in worker
+    assert "ports" not in worker
+    assert worker["command"][:2] == ["invisible-map", "worker"]
+
+
+def test_api_does_not_start_its_own_workers_or_migrate(services):
+    command = services["api"]["command"]
+    args = cli._parser().parse_args(command[1:])
+    assert args.command == "serve"
+    assert args.workers == 0
+    assert args.no_migrate
+    assert args.host == "0.0.0.0"
+    assert services["api"]["ports"] == [f"{args.port}:{args.port}"]
+
+
+@pytest.mark.parametrize("name", ["migrate", "api", "worker"])
+def test_commands_parse_with_our_command_line(services, name):
+    command = services[name]["command"]
+    assert command[0] == "invisible-map"
+    cli._parser().parse_args(command[1:])  # exits (SystemExit) if not
+
+
+@pytest.mark.parametrize("name", ["migrate", "api", "worker"])
+def test_every_app_service_uses_postgres_through_psycopg(services, name):
+    url = services[name]["environment"]["DATABASE_URL"]
+    assert url.startswith("postgresql+psycopg://")
+    assert "@postgres:5432/" in url
+    settings = Settings(database_url=_interpolate(url))
+    assert settings.resolved_database_url.startswith("postgresql+psycopg://")
+    assert not settings.is_sqlite
+
+
+def test_secrets_are_required_not_defaulted(services):
+    assert services["api"]["environment"]["INVISIBLE_MAP_ADMIN_KEY"].startswith(
+        "${INVISIBLE_MAP_ADMIN_KEY:?"
+    )
+    assert services["postgres"]["environment"]["POSTGRES_PASSWORD"].startswith(
+        "${POSTGRES_PASSWORD:?"
+    )
+
+
+def test_one_image_built_once(services):
+    assert services["migrate"]["build"] == "."
+    images = {services[name]["image"] for name in ("migrate", "api", "worker")}
+    assert images == {"invisible-map:latest"}
+
+
+def test_dockerfile_installs_the_project_and_runs_unprivileged():
+    dockerfile = (REPO_ROOT / "Dockerfile").read_text()
+    instructions = [
+        line.split(None, 1)
+        for line in _logical_lines(dockerfile)
+        if line and not line.startswith("#")
+    ]
+    keywords = [keyword.upper() for keyword, *_ in instructions]
+    assert keywords[0] == "FROM"
+    assert re.match(r"python:3\.1[1-9]", instructions[0][1])
+    copied = {shlex.split(rest)[0] for keyword, rest in instructions if keyword == "COPY"}
+    assert {"app", "workers", "migrations", "data"} <= copied
+    assert any(keyword == "RUN" and "pip install" in rest for keyword, rest in instructions)
+    users = [rest for keyword, rest in instructions if keyword == "USER"]
+    assert users
+    assert users[-1] != "root"
+    cmd = next(rest for keyword, rest in instructions if keyword == "CMD")
+    assert "invisible-map" in cmd
+
+
+def _logical_lines(text: str) -> list[str]:
+    return [line.strip() for line in text.replace("\\\n", " ").splitlines()]
+
+
+def _interpolate(value: str) -> str:
+    return re.sub(r"\$\{[^}]*\}", "secret", value)
