@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 import secrets
 import sys
+import threading
+import time
 from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
@@ -160,11 +162,6 @@ def _serve(args: argparse.Namespace) -> int:
     if not args.no_migrate:
         revision = _migrate_database(database, settings)
         print(f"database {_safe_url(settings)} at revision {revision}", file=sys.stderr)
-    if args.demo:
-        from app.demo_data import upload_demo_sessions
-
-        added = upload_demo_sessions(database, settings)
-        print(f"demo sessions: {added} uploaded (the others were there already)", file=sys.stderr)
     database.dispose()
 
     processes = start_worker_processes(settings, settings.workers)
@@ -174,6 +171,11 @@ def _serve(args: argparse.Namespace) -> int:
         print(f"admin key for this run: {settings.admin_key}")
         print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
     print(f"worker processes: {len(processes)}", flush=True)
+    if args.demo:
+        assert settings.admin_key is not None
+        threading.Thread(
+            target=_upload_demo_sessions, args=(url, settings.admin_key), daemon=True
+        ).start()
     try:
         uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     finally:
@@ -266,3 +268,34 @@ def _open_migrated(settings: Settings) -> Database:
             f"the database {_safe_url(settings)} is not migrated; run `invisible-map migrate`"
         )
     return database
+
+
+def _upload_demo_sessions(url: str, admin_key: str) -> None:
+    """Upload the demo sessions in data/ through the API once it is up. Idempotency keys make a
+    restart find them instead of adding them again."""
+    from app.cli import DATA_DIR, DEMO_SESSIONS
+    from app.client import ApiError, Client
+
+    with Client(url, api_key=admin_key) as client:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                client.ready()
+                break
+            except Exception:  # not listening yet, or not ready
+                time.sleep(0.2)
+        for name, _truth in DEMO_SESSIONS:
+            try:
+                accepted = client.upload_session(
+                    DATA_DIR / "sessions" / f"{name}.json", idempotency_key=f"demo-{name}"
+                )
+            except (ApiError, OSError) as err:
+                print(f"demo: {name} not uploaded: {err}", file=sys.stderr)
+                continue
+            print(
+                f"demo: {name}: session {accepted['session_id']}, map {accepted['map_id']}, "
+                f"job {accepted['job_id']}",
+                file=sys.stderr,
+                flush=True,
+            )
+        print(f"demo: maps at {url}/v1/maps", file=sys.stderr, flush=True)

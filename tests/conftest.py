@@ -107,9 +107,7 @@ def fresh_database_url(
         admin.dispose()
 
 
-@pytest.fixture(
-    params=[pytest.param(b, marks=pytest.mark.db) for b in ("sqlite", "postgresql")]
-)
+@pytest.fixture(params=[pytest.param(b, marks=pytest.mark.db) for b in ("sqlite", "postgresql")])
 def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
     """A fresh migrated database, once on SQLite and once on PostgreSQL."""
     yield from fresh_database_url(request.param, request, tmp_path)

@@ -114,6 +114,14 @@ def touch(session: Session, key_id: int, *, now: datetime | None = None) -> None
         row.last_used_at = now or utc_now()
 
 
+def get_key(session: Session, key_id: int) -> KeyInfo:
+    """One key (without its secret). Raises :class:`KeyNotFound`."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise KeyNotFound(key_id)
+    return KeyInfo.from_row(row)
+
+
 def list_keys(session: Session) -> list[KeyInfo]:
     return [KeyInfo.from_row(row) for row in session.scalars(select(ApiKey).order_by(ApiKey.id))]
 

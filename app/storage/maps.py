@@ -17,13 +17,16 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import delete, func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from app.domain.evaluation import Evaluation
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
 from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
+
+#: Load options for a version's metadata without its (large) map document and plot.
+_WITHOUT_BLOBS = (defer(MapVersion.map_json_gzip), defer(MapVersion.plot_png))
 
 
 class MapNotFound(LookupError):
@@ -221,14 +224,17 @@ def list_versions(session: Session, map_id: int) -> list[VersionInfo]:
     if session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     rows = session.scalars(
-        select(MapVersion).where(MapVersion.map_id == map_id).order_by(MapVersion.number)
+        select(MapVersion)
+        .options(*_WITHOUT_BLOBS)
+        .where(MapVersion.map_id == map_id)
+        .order_by(MapVersion.number)
     )
     return [VersionInfo.from_row(row) for row in rows]
 
 
 def get_version(session: Session, map_id: int, number: int | None = None) -> VersionInfo:
     """A version of a map; the current one when ``number`` is None. Raises MapNotFound."""
-    return VersionInfo.from_row(_version_row(session, map_id, number))
+    return VersionInfo.from_row(_version_row(session, map_id, number, blobs=False))
 
 
 def map_document(session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
@@ -258,10 +264,14 @@ def tag_poses(session: Session, version_id: int) -> list[TagPose]:
     ]
 
 
-def _version_row(session: Session, map_id: int, number: int | None) -> MapVersion:
+def _version_row(
+    session: Session, map_id: int, number: int | None, *, blobs: bool = True
+) -> MapVersion:
     if session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     query = select(MapVersion).where(MapVersion.map_id == map_id)
+    if not blobs:
+        query = query.options(*_WITHOUT_BLOBS)
     if number is None:
         query = query.order_by(MapVersion.number.desc()).limit(1)
     else:
@@ -278,6 +288,7 @@ def _map_info(session: Session, row: MapRow) -> MapInfo:
     )
     current = session.scalar(
         select(MapVersion)
+        .options(*_WITHOUT_BLOBS)
         .where(MapVersion.map_id == row.id)
         .order_by(MapVersion.number.desc())
         .limit(1)

@@ -207,8 +207,9 @@ def request_cancel(session: Session, job_id: int, *, now: datetime | None = None
         row.finished_at = now
         row.log_tail = _append(row.log_tail, now, "canceled while queued")
     elif row.state == JobState.RUNNING:
+        # The worker owns a running job's log (its writes replace the tail); it logs the cancel
+        # when it sees this flag at the next stage boundary.
         row.cancel_requested = True
-        row.log_tail = _append(row.log_tail, now, "cancel requested")
     else:
         raise InvalidTransition(job_id, row.state, "cancel")
     row.updated_at = now

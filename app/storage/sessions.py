@@ -1,12 +1,46 @@
-"""Mapping sessions as uploaded: the statistics row and the raw upload (gzip, written once)."""
+"""Mapping sessions as uploaded: the statistics row and the raw upload (gzip, written once).
+
+    with db.transaction() as s:
+        created = create_session(s, parsed=session, upload=stored, uploaded_by="key:3",
+                                 idempotency_key="walk-42", max_attempts=3)
+    created.session_id, created.map_id, created.job_id, created.replayed
+
+An upload becomes, in the caller's one transaction, a ``session`` row with its statistics, its
+``session_upload`` (the JSON bytes exactly as received, gzip-compressed), a ``map`` and a queued
+``build_map`` job. With an idempotency key, a second upload by the same uploader with the same key
+returns the first upload's ids (``replayed=True``) and stores nothing; the same key with other
+bytes raises :class:`IdempotencyConflict`. Two such uploads racing each other are settled by the
+unique constraint on ``(uploaded_by, idempotency_key)``.
+
+Exceptions::
+
+    SessionNotFound        no session with that id
+    IdempotencyConflict    the key was used before for a different upload (or its map is gone)
+"""
 
 from __future__ import annotations
 
 import gzip
+import hashlib
+from dataclasses import dataclass
+from datetime import datetime
 
+from sqlalchemy import ColumnElement, and_, func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app.storage.orm import SessionUpload
+from app.domain.session import Session as ParsedSession
+from app.storage import maps, queue
+from app.storage.orm import Job, MapRow, SessionRow, SessionUpload, utc_now
+
+#: The job kind that turns a session into a map version.
+BUILD_MAP = "build_map"
+#: Longest ``map_id`` (the app's map name) a session may have, characters.
+MAX_MAP_NAME_LENGTH = 200
+#: Longest idempotency key, characters.
+MAX_IDEMPOTENCY_KEY_LENGTH = 200
+#: Compression level of stored uploads (6: zlib's default trade-off).
+GZIP_LEVEL = 6
 
 
 class SessionNotFound(LookupError):
@@ -17,9 +51,307 @@ class SessionNotFound(LookupError):
         self.session_id = session_id
 
 
+class IdempotencyConflict(Exception):
+    """Raised when an idempotency key cannot replay its first upload: the key was used for
+    different bytes, or the map made from the first upload has been deleted since."""
+
+    def __init__(self, idempotency_key: str, session_id: int, reason: str) -> None:
+        super().__init__(
+            f"Idempotency-Key {idempotency_key!r} was used for session {session_id}: {reason}"
+        )
+        self.idempotency_key = idempotency_key
+        self.session_id = session_id
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SessionStatistics:
+    """What a session holds, computed once when it was parsed."""
+
+    pose_count: int
+    detection_count: int
+    tag_count: int
+    poi_count: int
+    duration_s: float
+    path_length_m: float
+    tag_ids: list[int]
+    warnings: list[str]
+
+    @classmethod
+    def of(cls, parsed: ParsedSession) -> SessionStatistics:
+        timestamps_s = parsed.timestamp_s
+        return cls(
+            pose_count=parsed.num_poses,
+            detection_count=len(parsed.detections),
+            tag_count=len(parsed.tag_ids),
+            poi_count=len(parsed.pois),
+            duration_s=float(timestamps_s[-1] - timestamps_s[0]) if timestamps_s.size else 0.0,
+            path_length_m=parsed.path_length_m(),
+            tag_ids=parsed.tag_ids,
+            warnings=list(parsed.warnings),
+        )
+
+    @classmethod
+    def from_row(cls, row: SessionRow) -> SessionStatistics:
+        return cls(
+            pose_count=row.pose_count,
+            detection_count=row.detection_count,
+            tag_count=row.tag_count,
+            poi_count=row.poi_count,
+            duration_s=row.duration_s,
+            path_length_m=row.path_length_m,
+            tag_ids=list(row.tag_ids),
+            warnings=list(row.warnings),
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class StoredUpload:
+    """The upload's bytes as they will be kept.
+
+    json_bytes: the JSON document exactly as the client sent it (any Content-Encoding undone).
+    json_gzip: the same bytes gzip-compressed, one gzip member (what is stored).
+    """
+
+    json_bytes: bytes
+    json_gzip: bytes
+
+    @classmethod
+    def of(cls, json_bytes: bytes, *, json_gzip: bytes | None = None) -> StoredUpload:
+        """``json_gzip`` may be the client's own gzip of ``json_bytes`` (one member), else it is
+        compressed here."""
+        if json_gzip is None:
+            json_gzip = gzip.compress(json_bytes, compresslevel=GZIP_LEVEL, mtime=0)
+        return cls(json_bytes=json_bytes, json_gzip=json_gzip)
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.json_bytes).hexdigest()
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SessionInfo:
+    """A stored session: metadata, statistics, and the map and jobs made from it."""
+
+    id: int
+    map_name: str
+    created_at: datetime
+    uploaded_by: str
+    idempotency_key: str | None
+    raw_sha256: str
+    raw_size_bytes: int
+    stored_size_bytes: int
+    statistics: SessionStatistics
+    map_id: int | None
+    job_ids: list[int]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class UploadResult:
+    """What an upload returns; ``replayed`` when an idempotency key returned an earlier one."""
+
+    session_id: int
+    map_id: int
+    job_id: int
+    map_name: str
+    statistics: SessionStatistics
+    replayed: bool
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def create_session(
+    session: Session,
+    *,
+    parsed: ParsedSession,
+    upload: StoredUpload,
+    uploaded_by: str,
+    idempotency_key: str | None = None,
+    max_attempts: int = 3,
+    now: datetime | None = None,
+) -> UploadResult:
+    """Store a validated upload with its map and build job in the caller's transaction.
+
+    Raises :class:`IdempotencyConflict` when ``idempotency_key`` was used by ``uploaded_by`` for
+    other bytes, and ValueError when ``parsed.map_id`` is longer than
+    :data:`MAX_MAP_NAME_LENGTH`."""
+    if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
+        raise ValueError(f"map_id longer than {MAX_MAP_NAME_LENGTH} characters")
+    sha256 = upload.sha256
+    if idempotency_key is not None:
+        earlier = find_by_idempotency_key(session, uploaded_by, idempotency_key)
+        if earlier is not None:
+            return replay_upload(session, earlier, sha256)
+    now = now or utc_now()
+    statistics = SessionStatistics.of(parsed)
+    row = SessionRow(
+        map_name=parsed.map_id,
+        created_at=now,
+        uploaded_by=uploaded_by,
+        idempotency_key=idempotency_key,
+        raw_sha256=sha256,
+        raw_size_bytes=len(upload.json_bytes),
+        stored_size_bytes=len(upload.json_gzip),
+        pose_count=statistics.pose_count,
+        detection_count=statistics.detection_count,
+        tag_count=statistics.tag_count,
+        poi_count=statistics.poi_count,
+        duration_s=statistics.duration_s,
+        path_length_m=statistics.path_length_m,
+        tag_ids=statistics.tag_ids,
+        warnings=statistics.warnings,
+    )
+    try:
+        with session.begin_nested():
+            session.add(row)
+            session.flush()
+    except IntegrityError:
+        # A concurrent upload with the same key committed first (PostgreSQL waited for it).
+        if idempotency_key is None:
+            raise
+        earlier = find_by_idempotency_key(session, uploaded_by, idempotency_key)
+        if earlier is None:
+            raise
+        return replay_upload(session, earlier, sha256)
+    session.add(SessionUpload(session_id=row.id, raw_gzip=upload.json_gzip))
+    map_id = maps.create_map(session, name=parsed.map_id, session_id=row.id)
+    job_id = queue.enqueue(
+        session,
+        kind=BUILD_MAP,
+        map_id=map_id,
+        session_id=row.id,
+        params={},
+        max_attempts=max_attempts,
+        now=now,
+    )
+    return UploadResult(
+        session_id=row.id,
+        map_id=map_id,
+        job_id=job_id,
+        map_name=row.map_name,
+        statistics=statistics,
+        replayed=False,
+    )
+
+
+def find_by_idempotency_key(session: Session, uploaded_by: str, key: str) -> int | None:
+    """The id of the session ``uploaded_by`` uploaded with ``key``, if any."""
+    return session.scalar(
+        select(SessionRow.id).where(
+            SessionRow.uploaded_by == uploaded_by, SessionRow.idempotency_key == key
+        )
+    )
+
+
+def replay_upload(session: Session, session_id: int, sha256: str) -> UploadResult:
+    """The result of the earlier upload ``session_id``, if its bytes hash to ``sha256``.
+    Raises :class:`IdempotencyConflict` otherwise (or when its map was deleted)."""
+    row = session.get(SessionRow, session_id)
+    if row is None:
+        raise SessionNotFound(session_id)
+    key = row.idempotency_key or ""
+    if row.raw_sha256 != sha256:
+        raise IdempotencyConflict(
+            key, row.id, "the body differs from that upload; use a new key for a new upload"
+        )
+    map_id = session.scalar(select(func.min(MapRow.id)).where(MapRow.session_id == row.id))
+    job_id = session.scalar(
+        select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
+    )
+    if map_id is None or job_id is None:
+        raise IdempotencyConflict(
+            key, row.id, "its map has been deleted since; use a new key to upload again"
+        )
+    return UploadResult(
+        session_id=row.id,
+        map_id=map_id,
+        job_id=job_id,
+        map_name=row.map_name,
+        statistics=SessionStatistics.from_row(row),
+        replayed=True,
+    )
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def get_session(session: Session, session_id: int) -> SessionInfo:
+    """A stored session. Raises :class:`SessionNotFound`."""
+    row = session.get(SessionRow, session_id)
+    if row is None:
+        raise SessionNotFound(session_id)
+    return _infos(session, [row])[0]
+
+
+def list_sessions(
+    session: Session, *, limit: int = 50, offset: int = 0, uploaded_by: str | None = None
+) -> tuple[list[SessionInfo], int]:
+    """Sessions, newest first, and how many match in all; only ``uploaded_by``'s when given."""
+    where: ColumnElement[bool] = (
+        SessionRow.uploaded_by == uploaded_by if uploaded_by is not None else and_(True)
+    )
+    total = session.scalar(select(func.count()).select_from(SessionRow).where(where)) or 0
+    rows = list(
+        session.scalars(
+            select(SessionRow)
+            .where(where)
+            .order_by(SessionRow.id.desc())
+            .limit(limit)
+            .offset(offset)
+        )
+    )
+    return _infos(session, rows), total
+
+
+def uploader_of(session: Session, session_id: int) -> str | None:
+    """Who uploaded ``session_id`` (None if there is no such session)."""
+    return session.scalar(select(SessionRow.uploaded_by).where(SessionRow.id == session_id))
+
+
 def raw_upload(session: Session, session_id: int) -> bytes:
     """The upload exactly as the client sent it (after undoing any ``Content-Encoding``)."""
+    return gzip.decompress(raw_upload_gzip(session, session_id))
+
+
+def raw_upload_gzip(session: Session, session_id: int) -> bytes:
+    """The stored upload: one gzip member of the bytes :func:`raw_upload` returns."""
     row = session.get(SessionUpload, session_id)
     if row is None:
         raise SessionNotFound(session_id)
-    return gzip.decompress(row.raw_gzip)
+    return row.raw_gzip
+
+
+def _infos(session: Session, rows: list[SessionRow]) -> list[SessionInfo]:
+    """Rows as :class:`SessionInfo`, with their maps and jobs looked up in two queries."""
+    ids = [row.id for row in rows]
+    map_of: dict[int, int] = {}
+    jobs_of: dict[int, list[int]] = {session_id: [] for session_id in ids}
+    if ids:
+        for map_id, session_id in session.execute(
+            select(MapRow.id, MapRow.session_id)
+            .where(MapRow.session_id.in_(ids))
+            .order_by(MapRow.id)
+        ):
+            map_of.setdefault(session_id, map_id)
+        for job_id, job_session_id in session.execute(
+            select(Job.id, Job.session_id).where(Job.session_id.in_(ids)).order_by(Job.id)
+        ):
+            if job_session_id is not None:
+                jobs_of[job_session_id].append(job_id)
+    return [
+        SessionInfo(
+            id=row.id,
+            map_name=row.map_name,
+            created_at=row.created_at,
+            uploaded_by=row.uploaded_by,
+            idempotency_key=row.idempotency_key,
+            raw_sha256=row.raw_sha256,
+            raw_size_bytes=row.raw_size_bytes,
+            stored_size_bytes=row.stored_size_bytes,
+            statistics=SessionStatistics.from_row(row),
+            map_id=map_of.get(row.id),
+            job_ids=jobs_of[row.id],
+        )
+        for row in rows
+    ]

@@ -1,0 +1,224 @@
+"""Dependencies of the routes, each with a named ``Annotated`` alias; the aliases chain
+(``ReadSessionDep`` → ``CurrentPrincipal`` → ``AdminPrincipal``), and some double as validators
+(``MapDep`` is a map that exists, or a 404).
+
+Authentication: ``Authorization: Bearer <key>`` on every ``/v1`` endpoint. A missing, unknown,
+revoked or expired key is a 401 with ``WWW-Authenticate: Bearer``; a device key on an admin
+endpoint is a 403. ``INVISIBLE_MAP_ADMIN_KEY``, when set, is an admin key.
+
+Who may do what (``own`` = sessions the key uploaded, and the jobs made from them; someone
+else's is a 404, so a device cannot learn what exists)::
+
+    endpoint                               device     admin
+    GET  /healthz, /readyz                 yes (no key needed)
+    GET  /v1/info                          yes        yes
+    POST /v1/sessions                      yes        yes
+    GET  /v1/sessions[/{id}[/raw]]         own        all
+    GET  /v1/jobs/{id}                     own        all
+    GET  /v1/jobs, POST …/cancel, …/retry  403        yes
+    GET  /v1/maps[/{id}[/…]]               all        all     (maps are shared for navigation)
+    POST /v1/maps/{id}/rebuild             403        yes
+    DELETE /v1/maps/{id}                   403        yes
+    /v1/keys (create, list, get, revoke)   403        yes
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.orm import Session
+
+from app.api.errors import ApiError, not_found, unauthorized
+from app.api.upload import RawBody, read_body
+from app.config import Settings
+from app.storage import keys, maps, queue, sessions
+from app.storage.db import Database
+from app.storage.maps import MapInfo
+from app.storage.queue import JobInfo
+from app.storage.sessions import SessionInfo
+
+logger = logging.getLogger(__name__)
+
+#: Ids are positive 64-bit integers; anything else names nothing (and must not reach the driver).
+MAX_ID = 2**63 - 1
+#: ``last_used_at`` of a key is written at most this often per process, s.
+KEY_TOUCH_INTERVAL_S = 60.0
+
+
+# --------------------------------------------------------------------------- app state
+
+
+async def get_settings(request: Request) -> Settings:
+    """The settings ``create_app`` was given."""
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+async def get_db(request: Request) -> Database:
+    """The process's database (created by the app's lifespan)."""
+    db: Database = request.app.state.db
+    return db
+
+
+DbDep = Annotated[Database, Depends(get_db)]
+
+
+def read_session(db: DbDep) -> Iterator[Session]:
+    """One read-only transaction for the request."""
+    with db.read() as session:
+        yield session
+
+
+def write_session(db: DbDep) -> Iterator[Session]:
+    """One read-write transaction for the request: committed when the route returns (before the
+    response is sent), rolled back if it raises."""
+    with db.transaction() as session:
+        yield session
+
+
+ReadSessionDep = Annotated[Session, Depends(read_session, scope="function")]
+WriteSessionDep = Annotated[Session, Depends(write_session, scope="function")]
+
+
+# --------------------------------------------------------------------------- authentication
+
+
+class KeyUsage:
+    """Remembers when this process last wrote a key's ``last_used_at``, so that it is written at
+    most once per :data:`KEY_TOUCH_INTERVAL_S` instead of on every request."""
+
+    def __init__(self, interval_s: float = KEY_TOUCH_INTERVAL_S) -> None:
+        self.interval_s = interval_s
+        self._last_s: dict[int, float] = {}
+        self._lock = threading.Lock()
+
+    def due(self, key_id: int) -> bool:
+        """Whether ``key_id``'s use should be written now (and note that it is)."""
+        now_s = time.monotonic()
+        with self._lock:
+            last_s = self._last_s.get(key_id)
+            if last_s is not None and now_s - last_s < self.interval_s:
+                return False
+            self._last_s[key_id] = now_s
+            return True
+
+
+bearer_scheme = HTTPBearer(
+    auto_error=False,
+    scheme_name="ApiKey",
+    description="An API key (`im_<prefix>_<secret>`) as `Authorization: Bearer <key>`. "
+    "Keys have a role: device (upload, read maps and its own sessions and jobs) or admin.",
+)
+BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
+
+
+def current_principal(
+    request: Request, credentials: BearerDep, settings: SettingsDep, db: DbDep
+) -> keys.Principal:
+    """Who is calling: 401 without a valid key. (Its own short transaction, so that no
+    connection is held while an upload's body streams in.)"""
+    if credentials is None:
+        raise unauthorized("missing API key: send Authorization: Bearer <key>")
+    with db.read() as session:
+        principal = keys.authenticate(
+            session, credentials.credentials, admin_key=settings.admin_key
+        )
+    if principal is None:
+        raise unauthorized("unknown, revoked or expired API key", invalid_token=True)
+    usage: KeyUsage = request.app.state.key_usage
+    if principal.key_id is not None and usage.due(principal.key_id):
+        _touch(db, principal.key_id)
+    return principal
+
+
+def _touch(db: Database, key_id: int) -> None:
+    """Record a key's use; best effort (a busy database must not fail the request)."""
+    try:
+        with db.transaction() as session:
+            keys.touch(session, key_id)
+    except SQLAlchemyError as err:
+        logger.warning("could not record use of key %d: %s", key_id, err)
+
+
+CurrentPrincipal = Annotated[keys.Principal, Depends(current_principal)]
+
+
+def admin_principal(principal: CurrentPrincipal) -> keys.Principal:
+    """An admin: 403 for a device key."""
+    if not principal.is_admin:
+        raise ApiError(403, "forbidden", "this needs an admin key; yours is a device key")
+    return principal
+
+
+AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
+
+
+# --------------------------------------------------------------------------- validators
+
+
+def valid_map(map_id: int, session: ReadSessionDep) -> MapInfo:
+    """The map ``map_id`` (with its current version), or 404."""
+    if not 1 <= map_id <= MAX_ID:
+        raise not_found(f"map {map_id}")
+    return maps.get_map(session, map_id)
+
+
+MapDep = Annotated[MapInfo, Depends(valid_map)]
+
+
+def valid_session(
+    session_id: int, session: ReadSessionDep, principal: CurrentPrincipal
+) -> SessionInfo:
+    """The session ``session_id`` if the caller may see it (admin, or its uploader), or 404."""
+    if not 1 <= session_id <= MAX_ID:
+        raise not_found(f"session {session_id}")
+    info = sessions.get_session(session, session_id)
+    if not principal.is_admin and info.uploaded_by != principal.subject:
+        raise not_found(f"session {session_id}")
+    return info
+
+
+SessionDep = Annotated[SessionInfo, Depends(valid_session)]
+
+
+def valid_job(job_id: int, session: ReadSessionDep, principal: CurrentPrincipal) -> JobInfo:
+    """The job ``job_id`` if the caller may see it (admin, or the uploader of its session)."""
+    if not 1 <= job_id <= MAX_ID:
+        raise not_found(f"job {job_id}")
+    job = queue.get_job(session, job_id)
+    if not principal.is_admin and (
+        job.session_id is None or sessions.uploader_of(session, job.session_id) != principal.subject
+    ):
+        raise not_found(f"job {job_id}")
+    return job
+
+
+JobDep = Annotated[JobInfo, Depends(valid_job)]
+
+
+def valid_id(value: int, what: str) -> int:
+    """``value`` if it can be an id, else 404 for ``what``."""
+    if not 1 <= value <= MAX_ID:
+        raise not_found(f"{what} {value}")
+    return value
+
+
+# --------------------------------------------------------------------------- upload body
+
+
+async def upload_body(request: Request, settings: SettingsDep) -> RawBody:
+    """The raw upload (415 for another media type or encoding, 413 over the raw limit)."""
+    return await read_body(request, max_upload_bytes=settings.max_upload_bytes)
+
+
+UploadBodyDep = Annotated[RawBody, Depends(upload_body)]

@@ -1,0 +1,249 @@
+"""One error body everywhere: ``{"detail": "…", "code": "invalid_session", "field": "…"}``.
+
+Routes raise :class:`ApiError` (or let a storage or domain error through); the handlers installed
+by :func:`install_error_handlers` turn each into that body with the right status. No stack trace,
+SQL or internal message ever reaches a client: anything unexpected is a 500 with a generic
+message (and a full log line on the server).
+
+What becomes what::
+
+    ApiError(status, code, detail, field)      as raised (401 also sends WWW-Authenticate: Bearer)
+    RequestValidationError                     422 validation_error, field = the parameter's path
+    SessionFormatError                         422 invalid_session, field = the upload's JSON path
+    ParameterError                             422 invalid_parameter
+    MapNotFound, JobNotFound,
+    SessionNotFound, KeyNotFound               404 not_found
+    InvalidTransition                          409 invalid_transition (names the job's state)
+    IdempotencyConflict                        409 idempotency_conflict
+    sqlalchemy OperationalError                503 database_unavailable
+    starlette HTTPException (404 route, 405)   its status, code from the status
+    anything else                              500 internal_error
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.api.schemas import ErrorBody
+from app.domain.errors import ParameterError, SessionFormatError
+from app.storage.keys import KeyNotFound
+from app.storage.maps import MapNotFound
+from app.storage.queue import InvalidTransition, JobNotFound
+from app.storage.sessions import IdempotencyConflict, SessionNotFound
+
+logger = logging.getLogger(__name__)
+
+#: The ``code`` of an error body for a bare status (404 route, 405 method, …).
+CODE_OF_STATUS = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+    422: "validation_error",
+    500: "internal_error",
+    503: "service_unavailable",
+}
+
+BEARER_CHALLENGE = 'Bearer realm="invisible-map"'
+
+
+class ApiError(Exception):
+    """An error response: ``status_code``, a stable ``code``, a ``detail`` for people, and the
+    ``field`` at fault if there is one."""
+
+    def __init__(
+        self,
+        status_code: int,
+        code: str,
+        detail: str,
+        *,
+        field: str | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
+        super().__init__(detail)
+        self.status_code = status_code
+        self.code = code
+        self.detail = detail
+        self.field = field
+        self.headers = headers or {}
+
+
+def unauthorized(detail: str, *, invalid_token: bool = False) -> ApiError:
+    """401 with the ``WWW-Authenticate: Bearer`` challenge (RFC 6750)."""
+    challenge = BEARER_CHALLENGE + (', error="invalid_token"' if invalid_token else "")
+    return ApiError(401, "unauthorized", detail, headers={"WWW-Authenticate": challenge})
+
+
+def not_found(what: str) -> ApiError:
+    return ApiError(404, "not_found", f"{what} not found")
+
+
+def error_response(
+    status_code: int,
+    code: str,
+    detail: str,
+    *,
+    field: str | None = None,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
+    body = ErrorBody(detail=detail, code=code, field=field)
+    return JSONResponse(body.model_dump(), status_code=status_code, headers=headers)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the handlers of every error the API can answer with."""
+
+    def handle(status_code: int, code: str) -> Any:
+        async def handler(_request: Request, exc: Exception) -> JSONResponse:
+            return error_response(status_code, code, str(exc))
+
+        return handler
+
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_exception)
+    app.add_exception_handler(SessionFormatError, _session_format_error)
+    app.add_exception_handler(ParameterError, handle(422, "invalid_parameter"))
+    for missing in (MapNotFound, JobNotFound, SessionNotFound, KeyNotFound):
+        app.add_exception_handler(missing, handle(404, "not_found"))
+    app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
+    app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))
+    app.add_exception_handler(OperationalError, _database_unavailable)
+    app.add_exception_handler(Exception, _internal_error)
+
+
+async def _api_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ApiError)
+    return error_response(
+        exc.status_code, exc.code, exc.detail, field=exc.field, headers=exc.headers
+    )
+
+
+async def _session_format_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, SessionFormatError)
+    return error_response(422, "invalid_session", str(exc), field=exc.field or None)
+
+
+async def _http_exception(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    code = CODE_OF_STATUS.get(exc.status_code, "error")
+    headers = dict(exc.headers) if exc.headers else None
+    return error_response(exc.status_code, code, str(exc.detail), headers=headers)
+
+
+async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = list(exc.errors())
+    if not errors:
+        return error_response(422, "validation_error", "invalid request")
+    messages = []
+    for error in errors:
+        where = field_path(error.get("loc", ()))
+        message = str(error.get("msg", "invalid"))
+        messages.append(f"{where}: {message}" if where else message)
+    return error_response(
+        422,
+        "validation_error",
+        "; ".join(messages),
+        field=field_path(errors[0].get("loc", ())) or None,
+    )
+
+
+async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    logger.error(
+        "database unavailable during %s %s: %s",
+        request.method,
+        request.url.path,
+        exc,
+        extra={"action": "database_unavailable"},
+    )
+    return error_response(
+        503,
+        "database_unavailable",
+        "the database is unavailable or busy; try again shortly",
+        headers={"Retry-After": "1"},
+    )
+
+
+async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
+    logger.error(
+        "unhandled error in %s %s",
+        request.method,
+        request.url.path,
+        exc_info=exc,
+        extra={"action": "internal_error"},
+    )
+    return error_response(500, "internal_error", "internal server error")
+
+
+def field_path(loc: Sequence[Any]) -> str:
+    """``("body", "params", "huber_k")`` → ``params.huber_k``; ``("query", "limit")`` → ``limit``;
+    list indices in brackets (``pose_data[3]``)."""
+    parts = list(loc)
+    if parts and parts[0] in {"body", "query", "path", "header", "cookie"}:
+        parts = parts[1:]
+    text = ""
+    for part in parts:
+        if isinstance(part, int):
+            text += f"[{part}]"
+        else:
+            text += f".{part}" if text else str(part)
+    return text
+
+
+# --------------------------------------------------------------------------- OpenAPI
+
+#: status → (description, code, detail, field) of the documented example.
+_EXAMPLES: dict[int, tuple[str, str, str, str | None]] = {
+    400: ("Bad request", "invalid_gzip", "the body is not valid gzip: incorrect header check",
+          None),
+    401: ("No valid API key", "unauthorized", "missing API key: send Authorization: Bearer <key>",
+          None),
+    403: ("Needs an admin key", "forbidden", "this needs an admin key; yours is a device key",
+          None),
+    404: ("Not found", "not_found", "map 42 not found", None),
+    409: ("Conflict with the resource's state", "invalid_transition",
+          "job 31 is succeeded: cannot cancel it", None),
+    413: ("Body too large", "payload_too_large",
+          "the body is larger than the limit of 33554432 bytes", None),
+    415: ("Unsupported media type or encoding", "unsupported_media_type",
+          "Content-Type must be application/json, got text/plain", "Content-Type"),
+    422: ("Invalid input", "invalid_session", "pose_data[3].pose: rotation not orthonormal",
+          "pose_data[3].pose"),
+    503: ("Unavailable", "database_unavailable",
+          "the database is unavailable or busy; try again shortly", None),
+}  # fmt: skip
+
+
+def error_responses(
+    *statuses: int, examples: dict[int, tuple[str, str]] | None = None
+) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries for these error statuses, each with an example body;
+    ``examples`` replaces the (code, detail) of some."""
+    responses: dict[int | str, dict[str, Any]] = {}
+    for status in statuses:
+        description, code, detail, field = _EXAMPLES[status]
+        if examples and status in examples:
+            code, detail = examples[status]
+            field = None
+        responses[status] = {
+            "model": ErrorBody,
+            "description": description,
+            "content": {
+                "application/json": {"example": {"detail": detail, "code": code, "field": field}}
+            },
+        }
+    return responses

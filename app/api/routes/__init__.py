@@ -1,0 +1,1 @@
+"""One router per resource: sessions, jobs, maps, keys, and the system endpoints."""

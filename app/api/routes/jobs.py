@@ -1,0 +1,79 @@
+"""``/v1/jobs``: the job queue as the API shows it.
+
+``GET /v1/jobs/{id}`` is open to the device that uploaded the job's session (the phone polls the
+build of its upload); listing, cancel and retry are admin-only. Cancel and retry are requests the
+queue records in one transaction: a queued job is canceled at once, a running one gets
+``cancel_requested`` and its worker stops at the next stage boundary; retry queues a failed or
+canceled job again. Any other state is a 409 naming the job's state.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from app.api.deps import AdminPrincipal, JobDep, ReadSessionDep, WriteSessionDep, valid_id
+from app.api.errors import error_responses
+from app.api.schemas import JobPublic, JobsPublic
+from app.storage import queue
+from app.storage.orm import JobState
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
+Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]
+
+
+@router.get(
+    "",
+    summary="List jobs",
+    description="Newest first, optionally only those in one state or of one map (admin).",
+    responses=error_responses(401, 403, 422),
+)
+def list_jobs(
+    _admin: AdminPrincipal,
+    session: ReadSessionDep,
+    state: Annotated[JobState | None, Query(description="only jobs in this state")] = None,
+    map_id: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="only this map's")] = None,
+    limit: Limit = 50,
+    offset: Offset = 0,
+) -> JobsPublic:
+    jobs, total = queue.list_jobs(session, state=state, map_id=map_id, limit=limit, offset=offset)
+    return JobsPublic(
+        data=[JobPublic.from_domain(job) for job in jobs], count=total, limit=limit, offset=offset
+    )
+
+
+@router.get(
+    "/{job_id}",  # noqa: FAST003 (job_id is read by JobDep)
+    summary="Get a job",
+    description="State (queued, running, succeeded, failed, canceled), progress 0–1, stage, "
+    "attempts, error, timings and log tail. A device key may read the jobs of its own uploads.",
+    responses=error_responses(401, 404, 422),
+)
+def get_job(job: JobDep) -> JobPublic:
+    return JobPublic.from_domain(job)
+
+
+@router.post(
+    "/{job_id}/cancel",
+    summary="Cancel a job",
+    description="A queued job is canceled now; a running job is asked to stop "
+    "(cancel_requested, state still running until its worker stops at the next stage). 409 "
+    "for a job that has finished (admin).",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def cancel_job(job_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> JobPublic:
+    return JobPublic.from_domain(queue.request_cancel(session, valid_id(job_id, "job")))
+
+
+@router.post(
+    "/{job_id}/retry",
+    summary="Retry a job",
+    description="Queue a failed or canceled job again, with a fresh count of attempts. 409 for "
+    "a job in any other state (admin).",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def retry_job(job_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> JobPublic:
+    return JobPublic.from_domain(queue.retry(session, valid_id(job_id, "job")))

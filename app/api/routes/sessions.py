@@ -1,0 +1,270 @@
+"""``/v1/sessions``: upload a mapping session, list and read sessions, download the raw upload.
+
+An upload is validated completely before anything is stored (DESIGN §2); then the session, its
+raw bytes, its map and its build job are written in one transaction, and the answer is 202 with
+the ids and ``Location: /v1/jobs/{job_id}``.
+
+Idempotency: with ``Idempotency-Key: <up to 200 visible ASCII characters>``, a second upload by
+the same key holder with the same key and the same bytes answers **202 again with the first
+upload's body** (same ``session_id``, ``map_id``, ``job_id``) and ``Idempotent-Replayed: true``,
+storing nothing; the same key with different bytes is a 409 ``idempotency_conflict``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Header, Query, Response
+
+from app.api.deps import (
+    CurrentPrincipal,
+    DbDep,
+    ReadSessionDep,
+    SessionDep,
+    SettingsDep,
+    UploadBodyDep,
+)
+from app.api.errors import error_responses
+from app.api.http import accepts_gzip
+from app.api.schemas import SessionCreated, SessionPublic, SessionsPublic
+from app.api.upload import decode_body
+from app.domain.errors import SessionFormatError
+from app.domain.session import Session as ParsedSession
+from app.domain.session import decode_json_bytes, parse_session
+from app.storage import sessions
+from app.storage.db import Database
+from app.storage.keys import Principal
+from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+
+IdempotencyKey = Annotated[
+    str | None,
+    Header(
+        alias="Idempotency-Key",
+        min_length=1,
+        max_length=MAX_IDEMPOTENCY_KEY_LENGTH,
+        pattern=r"^[\x21-\x7e]+$",
+        description="Makes a retried upload return the first result instead of a second "
+        "session (1–200 visible ASCII characters, unique per upload and key holder).",
+        examples=["3f1c2a9e-occam-1"],
+    ),
+]
+ContentEncoding = Annotated[
+    str | None,
+    Header(
+        alias="Content-Encoding",
+        description="gzip to send the JSON compressed (the limit on the decompressed size "
+        "applies); otherwise leave it out",
+        examples=["gzip"],
+    ),
+]
+Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
+Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]
+
+_IDENTITY = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+UPLOAD_EXAMPLE: dict[str, Any] = {
+    "map_id": "lobby",
+    "pose_data": [
+        {"id": 0, "timestamp": 0.0, "pose": _IDENTITY, "planes": []},
+        {"id": 1, "timestamp": 0.1, "pose": [*_IDENTITY[:12], 0.05, 0, 0, 1], "planes": []},
+    ],
+    "tag_data": [
+        [
+            {
+                "tag_id": 3,
+                "pose_id": 1,
+                "timestamp": 0.1,
+                "tag_pose": [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 1.5, 0, 0, 0, 1],
+                "camera_intrinsics": [1590.0, 1590.0, 950.0, 720.0],
+                "tag_corners_pixel_coordinates": [
+                    *(858.31, 811.69, 1041.69, 811.69, 1041.69, 628.31, 858.31, 628.31)
+                ],
+                "tag_position_variance": [1e-6, 1e-6, 1e-5],
+                "tag_orientation_variance": [1e-4, 1e-4, 1e-4, 1e-4],
+            }
+        ]
+    ],
+    "location_data": [],
+    "plane_data": [],
+}
+UPLOAD_REQUEST_BODY: dict[str, Any] = {
+    "required": True,
+    "description": "The app's mapping session (DESIGN §2), as JSON; may be sent with "
+    "Content-Encoding: gzip. Unknown keys are accepted and kept in the raw upload.",
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "required": ["map_id", "pose_data"],
+                "additionalProperties": True,
+                "properties": {
+                    "map_id": {"type": "string", "maxLength": MAX_MAP_NAME_LENGTH},
+                    "pose_data": {
+                        "type": "array",
+                        "minItems": 1,
+                        "description": "{id, timestamp (s), pose: 16 numbers, column-major "
+                        "world_T_phone}",
+                        "items": {"type": "object"},
+                    },
+                    "tag_data": {
+                        "type": "array",
+                        "description": "frames of detections {tag_id, pose_id, tag_pose (16, "
+                        "row-major, OpenCV camera_T_tag), camera_intrinsics, "
+                        "tag_corners_pixel_coordinates, …}",
+                        "items": {"type": "array", "items": {"type": "object"}},
+                    },
+                    "location_data": {
+                        "type": "array",
+                        "description": "points of interest {name, pose_id, transform}",
+                        "items": {"type": "object"},
+                    },
+                    "plane_data": {"type": "array", "description": "ignored"},
+                },
+            },
+            "examples": {"two poses, one tag": {"value": UPLOAD_EXAMPLE}},
+        }
+    },
+}
+
+
+@router.post(
+    "",
+    status_code=202,
+    summary="Upload a mapping session",
+    description="Validate the session, store it (raw bytes kept, gzip-compressed, never "
+    "changed), create its map and queue the job that builds it. Answers 202 with the ids and "
+    "`Location: /v1/jobs/{job_id}`. A retry with the same `Idempotency-Key` answers 202 with the "
+    "first upload's body and `Idempotent-Replayed: true`.",
+    response_description="Accepted: the map is being built; follow job_url.",
+    openapi_extra={"requestBody": UPLOAD_REQUEST_BODY},
+    responses=error_responses(
+        400,
+        401,
+        409,
+        413,
+        415,
+        422,
+        examples={
+            409: (
+                "idempotency_conflict",
+                "Idempotency-Key '3f1c2a9e-occam-1' was used for session 17: the body differs "
+                "from that upload; use a new key for a new upload",
+            )
+        },
+    ),
+)
+def upload_session(
+    principal: CurrentPrincipal,
+    body: UploadBodyDep,
+    db: DbDep,
+    settings: SettingsDep,
+    response: Response,
+    idempotency_key: IdempotencyKey = None,
+    content_encoding: ContentEncoding = None,  # noqa: ARG001 (read with the body; here for the docs)
+) -> SessionCreated:
+    upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
+    result = _replayed(db, principal, idempotency_key, upload.sha256)
+    if result is None:
+        parsed = _parse(upload.json_bytes)
+        # The write transaction starts only now: parsing never holds SQLite's write lock.
+        with db.transaction() as session:
+            result = sessions.create_session(
+                session,
+                parsed=parsed,
+                upload=upload,
+                uploaded_by=principal.subject,
+                idempotency_key=idempotency_key,
+                max_attempts=settings.max_attempts,
+            )
+    response.headers["Location"] = f"/v1/jobs/{result.job_id}"
+    if result.replayed:
+        response.headers["Idempotent-Replayed"] = "true"
+    return SessionCreated.from_domain(result)
+
+
+def _replayed(
+    db: Database, principal: Principal, idempotency_key: str | None, sha256: str
+) -> UploadResult | None:
+    """The earlier upload's result if this is a retry (checked before the costly parse;
+    ``create_session`` checks again in its transaction, for retries that race)."""
+    if idempotency_key is None:
+        return None
+    with db.read() as session:
+        earlier = sessions.find_by_idempotency_key(session, principal.subject, idempotency_key)
+        return None if earlier is None else sessions.replay_upload(session, earlier, sha256)
+
+
+def _parse(json_bytes: bytes) -> ParsedSession:
+    """The validated session; SessionFormatError (422, naming the field) otherwise."""
+    parsed = parse_session(decode_json_bytes(json_bytes))
+    if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
+        raise SessionFormatError(
+            "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
+        )
+    return parsed
+
+
+@router.get(
+    "",
+    summary="List sessions",
+    description="Newest first. A device key sees the sessions it uploaded; an admin all.",
+    responses=error_responses(401, 422),
+)
+def list_sessions(
+    session: ReadSessionDep, principal: CurrentPrincipal, limit: Limit = 50, offset: Offset = 0
+) -> SessionsPublic:
+    infos, total = sessions.list_sessions(
+        session,
+        limit=limit,
+        offset=offset,
+        uploaded_by=None if principal.is_admin else principal.subject,
+    )
+    return SessionsPublic(
+        data=[SessionPublic.from_domain(info) for info in infos],
+        count=total,
+        limit=limit,
+        offset=offset,
+    )
+
+
+@router.get(
+    "/{session_id}",  # noqa: FAST003 (session_id is read by SessionDep)
+    summary="Get a session",
+    description="Metadata, statistics, its map and its jobs.",
+    responses=error_responses(401, 404, 422),
+)
+def get_session(info: SessionDep) -> SessionPublic:
+    return SessionPublic.from_domain(info)
+
+
+@router.get(
+    "/{session_id}/raw",  # noqa: FAST003 (session_id is read by SessionDep)
+    summary="Download the raw upload",
+    description="The JSON exactly as uploaded, byte for byte (after undoing the upload's "
+    "Content-Encoding). Sent gzip-compressed (`Content-Encoding: gzip`) to clients that accept "
+    "it; any HTTP client decodes that to the same bytes.",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "the upload's JSON bytes",
+            "content": {"application/json": {"example": UPLOAD_EXAMPLE}},
+        },
+        **error_responses(401, 404, 422),
+    },
+)
+def get_raw_session(
+    info: SessionDep,
+    session: ReadSessionDep,
+    accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> Response:
+    headers = {
+        "Content-Disposition": f'attachment; filename="session-{info.id}.json"',
+        "Vary": "Accept-Encoding",
+    }
+    if accepts_gzip(accept_encoding):
+        headers["Content-Encoding"] = "gzip"
+        content = sessions.raw_upload_gzip(session, info.id)
+    else:
+        content = sessions.raw_upload(session, info.id)
+    return Response(content=content, media_type="application/json", headers=headers)

@@ -1,0 +1,83 @@
+"""``/healthz`` (the process is up), ``/readyz`` (the database answers and its schema is current;
+both without a key, for load balancers and orchestrators) and ``/v1/info`` (any valid key)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from importlib.metadata import PackageNotFoundError, version
+
+from fastapi import APIRouter, Request
+from sqlalchemy.exc import SQLAlchemyError
+
+from app.api.deps import CurrentPrincipal, DbDep, ReadSessionDep, SettingsDep
+from app.api.errors import ApiError, error_responses
+from app.api.schemas import Health, Info, Ready, WorkerPublic
+from app.storage import migrate, queue
+from app.storage.orm import JobState
+
+router = APIRouter(tags=["system"])
+
+
+@lru_cache
+def package_version() -> str:
+    """The installed ``invisible-map`` version."""
+    try:
+        return version("invisible-map")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+#: A worker counts as alive if it reported within this many heartbeat periods.
+ALIVE_HEARTBEATS = 3
+
+
+@router.get("/healthz", summary="Liveness", description="The process is up (no key needed).")
+async def healthz() -> Health:
+    return Health()
+
+
+@router.get(
+    "/readyz",
+    summary="Readiness",
+    description="200 when the database answers and its schema is at the newest migration; 503 "
+    "with the reason otherwise (no key needed).",
+    responses=error_responses(503, examples={503: ("not_ready", "database schema is not "
+                                                   "migrated: at None, the code needs 0001")}),
+)  # fmt: skip
+def readyz(request: Request, db: DbDep) -> Ready:
+    try:
+        db.ping()
+        revision = migrate.current_revision(db)
+    except SQLAlchemyError as err:
+        raise ApiError(503, "not_ready", f"database unreachable ({type(err).__name__})") from err
+    head: str | None = request.app.state.head_revision
+    if revision != head:
+        raise ApiError(
+            503,
+            "not_ready",
+            f"database schema is not migrated: at {revision}, the code needs {head} "
+            "(run: invisible-map migrate)",
+        )
+    return Ready(database=db.backend, schema_revision=revision)
+
+
+@router.get(
+    "/v1/info",
+    summary="Server information",
+    description="Version, database, queue depth, jobs by state, and the workers alive with "
+    "what each is running (any valid key).",
+    responses=error_responses(401),
+)
+def info(
+    principal: CurrentPrincipal, session: ReadSessionDep, db: DbDep, settings: SettingsDep
+) -> Info:
+    counts = queue.count_by_state(session)
+    workers = queue.alive_workers(session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s)
+    return Info(
+        version=package_version(),
+        database=db.backend,
+        queue_depth=counts.get(JobState.QUEUED.value, 0),
+        jobs_by_state=counts,
+        workers=[WorkerPublic.from_domain(worker) for worker in workers],
+        principal={"subject": principal.subject, "role": principal.role.value},
+    )

@@ -1,0 +1,251 @@
+"""A Python client for the Invisible Map server's REST API, over httpx.
+
+    from app.client import Client
+
+    with Client("http://127.0.0.1:8000", api_key="im_…") as client:
+        accepted = client.upload_session("data/sessions/occam_room.json", idempotency_key="walk-1")
+        job = client.wait_for_job(accepted["job_id"])          # raises JobFailed if it failed
+        current = client.get_map(accepted["map_id"])["current_version"]
+        app_map = client.app_map(accepted["map_id"])          # the app's download format
+
+Responses are the API's JSON as plain dicts (the schemas are in the OpenAPI document at
+``/openapi.json``). Every non-2xx answer raises :class:`ApiError` with the status and the server's
+``detail``, ``code`` and ``field``. The transport is injectable (``httpx.MockTransport`` in tests).
+"""
+
+from __future__ import annotations
+
+import gzip
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+import httpx
+
+TERMINAL_JOB_STATES = frozenset({"succeeded", "failed", "canceled"})
+
+
+class ApiError(Exception):
+    """Raised for a non-2xx response; carries the status code and the error body's fields."""
+
+    def __init__(
+        self, status_code: int, detail: str, code: str | None = None, field: str | None = None
+    ) -> None:
+        super().__init__(f"{status_code}: {detail}")
+        self.status_code = status_code
+        self.detail = detail
+        self.code = code
+        self.field = field
+
+
+class JobFailed(Exception):
+    """Raised by :meth:`Client.wait_for_job` when the job ends failed or canceled."""
+
+    def __init__(self, job: dict[str, Any]) -> None:
+        super().__init__(f"job {job['id']} {job['state']}: {job.get('error') or 'no error given'}")
+        self.job = job
+
+
+class Client:
+    """One server and one API key. Keyword-only options after ``base_url``."""
+
+    def __init__(
+        self,
+        base_url: str,
+        *,
+        api_key: str | None = None,
+        timeout_s: float = 30.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self._http = httpx.Client(
+            base_url=base_url, headers=headers, timeout=timeout_s, transport=transport
+        )
+
+    # ----------------------------------------------------------------------- plumbing
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        """Send a request; raise :class:`ApiError` unless the status is 2xx or 304."""
+        response = self._http.request(method, path, **kwargs)
+        if response.status_code >= 400:
+            raise _api_error(response)
+        return response
+
+    def _json(self, method: str, path: str, **kwargs: Any) -> Any:
+        return self.request(method, path, **kwargs).json()
+
+    # ----------------------------------------------------------------------- system
+
+    def health(self) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", "/healthz")
+        return result
+
+    def ready(self) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", "/readyz")
+        return result
+
+    def info(self) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", "/v1/info")
+        return result
+
+    # ----------------------------------------------------------------------- sessions
+
+    def upload_session(
+        self,
+        session: str | Path | bytes,
+        *,
+        idempotency_key: str | None = None,
+        compress: bool = False,
+    ) -> dict[str, Any]:
+        """Upload a mapping session (a file path or the JSON bytes); returns the 202 body."""
+        body = session if isinstance(session, bytes) else Path(session).read_bytes()
+        headers = {"Content-Type": "application/json"}
+        if body[:2] == b"\x1f\x8b":
+            headers["Content-Encoding"] = "gzip"
+        elif compress:
+            body = gzip.compress(body)
+            headers["Content-Encoding"] = "gzip"
+        if idempotency_key is not None:
+            headers["Idempotency-Key"] = idempotency_key
+        result: dict[str, Any] = self._json("POST", "/v1/sessions", content=body, headers=headers)
+        return result
+
+    def list_sessions(self, *, limit: int = 50, offset: int = 0) -> dict[str, Any]:
+        result: dict[str, Any] = self._json(
+            "GET", "/v1/sessions", params={"limit": limit, "offset": offset}
+        )
+        return result
+
+    def get_session(self, session_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", f"/v1/sessions/{session_id}")
+        return result
+
+    def raw_session(self, session_id: int) -> bytes:
+        """The upload exactly as it was sent (uncompressed)."""
+        return self.request("GET", f"/v1/sessions/{session_id}/raw").content
+
+    # ----------------------------------------------------------------------- jobs
+
+    def get_job(self, job_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", f"/v1/jobs/{job_id}")
+        return result
+
+    def list_jobs(
+        self, *, state: str | None = None, limit: int = 50, offset: int = 0
+    ) -> dict[str, Any]:
+        params: dict[str, Any] = {"limit": limit, "offset": offset}
+        if state is not None:
+            params["state"] = state
+        result: dict[str, Any] = self._json("GET", "/v1/jobs", params=params)
+        return result
+
+    def cancel_job(self, job_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("POST", f"/v1/jobs/{job_id}/cancel")
+        return result
+
+    def retry_job(self, job_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("POST", f"/v1/jobs/{job_id}/retry")
+        return result
+
+    def wait_for_job(
+        self, job_id: int, *, timeout_s: float = 120.0, poll_s: float = 0.1
+    ) -> dict[str, Any]:
+        """Poll until the job ends; returns it if it succeeded, raises :class:`JobFailed` if it
+        failed or was canceled, and TimeoutError if it is still going after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job = self.get_job(job_id)
+            if job["state"] == "succeeded":
+                return job
+            if job["state"] in TERMINAL_JOB_STATES:
+                raise JobFailed(job)
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"job {job_id} still {job['state']} after {timeout_s:g} s "
+                    f"(progress {job['progress']:.0%})"
+                )
+            time.sleep(poll_s)
+
+    # ----------------------------------------------------------------------- maps
+
+    def list_maps(
+        self, *, limit: int = 50, offset: int = 0, tag_id: int | None = None
+    ) -> dict[str, Any]:
+        params: dict[str, Any] = {"limit": limit, "offset": offset}
+        if tag_id is not None:
+            params["tag_id"] = tag_id
+        result: dict[str, Any] = self._json("GET", "/v1/maps", params=params)
+        return result
+
+    def get_map(self, map_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", f"/v1/maps/{map_id}")
+        return result
+
+    def map_versions(self, map_id: int) -> list[dict[str, Any]]:
+        body = self._json("GET", f"/v1/maps/{map_id}/versions")
+        versions: list[dict[str, Any]] = body["data"] if isinstance(body, dict) else body
+        return versions
+
+    def rebuild_map(self, map_id: int, params: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Queue a new version of the map, optionally with other SLAM parameters."""
+        result: dict[str, Any] = self._json(
+            "POST", f"/v1/maps/{map_id}/rebuild", json={"params": params or {}}
+        )
+        return result
+
+    def app_map(self, map_id: int) -> dict[str, Any]:
+        """The current version in the app's download format."""
+        result: dict[str, Any] = self._json("GET", f"/v1/maps/{map_id}/app-map")
+        return result
+
+    def plot_png(self, map_id: int) -> bytes:
+        return self.request("GET", f"/v1/maps/{map_id}/plot.png").content
+
+    def delete_map(self, map_id: int) -> None:
+        self.request("DELETE", f"/v1/maps/{map_id}")
+
+    # ----------------------------------------------------------------------- keys
+
+    def create_key(self, *, role: str, name: str = "") -> dict[str, Any]:
+        """Create an API key (admin); the body's ``key`` is shown only this once."""
+        result: dict[str, Any] = self._json("POST", "/v1/keys", json={"role": role, "name": name})
+        return result
+
+    def list_keys(self) -> list[dict[str, Any]]:
+        body = self._json("GET", "/v1/keys")
+        keys: list[dict[str, Any]] = body["data"] if isinstance(body, dict) else body
+        return keys
+
+    def revoke_key(self, key_id: int) -> None:
+        self.request("DELETE", f"/v1/keys/{key_id}")
+
+
+def _api_error(response: httpx.Response) -> ApiError:
+    try:
+        body = response.json()
+    except ValueError:
+        return ApiError(response.status_code, response.text[:200] or response.reason_phrase)
+    if not isinstance(body, dict):
+        return ApiError(response.status_code, str(body)[:200])
+    detail = body.get("detail")
+    return ApiError(
+        response.status_code,
+        detail if isinstance(detail, str) else str(detail),
+        body.get("code"),
+        body.get("field"),
+    )

@@ -1,0 +1,77 @@
+"""The FastAPI application.
+
+    uvicorn --factory app.main:create_app          # settings from the environment
+    app = create_app(Settings(database_url=…))     # tests, the CLI
+
+Nothing connects at import time: the lifespan creates the :class:`Database` from
+``settings.resolved_database_url`` and keeps it on ``app.state.db``. CORS is not enabled (the API
+is for the app and for admins' tools, not for pages on other origins).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI
+
+from app.api.deps import KeyUsage, current_principal
+from app.api.errors import install_error_handlers
+from app.api.routes import jobs, keys, maps, sessions, system
+from app.api.routes.system import package_version
+from app.config import Settings, get_settings
+from app.storage.db import Database
+from app.storage.migrate import head_revision
+
+DESCRIPTION = """\
+The Invisible Map server: phones upload AprilTag mapping sessions, workers turn them into maps
+with graph SLAM, and the app downloads the maps.
+
+Every `/v1` endpoint needs `Authorization: Bearer <key>`. A *device* key uploads sessions, reads
+its own sessions and their jobs, and reads every map; an *admin* key may do everything, including
+managing jobs, maps and keys. Errors have one shape: `{"detail", "code", "field"}`.
+"""
+
+OPENAPI_TAGS = [
+    {"name": "sessions", "description": "Mapping sessions as the phone uploads them."},
+    {"name": "jobs", "description": "The durable job queue: build progress, cancel, retry."},
+    {"name": "maps", "description": "Maps, their versions, the app's download format, plots."},
+    {"name": "keys", "description": "API keys (admin)."},
+    {"name": "system", "description": "Health, readiness and server information."},
+]
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """Open the database for the app's life; close its pools at shutdown."""
+    settings: Settings = app.state.settings
+    database = Database(settings.resolved_database_url)
+    app.state.db = database
+    app.state.head_revision = head_revision()
+    try:
+        yield
+    finally:
+        database.dispose()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API with its routes and error handlers; ``settings`` default to the environment's."""
+    app = FastAPI(
+        title="Invisible Map",
+        version=package_version(),
+        description=DESCRIPTION,
+        openapi_tags=OPENAPI_TAGS,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings or get_settings()
+    app.state.key_usage = KeyUsage()
+    install_error_handlers(app)
+    app.include_router(system.router)
+    authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
+    for module in (sessions, jobs, maps, keys):
+        app.include_router(module.router, prefix="/v1", dependencies=authenticated)
+    return app
+
+
+#: For ``uvicorn --factory app.main:app`` (the same factory; there is no app at import time).
+app = create_app

@@ -1,0 +1,141 @@
+"""Helpers of the API tests: a running app on a test database, keys, uploads, and the worker's
+stages run in-process (parse → optimize → evaluate → store the version and finish the job in one
+transaction), so that maps get versions without a worker process."""
+
+from __future__ import annotations
+
+import gzip
+import json
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import httpx2
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from app.config import Settings
+from app.domain.evaluation import evaluate_map
+from app.domain.params import SlamParams
+from app.domain.session import decode_json_bytes, parse_session
+from app.domain.slam import optimize_session
+from app.main import create_app
+from app.storage import keys, maps, queue, sessions
+from app.storage.db import Database
+from app.storage.orm import Base, Role
+
+ADMIN_KEY = "test-admin-key-0123456789abcdef"
+SESSIONS_DIR = Path(__file__).resolve().parents[2] / "data" / "sessions"
+ONETAG = SESSIONS_DIR / "onetag.json"
+OCCAM = SESSIONS_DIR / "occam_room.json"
+
+
+def bearer(key: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {key}"}
+
+
+ADMIN = bearer(ADMIN_KEY)
+JSON = {"Content-Type": "application/json"}
+
+
+@dataclass
+class Api:
+    """The test client of a running app, its database and settings."""
+
+    app: FastAPI
+    client: TestClient
+    db: Database
+    settings: Settings
+
+    def create_key(
+        self, role: Role = Role.DEVICE, *, name: str = "test", expires_at: datetime | None = None
+    ) -> tuple[int, str]:
+        """A new key straight in the database: (id, secret)."""
+        with self.db.transaction() as session:
+            info, secret = keys.create_key(session, name=name, role=role, expires_at=expires_at)
+        return info.id, secret
+
+    def device(self) -> dict[str, str]:
+        """Headers with a new device key."""
+        return bearer(self.create_key(Role.DEVICE)[1])
+
+    def upload(
+        self,
+        body: bytes | Path,
+        *,
+        headers: dict[str, str] | None = None,
+        auth: dict[str, str] | None = None,
+        compress: bool = False,
+        idempotency_key: str | None = None,
+    ) -> httpx2.Response:
+        data = body.read_bytes() if isinstance(body, Path) else body
+        sent_headers = {**JSON, **(ADMIN if auth is None else auth)}
+        if compress:
+            data = gzip.compress(data)
+            sent_headers["Content-Encoding"] = "gzip"
+        if idempotency_key is not None:
+            sent_headers["Idempotency-Key"] = idempotency_key
+        sent_headers.update(headers or {})
+        return self.client.post("/v1/sessions", content=data, headers=sent_headers)
+
+    def uploaded(self, body: bytes | Path, **kwargs: Any) -> dict[str, Any]:
+        """Upload, expect 202, return the body."""
+        response = self.upload(body, **kwargs)
+        assert response.status_code == 202, response.text
+        result: dict[str, Any] = response.json()
+        return result
+
+    def count(self, table: type[Base]) -> int:
+        with self.db.read() as session:
+            return session.scalar(select(func.count()).select_from(table)) or 0
+
+
+@contextmanager
+def running_api(database_url: str, **settings: Any) -> Iterator[Api]:
+    """The app on ``database_url`` with its lifespan running."""
+    config = Settings(**{"database_url": database_url, "admin_key": ADMIN_KEY, **settings})
+    app = create_app(config)
+    with TestClient(app) as client:
+        yield Api(app=app, client=client, db=app.state.db, settings=config)
+
+
+def session_variant(path: Path, **changes: Any) -> bytes:
+    """The session in ``path`` with top-level keys changed (e.g. another map_id)."""
+    document = json.loads(path.read_bytes())
+    document.update(changes)
+    return json.dumps(document).encode()
+
+
+def run_next_job(db: Database, *, plot: bool = False) -> int | None:
+    """Do what a worker does with the next queued build job; returns its id (None if none)."""
+    lease = queue.claim(db, worker_id="test-worker", lease_s=60)
+    if lease is None:
+        return None
+    assert lease.session_id is not None
+    assert lease.map_id is not None
+    with db.read() as session:
+        raw = sessions.raw_upload(session, lease.session_id)
+    parsed = parse_session(decode_json_bytes(raw))
+    result = optimize_session(parsed, SlamParams().with_overrides(lease.params))
+    evaluation = evaluate_map(parsed, result)
+    png = None
+    if plot:
+        from app.plot import render_map_png
+
+        png = render_map_png(result, parsed)
+    with db.transaction() as session:
+        maps.store_version(
+            session,
+            map_id=lease.map_id,
+            job_id=lease.job_id,
+            result=result,
+            evaluation=evaluation,
+            path_length_m=parsed.path_length_m(),
+            plot_png=png,
+        )
+        queue.finish(session, lease, log_tail=lease.log_tail)
+    return lease.job_id

@@ -1,0 +1,352 @@
+"""Jobs as lists of stages, and the runner that carries one out under a lease.
+
+    stages = PIPELINES["build_map"]           # load → optimize → evaluate → store
+    report = run_job(db, lease, stages=stages, control=JobControl(), retry_backoff_s=2.0)
+    report.outcome                            # Outcome.SUCCEEDED, FAILED, RETRYING, …
+
+A :class:`Stage` is a name, a weight (its share of the progress bar) and a function of the
+:class:`JobContext`, which carries the job's inputs and what earlier stages produced. To extend a
+job, add a stage (and, if it produces something, a field of the context); the last stage must end
+the job with ``queue.finish`` in the transaction that stores its result (see :func:`store`).
+
+Between stages the runner writes the stage and the overall progress (``queue.report_progress``,
+which also returns whether a cancel was requested) and carries out what was asked meanwhile:
+a cancel (``queue.mark_canceled``), a release by a worker shutting down (``queue.release``), or a
+lost lease (abandon: write nothing). Errors decide between retrying and failing:
+
+- :class:`~app.domain.errors.InvisibleMapError` (the core refusing its input: a malformed upload,
+  a bad parameter) and :class:`PermanentJobError` (a missing or corrupt stored input) can never
+  succeed, so the job fails at once with the error's message;
+- any other ``Exception`` (the database unreachable, out of memory, a bug) is transient: the job
+  is queued again after a back-off that doubles per attempt, until ``max_attempts``.
+"""
+
+from __future__ import annotations
+
+import enum
+import gzip
+import logging
+import math
+import time
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from app.domain.errors import InvisibleMapError
+from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.map_result import MapResult
+from app.domain.params import SlamParams
+from app.domain.session import Session, decode_json_bytes, parse_session
+from app.domain.slam import optimize_session
+from app.plot import render_map_png
+from app.storage import maps, queue
+from app.storage.db import Database
+from app.storage.maps import VersionInfo
+from app.storage.orm import JobState
+from app.storage.queue import Lease, LeaseLost
+from app.storage.sessions import SessionNotFound, raw_upload
+from workers.lease import JobControl
+
+logger = logging.getLogger(__name__)
+
+#: The job kind that builds a new version of a map from its session's raw upload.
+BUILD_MAP = "build_map"
+
+#: Least time between two progress writes from inside a stage, s (at most ~4 writes/s).
+PROGRESS_INTERVAL_S = 0.25
+
+T = TypeVar("T")
+
+
+class PermanentJobError(Exception):
+    """Raised by a stage when the job can never succeed as given (an input is missing or
+    corrupt in storage); the job fails at once instead of being retried."""
+
+
+class Outcome(enum.StrEnum):
+    """How one attempt at a job ended (what the runner wrote to the job row)."""
+
+    #: the result is stored and the job is ``succeeded``
+    SUCCEEDED = "succeeded"
+    #: a transient error; the job is ``queued`` again, after a back-off
+    RETRYING = "retrying"
+    #: a permanent error, or the last attempt's transient one; the job is ``failed``
+    FAILED = "failed"
+    #: a cancel was requested; the job is ``canceled``
+    CANCELED = "canceled"
+    #: the worker is shutting down; the job is ``queued`` again, the attempt not counted
+    RELEASED = "released"
+    #: the lease was lost; nothing was written (another worker may be running the job)
+    LEASE_LOST = "lease_lost"
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class JobReport:
+    """The outcome of one attempt, for the worker's log."""
+
+    outcome: Outcome
+    error: str | None = None
+    version: VersionInfo | None = None
+    duration_s: float = 0.0
+
+
+@dataclass(slots=True, kw_only=True)
+class JobContext:
+    """A job's inputs, what its stages produced so far, and how a stage reports progress.
+
+    Stages read and fill the fields in order: ``load`` sets ``params``, ``raw_upload`` and
+    ``session``; ``optimize`` sets ``result``; ``evaluate`` sets ``evaluation`` and ``plot_png``;
+    ``store`` sets ``version`` and ``finished``. ``log_tail`` is the job's log as the worker will
+    next write it (started from ``lease.log_tail``); add to it with :meth:`log`.
+    """
+
+    db: Database
+    lease: Lease
+    control: JobControl
+    log_tail: str
+    params: SlamParams | None = None
+    raw_upload: bytes | None = None
+    session: Session | None = None
+    result: MapResult | None = None
+    evaluation: Evaluation | None = None
+    plot_png: bytes | None = None
+    version: VersionInfo | None = None
+    #: set by the stage that committed the job as succeeded (``queue.finish``)
+    finished: bool = False
+    stage: str = ""
+    stage_start: float = 0.0
+    stage_weight: float = 0.0
+    _last_write_s: float = field(default=-math.inf, repr=False)
+
+    def begin_stage(self, name: str, *, start: float, weight: float) -> None:
+        """Set the stage that :meth:`report` reports within (its first report is always
+        written): it starts at overall progress ``start`` and spans ``weight`` of it."""
+        self.stage, self.stage_start, self.stage_weight = name, start, weight
+        self._last_write_s = -math.inf
+
+    def log(self, message: str) -> None:
+        """Add a timestamped line to the job's log tail (written with the next progress write)."""
+        self.log_tail = queue.append_log(self.log_tail, message)
+
+    def report(self, fraction_within_stage: float, message: str | None = None) -> None:
+        """Report progress within the current stage (0–1), and optionally log ``message``.
+
+        Writes at most every :data:`PROGRESS_INTERVAL_S` (the first report of a stage always);
+        never raises. A cancel request it sees
+        is recorded in ``control`` (carried out at the next stage boundary), as is a lost lease.
+        """
+        if message is not None:
+            self.log(message)
+        now_s = time.monotonic()
+        if now_s - self._last_write_s < PROGRESS_INTERVAL_S or self.control.lease_lost:
+            return
+        self._last_write_s = now_s
+        fraction = min(max(fraction_within_stage, 0.0), 1.0)
+        try:
+            if queue.report_progress(
+                self.db,
+                self.lease,
+                progress=self.stage_start + self.stage_weight * fraction,
+                stage=self.stage,
+                log_tail=self.log_tail,
+            ):
+                self.control.cancel_requested = True
+        except LeaseLost:
+            self.control.lease_lost = True
+        except Exception:
+            logger.warning("job %d: progress write failed", self.lease.job_id, exc_info=True)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Stage:
+    """One step of a job: ``run(context)`` does the work; ``weight`` is its share of progress."""
+
+    name: str
+    weight: float
+    run: Callable[[JobContext], None]
+
+
+def _need(value: T | None, what: str) -> T:
+    if value is None:
+        raise RuntimeError(f"pipeline order: {what} is not set by an earlier stage")
+    return value
+
+
+# --------------------------------------------------------------------------- build_map stages
+
+
+def load(ctx: JobContext) -> None:
+    """Check the parameters, read the session's raw upload and parse it."""
+    lease = ctx.lease
+    if lease.session_id is None or lease.map_id is None:
+        raise PermanentJobError(f"a {lease.kind} job needs a session and a map")
+    ctx.params = SlamParams().with_overrides(lease.params)
+    try:
+        with ctx.db.read() as tx:
+            raw = raw_upload(tx, lease.session_id)
+    except SessionNotFound as err:
+        raise PermanentJobError(f"the raw upload of session {lease.session_id} is missing") from err
+    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
+        raise PermanentJobError(
+            f"the stored upload of session {lease.session_id} is corrupt (not valid gzip: {err})"
+        ) from err
+    ctx.raw_upload = raw
+    ctx.session = parse_session(
+        decode_json_bytes(raw, source=f"stored upload of session {lease.session_id}")
+    )
+    session = ctx.session
+    ctx.log(
+        f"load: {session.num_poses} poses, {len(session.detections)} detections of "
+        f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"
+    )
+
+
+def optimize(ctx: JobContext) -> None:
+    """Graph SLAM; progress per Levenberg–Marquardt iteration (an estimate: LM stops early)."""
+    session = _need(ctx.session, "session")
+
+    def on_iteration(iteration: int, _error: float) -> None:
+        ctx.report(1.0 - 0.6**iteration)
+
+    started_s = time.perf_counter()
+    ctx.result = optimize_session(session, _need(ctx.params, "params"), on_iteration=on_iteration)
+    stats = ctx.result.stats
+    ctx.log(
+        f"optimize: {stats.iterations} iterations, error {stats.initial_error:.6g} → "
+        f"{stats.final_error:.6g}, {len(ctx.result.rejections)} detections rejected, "
+        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms"
+    )
+
+
+def evaluate(ctx: JobContext) -> None:
+    """Shift metric (no ground truth on the server) and the top-down plot."""
+    session = _need(ctx.session, "session")
+    result = _need(ctx.result, "result")
+    ctx.evaluation = evaluate_map(session, result)
+    ctx.report(0.5)
+    ctx.plot_png = render_map_png(result, session)
+    ctx.log(
+        f"evaluate: shift metric {ctx.evaluation.shift_opt:.4g} "
+        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), plot {len(ctx.plot_png) / 1e3:.0f} kB"
+    )
+
+
+def store(ctx: JobContext) -> None:
+    """In ONE transaction: end the job as succeeded (fenced: raises LeaseLost, and the
+    transaction rolls back, if the lease is gone), then add the map version."""
+    session = _need(ctx.session, "session")
+    result = _need(ctx.result, "result")
+    map_id = _need(ctx.lease.map_id, "map_id")
+    ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses")
+    with ctx.db.transaction() as tx:
+        queue.finish(tx, ctx.lease, log_tail=ctx.log_tail)
+        ctx.version = maps.store_version(
+            tx,
+            map_id=map_id,
+            job_id=ctx.lease.job_id,
+            result=result,
+            evaluation=_need(ctx.evaluation, "evaluation"),
+            path_length_m=session.path_length_m(),
+            plot_png=ctx.plot_png,
+        )
+    ctx.finished = True
+
+
+BUILD_MAP_STAGES: tuple[Stage, ...] = (
+    Stage(name="load", weight=0.2, run=load),
+    Stage(name="optimize", weight=0.6, run=optimize),
+    Stage(name="evaluate", weight=0.15, run=evaluate),
+    Stage(name="store", weight=0.05, run=store),
+)
+
+#: The stages of each job kind a worker runs.
+PIPELINES: Mapping[str, Sequence[Stage]] = {BUILD_MAP: BUILD_MAP_STAGES}
+
+
+# --------------------------------------------------------------------------- the runner
+
+
+def is_permanent(err: BaseException) -> bool:
+    """Whether retrying cannot help: the core refused the input, or a stored input is bad."""
+    return isinstance(err, InvisibleMapError | PermanentJobError)
+
+
+def run_job(
+    db: Database,
+    lease: Lease,
+    *,
+    stages: Sequence[Stage],
+    control: JobControl,
+    retry_backoff_s: float,
+) -> JobReport:
+    """Run ``stages`` for ``lease``'s job and record how it ended; see the module docstring.
+
+    Never raises for an ``Exception`` of a stage (it is recorded on the job), only when recording
+    fails too (the database unreachable: the lease then expires and the reaper requeues the job).
+    A ``BaseException`` (KeyboardInterrupt, SystemExit) gives the job back to the queue and
+    propagates.
+    """
+    started_s = time.perf_counter()
+    ctx = JobContext(db=db, lease=lease, control=control, log_tail=lease.log_tail)
+    total_weight = sum(stage.weight for stage in stages) or 1.0
+
+    def ended(outcome: Outcome, error: str | None = None) -> JobReport:
+        return JobReport(
+            outcome=outcome,
+            error=error,
+            version=ctx.version,
+            duration_s=time.perf_counter() - started_s,
+        )
+
+    done_weight = 0.0
+    try:
+        for stage in stages:
+            if control.lease_lost:
+                raise LeaseLost(lease.job_id)
+            if control.release_requested:
+                queue.release(db, lease, log_tail=ctx.log_tail)
+                return ended(Outcome.RELEASED)
+            ctx.begin_stage(
+                stage.name, start=done_weight / total_weight, weight=stage.weight / total_weight
+            )
+            if queue.report_progress(
+                db, lease, progress=ctx.stage_start, stage=stage.name, log_tail=ctx.log_tail
+            ):
+                control.cancel_requested = True
+            if control.cancel_requested:
+                # (the API's own "cancel requested" line is overwritten by the worker's tail)
+                ctx.log(f"cancel requested: stopping before {stage.name}")
+                queue.mark_canceled(db, lease, log_tail=ctx.log_tail)
+                return ended(Outcome.CANCELED)
+            stage.run(ctx)
+            if ctx.finished:
+                return ended(Outcome.SUCCEEDED)
+            done_weight += stage.weight
+        raise PermanentJobError(f"the {lease.kind} pipeline ended without storing a result")
+    except LeaseLost:
+        return ended(Outcome.LEASE_LOST)
+    except Exception as err:
+        error = f"{ctx.stage or 'start'}: {type(err).__name__}: {err}"
+        permanent = is_permanent(err)
+        ctx.log(f"{'permanent' if permanent else 'transient'} error in {error}")
+        try:
+            state = queue.fail(
+                db,
+                lease,
+                error=error,
+                permanent=permanent,
+                backoff_s=retry_backoff_s,
+                log_tail=ctx.log_tail,
+            )
+        except LeaseLost:
+            return ended(Outcome.LEASE_LOST, error)
+        outcome = Outcome.RETRYING if state == JobState.QUEUED else Outcome.FAILED
+        return ended(outcome, error)
+    except BaseException:
+        if not ctx.finished:
+            try:
+                queue.release(db, lease, log_tail=ctx.log_tail)
+            except Exception:
+                logger.warning("job %d: could not release it", lease.job_id, exc_info=True)
+        raise
