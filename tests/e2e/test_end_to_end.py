@@ -52,6 +52,14 @@ def test_upload_is_optimized_by_a_separate_worker(database_url, data_dir, tmp_pa
         assert client.list_sessions()["count"] == 1
 
         served = _tag_poses_from_app_map(client.app_map(accepted["map_id"]))
+
+        rebuild = client.rebuild_map(accepted["map_id"], {"tag_position_var_m2": "1e-3"})
+        client.wait_for_job(rebuild["job_id"], timeout_s=120)
+        versions = client.map_versions(accepted["map_id"])
+        assert [v["number"] for v in versions] == [1, 2]
+        assert versions[0]["params"]["tag_position_var_m2"] == SlamParams().tag_position_var_m2
+        assert versions[1]["params"]["tag_position_var_m2"] == 1e-3
+        assert client.get_map(accepted["map_id"])["current_version"]["number"] == 2
         assert client.raw_session(accepted["session_id"]) == path.read_bytes()
 
     direct = optimize_session(load_session(path), SlamParams()).tag_poses()
