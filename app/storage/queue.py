@@ -482,43 +482,37 @@ def _end_attempt(
 
 
 def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None) -> int:
-    """Requeue running jobs whose lease expired (their worker died or stalled); fail those out of
-    attempts and cancel those whose cancel was requested. Returns how many jobs were reaped."""
+    """Requeue running jobs whose lease expired (their worker died or stalled), after the same
+    doubling back-off as :func:`fail`; fail those out of attempts and cancel those whose cancel
+    was requested. Returns how many jobs were reaped."""
     now = now or utc_now()
-    expired = and_(Job.state == JobState.RUNNING.value, Job.lease_expires_at <= now)
     lost = "lease expired (worker lost)"
-    common = {"lease_owner": None, "lease_expires_at": None, "updated_at": now}
     with db.transaction() as session:
-        canceled = _rowcount(
-            session,
-            update(Job)
-            .where(expired, Job.cancel_requested.is_(True))
-            .values(state=JobState.CANCELED.value, finished_at=now, **common),
-        )
-        failed = _rowcount(
-            session,
-            update(Job)
-            .where(expired, Job.attempts >= Job.max_attempts)
-            .values(
-                state=JobState.FAILED.value,
-                finished_at=now,
-                error=f"{lost} on the last attempt",
-                log_tail=Job.log_tail + _log_line(now, f"{lost}; no attempts left"),
-                **common,
-            ),
-        )
-        requeued = _rowcount(
-            session,
-            update(Job)
-            .where(expired)
-            .values(
-                state=JobState.QUEUED.value,
-                run_after=now + timedelta(seconds=backoff_s),
-                log_tail=Job.log_tail + _log_line(now, f"{lost}; requeued"),
-                **common,
-            ),
-        )
-    return canceled + failed + requeued
+        rows = session.scalars(
+            select(Job)
+            .where(Job.state == JobState.RUNNING.value, Job.lease_expires_at <= now)
+            .order_by(Job.id)
+            .with_for_update(skip_locked=True)
+        ).all()
+        for row in rows:
+            if row.cancel_requested:
+                row.state = JobState.CANCELED.value
+                row.finished_at = now
+                row.log_tail = _append(row.log_tail, now, f"{lost}; canceled as requested")
+            elif row.attempts >= row.max_attempts:
+                row.state = JobState.FAILED.value
+                row.finished_at = now
+                row.error = f"{lost} on the last attempt"
+                row.log_tail = _append(row.log_tail, now, f"{lost}; no attempts left")
+            else:
+                delay_s = backoff_s * 2 ** max(row.attempts - 1, 0)
+                row.state = JobState.QUEUED.value
+                row.run_after = now + timedelta(seconds=delay_s)
+                row.log_tail = _append(row.log_tail, now, f"{lost}; requeued in {delay_s:g} s")
+            row.lease_owner = None
+            row.lease_expires_at = None
+            row.updated_at = now
+    return len(rows)
 
 
 # --------------------------------------------------------------------------- workers

@@ -290,6 +290,23 @@ def test_reaper_requeues_expired_jobs_with_backoff(db: Database) -> None:
     assert claim(db, t0 + s(13)).attempt == 2
 
 
+def test_reaper_backoff_doubles_with_each_lost_attempt(db: Database) -> None:
+    t0 = utc_now()
+    job_id = add_job(db, now=t0, max_attempts=3)
+    claim(db, t0)
+    queue.reap_expired(db, backoff_s=3, now=t0 + s(LEASE_S))
+    assert job(db, job_id).run_after == t0 + s(LEASE_S + 3)
+    t1 = t0 + s(LEASE_S + 3)
+    claim(db, t1)
+
+    queue.reap_expired(db, backoff_s=3, now=t1 + s(LEASE_S))
+
+    info = job(db, job_id)
+    assert info.state == JobState.QUEUED
+    assert info.run_after == t1 + s(LEASE_S + 6)
+    assert info.log_tail.splitlines()[-1].endswith("requeued in 6 s")
+
+
 def test_reaper_fails_a_job_out_of_attempts(db: Database) -> None:
     t0 = utc_now()
     job_id = add_job(db, now=t0, max_attempts=2)
