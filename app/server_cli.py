@@ -27,6 +27,12 @@ if TYPE_CHECKING:
     from app.storage.db import Database
 
 
+#: The longest ``keys create --expires-in-days`` (100 years).
+MAX_KEY_DAYS = 36500
+#: The largest id a row can have (a signed 64-bit integer).
+MAX_ID = 2**63 - 1
+
+
 class ServerCommandError(Exception):
     """A readable reason a server command cannot go on (printed as one line)."""
 
@@ -206,8 +212,11 @@ def _keys_create(args: argparse.Namespace) -> int:
     from app.storage import keys
     from app.storage.orm import Role, utc_now
 
-    if args.expires_in_days is not None and not args.expires_in_days > 0:
-        raise ServerCommandError(f"--expires-in-days must be > 0, got {args.expires_in_days}")
+    if args.expires_in_days is not None and not 0 < args.expires_in_days <= MAX_KEY_DAYS:
+        # (NaN fails the comparison; inf or more than MAX_KEY_DAYS would overflow a datetime)
+        raise ServerCommandError(
+            f"--expires-in-days must be > 0 and at most {MAX_KEY_DAYS}, got {args.expires_in_days}"
+        )
     if len(args.name) > 100:
         raise ServerCommandError(f"--name is {len(args.name)} characters; at most 100")
     expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
@@ -248,6 +257,8 @@ def _keys_revoke(args: argparse.Namespace) -> int:
 
     database = _open_migrated(_settings())
     try:
+        if not 1 <= args.key_id <= MAX_ID:  # the database could not even compare it
+            raise keys.KeyNotFound(args.key_id)
         with database.transaction() as session:
             info = keys.revoke_key(session, args.key_id)
     except keys.KeyNotFound as err:

@@ -45,7 +45,7 @@ class Anchor:
 class PathGraph:
     """A map version's path graph (see the module docstring for the attributes)."""
 
-    graph: nx.Graph = field(default_factory=nx.Graph)
+    graph: nx.Graph[int] = field(default_factory=nx.Graph)
     floor_levels_m: tuple[float, ...] = ()
     tags: dict[int, Anchor] = field(default_factory=dict)
     pois: tuple[Anchor, ...] = ()
