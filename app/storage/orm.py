@@ -242,6 +242,8 @@ class MapVersion(Base):
     map_json_gzip: Mapped[bytes] = mapped_column(LargeBinary)
     plot_png: Mapped[bytes | None] = mapped_column(LargeBinary)
     content_sha256: Mapped[str] = mapped_column(String(64))
+    #: ``app.domain.path_graph.path_graph_to_json``, gzip; null for versions built before it
+    path_graph_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
 
 
 class MapTag(Base):
@@ -278,3 +280,25 @@ class WorkerRow(Base):
     current_job_id: Mapped[int | None]
     jobs_done: Mapped[int] = mapped_column(default=0)
     state: Mapped[str] = mapped_column(String(16), default="idle")
+
+
+class Localization(Base):
+    """A live navigation session: a phone localizing itself in one map version.
+
+    ``state`` is the localizer's JSON state (``app.domain.localize``); ``revision`` grows by one
+    per update, and an update commits only if the revision it read is still current, so two API
+    processes never interleave updates of one session.
+    """
+
+    __tablename__ = "localization"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    map_version_id: Mapped[int] = mapped_column(ForeignKey("map_version.id", ondelete="CASCADE"))
+    created_by: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now)
+    revision: Mapped[int] = mapped_column(default=0)
+    status: Mapped[str] = mapped_column(String(32))
+    update_count: Mapped[int] = mapped_column(default=0)
+    state: Mapped[dict[str, Any]]
