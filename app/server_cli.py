@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import secrets
+import signal
 import sys
 import threading
 import time
@@ -182,10 +183,24 @@ def _serve(args: argparse.Namespace) -> int:
         threading.Thread(
             target=_upload_demo_sessions, args=(url, settings.admin_key), daemon=True
         ).start()
+    server = uvicorn.Server(
+        uvicorn.Config(create_app(settings), host=args.host, port=args.port, log_level="info")
+    )
+    # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
+    # previous handler: with the default one the process would die right there, before stopping
+    # its workers (and exit by the signal). This handler makes that a no-op, and makes a SIGTERM
+    # that comes before uvicorn installs its handlers stop it too.
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    if in_main_thread:
+        previous = signal.signal(signal.SIGTERM, lambda *_: setattr(server, "should_exit", True))
     try:
-        uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+        server.run()
     finally:
         stop_worker_processes(processes, timeout_s=30.0)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    if not server.started:
+        raise ServerCommandError(f"the server could not start at {url} (see the log above)")
     return 0
 
 
@@ -239,13 +254,20 @@ def _keys_create(args: argparse.Namespace) -> int:
 
 def _keys_list(_args: argparse.Namespace) -> int:
     from app.storage import keys
+    from app.storage.orm import utc_now
 
     database = _open_migrated(_settings())
     with database.read() as session:
         rows = keys.list_keys(session)
     database.dispose()
+    now = utc_now()
     for info in rows:
-        status = "revoked" if info.revoked_at else "active"
+        if info.revoked_at is not None:
+            status = "revoked"
+        elif info.expires_at is not None and info.expires_at <= now:
+            status = "expired"
+        else:
+            status = "active"
         print(f"{info.id}\t{info.role.value}\tim_{info.prefix}_…\t{status}\t{info.name}")
     if not rows:
         print("no API keys", file=sys.stderr)

@@ -212,6 +212,12 @@ def optimize(ctx: JobContext) -> None:
     started_s = time.perf_counter()
     ctx.result = optimize_session(session, _need(ctx.params, "params"), on_iteration=on_iteration)
     stats = ctx.result.stats
+    if len(session.detections) > 0 and ctx.result.detections_used == 0:
+        counts = ", ".join(f"{n} {why}" for why, n in sorted(ctx.result.rejection_counts().items()))
+        raise PermanentJobError(
+            f"every one of the session's {len(session.detections)} tag detections was rejected "
+            f"({counts}): the map would have no tags; loosen the screening parameters"
+        )
     ctx.log(
         f"optimize: {stats.iterations} iterations, error {stats.initial_error:.6g} → "
         f"{stats.final_error:.6g}, {len(ctx.result.rejections)} detections rejected, "

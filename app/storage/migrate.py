@@ -23,11 +23,13 @@ def alembic_config(url: str) -> Config:
 
 
 def upgrade_to_head(database: Database) -> None:
-    """Bring the schema to the newest revision (a no-op when it is there already)."""
-    config = alembic_config(database.url.render_as_string(hide_password=False))
-    with database.engine.begin() as connection:
-        config.attributes["connection"] = connection
-        command.upgrade(config, "head")
+    """Bring the schema to the newest revision (a no-op when it is there already).
+
+    Migrations run on a plain connection of their own, not the application's: on SQLite that
+    connection has foreign keys off, as SQLite's table rebuilds need (with them on, dropping the
+    old copy of a table would cascade-delete the rows that refer to it).
+    """
+    command.upgrade(alembic_config(database.url.render_as_string(hide_password=False)), "head")
 
 
 def head_revision() -> str | None:

@@ -105,6 +105,10 @@ class JobState(enum.StrEnum):
     CANCELED = "canceled"
 
 
+#: SQLite reuses the largest rowid after a delete unless a table says AUTOINCREMENT; a phone that
+#: kept "map 5" must never get another building's map 5. (PostgreSQL sequences never reuse.)
+NEVER_REUSE_IDS = {"sqlite_autoincrement": True}
+
 TERMINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELED})
 
 
@@ -116,7 +120,10 @@ class ApiKey(Base):
     """An API key. Only a SHA-256 of its secret part is stored; ``prefix`` finds the row."""
 
     __tablename__ = "api_key"
-    __table_args__ = (CheckConstraint(_in("role", [r.value for r in Role]), name="role"),)
+    __table_args__ = (
+        CheckConstraint(_in("role", [r.value for r in Role]), name="role"),
+        NEVER_REUSE_IDS,
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(100))
@@ -133,7 +140,7 @@ class SessionRow(Base):
     """A mapping session as uploaded, with statistics computed when it was parsed."""
 
     __tablename__ = "session"
-    __table_args__ = (UniqueConstraint("uploaded_by", "idempotency_key"),)
+    __table_args__ = (UniqueConstraint("uploaded_by", "idempotency_key"), NEVER_REUSE_IDS)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     map_name: Mapped[str] = mapped_column(String(200))
@@ -168,6 +175,7 @@ class MapRow(Base):
     """A map: one session's map, in versions (the latest succeeded one is current)."""
 
     __tablename__ = "map"
+    __table_args__ = (NEVER_REUSE_IDS,)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
@@ -189,6 +197,7 @@ class Job(Base):
         CheckConstraint(_in("state", [s.value for s in JobState]), name="state"),
         CheckConstraint("progress >= 0 AND progress <= 1", name="progress"),
         Index("ix_job_claim", "state", "run_after", "priority"),
+        NEVER_REUSE_IDS,
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -221,7 +230,7 @@ class MapVersion(Base):
     """One optimization of a map's session: the result, its parameters, statistics and metrics."""
 
     __tablename__ = "map_version"
-    __table_args__ = (UniqueConstraint("map_id", "number"),)
+    __table_args__ = (UniqueConstraint("map_id", "number"), NEVER_REUSE_IDS)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
@@ -291,6 +300,7 @@ class Localization(Base):
     """
 
     __tablename__ = "localization"
+    __table_args__ = (NEVER_REUSE_IDS,)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)

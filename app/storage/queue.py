@@ -379,7 +379,7 @@ def report_progress(
             update(Job)
             .where(_fenced(lease, now))
             .values(
-                progress=min(max(progress, 0.0), 1.0),
+                progress=round(min(max(progress, 0.0), 1.0), 4),
                 stage=stage,
                 log_tail=log_tail,
                 updated_at=now,

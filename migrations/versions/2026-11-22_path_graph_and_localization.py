@@ -21,7 +21,17 @@ depends_on: str | Sequence[str] | None = None
 JSON_VALUE = sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()), "postgresql")
 
 
+#: Tables whose ids must never be reused (SQLite: AUTOINCREMENT; a no-op on PostgreSQL).
+NEVER_REUSE_ID_TABLES = ("api_key", "session", "map", "job", "map_version")
+
+
 def upgrade() -> None:
+    if op.get_bind().dialect.name == "sqlite":
+        for table in NEVER_REUSE_ID_TABLES:
+            with op.batch_alter_table(
+                table, recreate="always", table_kwargs={"sqlite_autoincrement": True}
+            ):
+                pass
     op.create_table(
         "localization",
         sa.Column("id", sa.Integer(), nullable=False),
@@ -44,6 +54,7 @@ def upgrade() -> None:
             ondelete="CASCADE",
         ),
         sa.PrimaryKeyConstraint("id", name=op.f("pk_localization")),
+        sqlite_autoincrement=True,
     )
     with op.batch_alter_table("localization", schema=None) as batch_op:
         batch_op.create_index(batch_op.f("ix_localization_map_id"), ["map_id"], unique=False)
@@ -60,3 +71,9 @@ def downgrade() -> None:
         batch_op.drop_index(batch_op.f("ix_localization_map_id"))
 
     op.drop_table("localization")
+    if op.get_bind().dialect.name == "sqlite":
+        for table in NEVER_REUSE_ID_TABLES:
+            with op.batch_alter_table(
+                table, recreate="always", table_kwargs={"sqlite_autoincrement": False}
+            ):
+                pass

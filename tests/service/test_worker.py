@@ -215,6 +215,22 @@ def test_bad_params_fail_permanently(db: Database, params: dict[str, object], na
     assert version_count(db) == 0
 
 
+def test_a_map_whose_every_detection_is_rejected_fails_and_keeps_no_version(
+    db: Database,
+) -> None:
+    inserted = insert_session(db, session_bytes("occam_room"), params={"max_distance_m": 0.01})
+
+    worker_with(db).run_once()
+
+    info = get_job(db, inserted.job_id)
+    assert (info.state, info.attempts) == (JobState.FAILED, 1)
+    assert info.error is not None
+    assert info.error.startswith("optimize: PermanentJobError")
+    assert "every one of the session's 200 tag detections was rejected" in info.error
+    assert "distance" in info.error
+    assert version_count(db) == 0
+
+
 def test_transient_errors_are_retried_until_max_attempts(db: Database) -> None:
     calls = {"flaky": 0}
 
