@@ -26,7 +26,11 @@ from app.domain.map_result import MapResult
 from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
 
 #: Load options for a version's metadata without its (large) map document and plot.
-_WITHOUT_BLOBS = (defer(MapVersion.map_json_gzip), defer(MapVersion.plot_png))
+_WITHOUT_BLOBS = (
+    defer(MapVersion.map_json_gzip),
+    defer(MapVersion.plot_png),
+    defer(MapVersion.path_graph_gzip),
+)
 
 
 class MapNotFound(LookupError):
@@ -120,8 +124,10 @@ def store_version(
     evaluation: Evaluation,
     path_length_m: float,
     plot_png: bytes | None,
+    path_graph: dict[str, Any] | None = None,
 ) -> VersionInfo:
-    """Add the next version of ``map_id`` in the caller's transaction."""
+    """Add the next version of ``map_id`` in the caller's transaction; ``path_graph`` is
+    ``app.domain.path_graph.path_graph_to_json`` of it."""
     number = 1 + (
         session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id)) or 0
     )
@@ -163,6 +169,7 @@ def store_version(
         map_json_gzip=gzip.compress(encoded, compresslevel=6, mtime=0),
         plot_png=plot_png,
         content_sha256=hashlib.sha256(encoded).hexdigest(),
+        path_graph_gzip=None if path_graph is None else _gzip_json(path_graph),
     )
     session.add(row)
     session.flush()
@@ -188,6 +195,11 @@ def store_version(
         )
     session.flush()
     return VersionInfo.from_row(row)
+
+
+def _gzip_json(document: Any) -> bytes:
+    encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
+    return gzip.compress(encoded, compresslevel=6, mtime=0)
 
 
 def delete_map(session: Session, map_id: int) -> None:
