@@ -195,6 +195,9 @@ def _serve(args: argparse.Namespace) -> int:
         previous = signal.signal(signal.SIGTERM, lambda *_: setattr(server, "should_exit", True))
     try:
         server.run()
+    except SystemExit:  # uvicorn's sys.exit(3) when it cannot start (the port is taken, …)
+        if server.started:
+            raise
     finally:
         stop_worker_processes(processes, timeout_s=30.0)
         if in_main_thread:

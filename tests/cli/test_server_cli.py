@@ -1,0 +1,618 @@
+"""The server's subcommands of ``invisible-map`` (``serve``, ``worker``, ``migrate``, ``keys``), run
+as a user runs them: real subprocesses with an explicit environment, and ``main([...])`` in this
+process with a monkeypatched one (the commands read ``Settings`` afresh each time).
+
+Every failure must be one line on stderr, ``invisible-map: error: …``, exit status 1, and no
+traceback; argparse misuse exits 2.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import timedelta
+from pathlib import Path
+from typing import IO, Any
+
+import httpx
+import pytest
+
+from app import cli
+from app.server_process import ServerProcess, free_port
+from app.storage import keys
+from app.storage.db import Database
+from app.storage.migrate import current_revision, head_revision, is_current
+from app.storage.orm import JobState, Role, utc_now
+from tests.service.helpers import get_job, insert_session, wait_for
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
+ERROR_PREFIX = "invisible-map: error:"
+ADMIN_KEY = "im_test_admin_0123456789abcdef"
+#: The demo sessions ``serve --demo`` uploads (data/sessions).
+DEMO_SESSION_COUNT = 7
+KEY_LINE = re.compile(r"^im_[0-9a-f]{8}_[A-Za-z0-9_-]+$")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def server_env(database_url: str, data_dir: Path, **extra: str) -> dict[str, str]:
+    """This process's environment without any Invisible Map setting, then ``DATABASE_URL``, a
+    private data directory and ``extra``."""
+    env = {
+        name: value
+        for name, value in os.environ.items()
+        if name != "DATABASE_URL" and not name.startswith("INVISIBLE_MAP_")
+    }
+    env.update(
+        DATABASE_URL=database_url,
+        INVISIBLE_MAP_DATA_DIR=str(data_dir),
+        PYTHONUNBUFFERED="1",
+        PYTHONDONTWRITEBYTECODE="1",
+    )
+    env.update(extra)
+    return env
+
+
+def run_cli(env: dict[str, str], *args: Any) -> subprocess.CompletedProcess[str]:
+    """``python -m app.cli ARGS`` from the repository root, to the end (60 s at most)."""
+    return subprocess.run(
+        [sys.executable, "-m", "app.cli", *(str(a) for a in args)],
+        cwd=REPO_ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def assert_one_line_error(returncode: int, stderr: str, *parts: str) -> str:
+    assert returncode == 1, stderr
+    assert "Traceback" not in stderr
+    lines = stderr.splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith(ERROR_PREFIX), lines[0]
+    for part in parts:
+        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
+    return lines[0]
+
+
+@pytest.fixture
+def env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
+    """No Invisible Map setting from the outer environment; a private data directory."""
+    for name in list(os.environ):
+        if name == "DATABASE_URL" or name.startswith("INVISIBLE_MAP_"):
+            monkeypatch.delenv(name)
+    monkeypatch.setenv("INVISIBLE_MAP_DATA_DIR", str(tmp_path / "var"))
+    return monkeypatch
+
+
+RunMain = Callable[..., tuple[int, str, str]]
+
+
+@pytest.fixture
+def run_main(capsys: pytest.CaptureFixture[str]) -> RunMain:
+    """``cli.main(ARGS)`` in this process: (status, stdout, stderr)."""
+
+    def run(*args: Any) -> tuple[int, str, str]:
+        capsys.readouterr()
+        status = cli.main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        return status, out, err
+
+    return run
+
+
+@contextmanager
+def open_database(url: str) -> Iterator[Database]:
+    database = Database(url)
+    try:
+        yield database
+    finally:
+        database.dispose()
+
+
+@pytest.fixture
+def db(database_url: str, env: pytest.MonkeyPatch) -> Iterator[Database]:
+    """The fresh migrated database (SQLite, PostgreSQL), also in ``DATABASE_URL``."""
+    env.setenv("DATABASE_URL", database_url)
+    with open_database(database_url) as database:
+        yield database
+
+
+@pytest.fixture
+def empty_sqlite_url(tmp_path: Path) -> str:
+    """An empty (zero-byte, unmigrated) SQLite file."""
+    path = tmp_path / "empty.sqlite3"
+    path.touch()
+    return f"sqlite:///{path}"
+
+
+def authenticate(database: Database, key: str, **kwargs: Any) -> keys.Principal | None:
+    with database.read() as session:
+        return keys.authenticate(session, key, **kwargs)
+
+
+def create_key(run_main: RunMain, *args: Any) -> str:
+    status, out, err = run_main("keys", "create", *args)
+    assert status == 0, err
+    return out.strip()
+
+
+def unreachable_postgres_url() -> str:
+    return f"postgresql://postgres:s3cret@127.0.0.1:{free_port()}/nothing"
+
+
+# --------------------------------------------------------------------------- migrate
+
+
+def test_migrate_creates_the_schema_in_an_empty_sqlite_file_and_can_run_again(
+    tmp_path: Path, empty_sqlite_url: str
+) -> None:
+    environment = server_env(empty_sqlite_url, tmp_path / "var")
+    first = run_cli(environment, "migrate")
+    assert first.returncode == 0, first.stderr
+    assert "Traceback" not in first.stderr
+    assert first.stdout.splitlines() == [
+        f"database {empty_sqlite_url} at revision {head_revision()}"
+    ]
+    assert (tmp_path / "empty.sqlite3").stat().st_size > 0
+    with open_database(empty_sqlite_url) as database:
+        assert is_current(database)
+
+    again = run_cli(environment, "migrate")
+    assert again.returncode == 0, again.stderr
+    assert again.stdout == first.stdout
+
+
+def test_migrate_on_a_migrated_database_changes_nothing(db: Database, run_main: RunMain) -> None:
+    key = create_key(run_main, "--role", "admin", "--name", "before")
+    status, out, err = run_main("migrate")
+    assert status == 0, err
+    assert out.splitlines() == [
+        f"database {db.url.render_as_string(hide_password=True)} at revision {head_revision()}"
+    ]
+    assert current_revision(db) == head_revision()
+    principal = authenticate(db, key)  # the data survived
+    assert principal is not None
+    assert principal.role is Role.ADMIN
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def test_keys_create_prints_the_key_alone_on_stdout(db: Database, tmp_path: Path) -> None:
+    result = run_cli(
+        server_env(db.url.render_as_string(hide_password=False), tmp_path),
+        "keys",
+        "create",
+        "--role",
+        "device",
+        "--name",
+        "phone",
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert len(lines) == 1, result.stdout
+    key = lines[0]
+    assert key.startswith("im_")
+    assert KEY_LINE.match(key), key
+    assert "device key" in result.stderr
+    assert "phone" in result.stderr
+    assert key not in result.stderr
+    principal = authenticate(db, key)
+    assert principal is not None
+    assert principal.role is Role.DEVICE
+    assert principal.subject == f"key:{principal.key_id}"
+    assert f"key {principal.key_id} " in result.stderr
+
+
+def test_keys_create_admin_key_that_expires(db: Database, run_main: RunMain) -> None:
+    key = create_key(run_main, "--role", "admin", "--expires-in-days", "1.5")
+    principal = authenticate(db, key)
+    assert principal is not None
+    assert principal.role is Role.ADMIN
+    assert authenticate(db, key, now=utc_now() + timedelta(days=1.4)) is not None
+    assert authenticate(db, key, now=utc_now() + timedelta(days=1.6)) is None
+
+
+@pytest.mark.parametrize("days", ["0", "-3", "nan", "inf", "1e9"])
+def test_keys_create_rejects_a_bad_expiry(db: Database, run_main: RunMain, days: str) -> None:
+    status, out, err = run_main("keys", "create", "--role", "device", f"--expires-in-days={days}")
+    assert_one_line_error(status, err, "--expires-in-days must be > 0")
+    assert out == ""
+    with db.read() as session:
+        assert keys.list_keys(session) == []
+
+
+def test_keys_create_rejects_an_unknown_role(
+    db: Database, run_main: RunMain, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run_main("keys", "create", "--role", "root")
+    assert exit_info.value.code == 2
+    assert "invalid choice: 'root'" in capsys.readouterr().err
+    with db.read() as session:
+        assert keys.list_keys(session) == []
+
+
+def test_keys_list_shows_ids_roles_and_prefixes_never_secrets(
+    db: Database, run_main: RunMain
+) -> None:
+    status, out, err = run_main("keys", "list")
+    assert (status, out) == (0, "")
+    assert "no API keys" in err
+
+    phone = create_key(run_main, "--role", "device", "--name", "phone")
+    admin = create_key(run_main, "--role", "admin")
+    status, out, _ = run_main("keys", "list")
+    assert status == 0
+    with db.read() as session:
+        infos = keys.list_keys(session)
+    assert [info.role for info in infos] == [Role.DEVICE, Role.ADMIN]
+    rows = [line.split("\t") for line in out.splitlines()]
+    assert rows == [
+        [str(infos[0].id), "device", f"im_{infos[0].prefix}_…", "active", "phone"],
+        [str(infos[1].id), "admin", f"im_{infos[1].prefix}_…", "active", ""],
+    ]
+    assert [info.prefix for info in infos] == [key.split("_")[1] for key in (phone, admin)]
+    for key in (phone, admin):
+        assert key.split("_", 2)[2] not in out  # the secret part
+
+    assert run_main("keys", "revoke", infos[0].id)[0] == 0
+    _, out, _ = run_main("keys", "list")
+    assert out.splitlines()[0].split("\t")[3] == "revoked"
+    assert out.splitlines()[1].split("\t")[3] == "active"
+
+
+def test_keys_revoke_makes_the_key_fail(db: Database, run_main: RunMain) -> None:
+    key = create_key(run_main, "--role", "device", "--name", "lost phone")
+    principal = authenticate(db, key)
+    assert principal is not None
+    assert principal.key_id is not None
+    status, out, err = run_main("keys", "revoke", principal.key_id)
+    assert status == 0, err
+    assert out.strip() == f"revoked key {principal.key_id} (im_{key.split('_')[1]}_…)"
+    assert authenticate(db, key) is None
+    status, _, err = run_main("keys", "revoke", principal.key_id)  # again: still revoked
+    assert status == 0, err
+    assert authenticate(db, key) is None
+
+
+@pytest.mark.usefixtures("db")
+@pytest.mark.parametrize("key_id", ["999", "0", "99999999999999999999"])
+def test_keys_revoke_an_unknown_id(run_main: RunMain, key_id: str) -> None:
+    status, out, err = run_main("keys", "revoke", key_id)
+    assert_one_line_error(status, err, f"API key {key_id} not found")
+    assert out == ""
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["keys", "list"],
+        ["keys", "create", "--role", "admin"],
+        ["keys", "revoke", "1"],
+    ],
+    ids=["list", "create", "revoke"],
+)
+def test_keys_on_an_unmigrated_database(
+    env: pytest.MonkeyPatch, run_main: RunMain, empty_sqlite_url: str, args: list[str]
+) -> None:
+    env.setenv("DATABASE_URL", empty_sqlite_url)
+    status, out, err = run_main(*args)
+    assert_one_line_error(status, err, "not migrated", "run `invisible-map migrate`")
+    assert out == ""
+    with open_database(empty_sqlite_url) as database:
+        assert current_revision(database) is None  # nothing was created
+
+
+def test_keys_on_an_unmigrated_database_in_a_subprocess(
+    tmp_path: Path, empty_sqlite_url: str
+) -> None:
+    result = run_cli(server_env(empty_sqlite_url, tmp_path), "keys", "create", "--role", "device")
+    assert_one_line_error(result.returncode, result.stderr, "invisible-map migrate")
+    assert result.stdout == ""
+
+
+# --------------------------------------------------------------------------- bad settings
+
+
+@pytest.mark.parametrize(
+    "url",
+    ["nonsense://user:s3cret@x", unreachable_postgres_url()],
+    ids=["unknown-scheme", "unreachable-postgres"],
+)
+@pytest.mark.parametrize(
+    "args",
+    [["migrate"], ["keys", "list"], ["keys", "create", "--role", "admin"], ["keys", "revoke", "1"]],
+    ids=["migrate", "keys-list", "keys-create", "keys-revoke"],
+)
+def test_a_bad_database_url(
+    env: pytest.MonkeyPatch, run_main: RunMain, url: str, args: list[str]
+) -> None:
+    env.setenv("DATABASE_URL", url)
+    status, out, err = run_main(*args)
+    line = assert_one_line_error(status, err, "cannot use the database")
+    assert "s3cret" not in line
+    assert out == ""
+
+
+@pytest.mark.parametrize(
+    ("url", "args"),
+    [
+        ("nonsense://x", ["migrate"]),
+        ("nonsense://x", ["serve", "--port", str(free_port()), "--workers", "0"]),
+        (unreachable_postgres_url(), ["worker"]),
+        (unreachable_postgres_url(), ["keys", "list"]),
+    ],
+    ids=["migrate", "serve", "worker", "keys-list"],
+)
+def test_a_bad_database_url_in_a_subprocess(tmp_path: Path, url: str, args: list[str]) -> None:
+    result = run_cli(server_env(url, tmp_path), *args)
+    line = assert_one_line_error(result.returncode, result.stderr, "cannot use the database")
+    assert "s3cret" not in line
+    assert result.stdout == ""
+
+
+@pytest.mark.usefixtures("db")
+def test_an_admin_key_too_short(env: pytest.MonkeyPatch, run_main: RunMain) -> None:
+    env.setenv("INVISIBLE_MAP_ADMIN_KEY", "short")
+    status, out, err = run_main("migrate")
+    assert_one_line_error(status, err, "INVISIBLE_MAP_ADMIN_KEY", "16")
+    assert out == ""
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["serve", "--port", "70000", "--workers", "0"], "--port must be 1–65535, got 70000"),
+        (["serve", "--workers", "65"], "--workers must be 0–64, got 65"),
+        (["worker", "--processes", "0"], "--processes must be 1–64, got 0"),
+        (["serve"], "INVISIBLE_MAP_ADMIN_KEY"),
+    ],
+    ids=["port-70000", "workers-65", "processes-0", "short-admin-key"],
+)
+def test_serve_and_worker_refuse_bad_options(
+    tmp_path: Path, empty_sqlite_url: str, args: list[str], message: str
+) -> None:
+    """As subprocesses: a command that wrongly went on would serve or work until the timeout."""
+    environment = server_env(empty_sqlite_url, tmp_path / "var", INVISIBLE_MAP_ADMIN_KEY="short")
+    if "INVISIBLE_MAP_ADMIN_KEY" not in message:
+        environment.pop("INVISIBLE_MAP_ADMIN_KEY")
+    result = run_cli(environment, *args)
+    assert_one_line_error(result.returncode, result.stderr, message)
+    assert result.stdout == ""
+    assert (tmp_path / "empty.sqlite3").stat().st_size == 0  # not even migrated
+
+
+# --------------------------------------------------------------------------- serve
+
+
+@pytest.mark.slow
+def test_serve_answers_health_readiness_and_info(
+    tmp_path: Path, env: pytest.MonkeyPatch, run_main: RunMain
+) -> None:
+    url = f"sqlite:///{tmp_path / 'serve' / 'db.sqlite3'}"  # no file yet: serve migrates it
+    env.setenv("DATABASE_URL", url)
+    server = ServerProcess(
+        url,
+        workers=0,
+        admin_key=ADMIN_KEY,
+        env={"INVISIBLE_MAP_DATA_DIR": str(tmp_path / "var")},
+        log_path=tmp_path / "serve.log",
+    )
+    with server, httpx.Client(base_url=server.url, timeout=10.0) as client:
+        assert client.get("/healthz").status_code == 200
+        ready = client.get("/readyz")
+        assert ready.status_code == 200, ready.text
+        assert ready.json()["schema_revision"] == head_revision()
+        assert client.get("/v1/info").status_code == 401
+
+        info = client.get("/v1/info", headers={"Authorization": f"Bearer {ADMIN_KEY}"})
+        assert info.status_code == 200, info.text
+        body = info.json()
+        assert body["database"] == "sqlite"
+        assert body["principal"]["role"] == "admin"
+        assert body["workers"] == []
+        assert body["queue_depth"] == 0
+
+        # a key made with `keys create` against the running server's database works at once
+        device_key = create_key(run_main, "--role", "device", "--name", "phone")
+        as_device = client.get("/v1/info", headers={"Authorization": f"Bearer {device_key}"})
+        assert as_device.status_code == 200, as_device.text
+        assert as_device.json()["principal"]["role"] == "device"
+        key_id = as_device.json()["principal"]["subject"].removeprefix("key:")
+        assert run_main("keys", "revoke", key_id)[0] == 0
+        revoked = client.get("/v1/info", headers={"Authorization": f"Bearer {device_key}"})
+        assert revoked.status_code == 401
+
+        assert server.stop() == 0
+    log = (tmp_path / "serve.log").read_text()
+    assert f"at revision {head_revision()}" in log
+    assert "worker processes: 0" in log
+    assert ADMIN_KEY not in log
+    assert "Traceback" not in log
+
+
+@pytest.mark.slow
+def test_serve_on_a_port_in_use(tmp_path: Path, empty_sqlite_url: str) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = run_cli(
+            server_env(empty_sqlite_url, tmp_path / "var", INVISIBLE_MAP_ADMIN_KEY=ADMIN_KEY),
+            *("serve", "--port", port, "--workers", "0"),
+        )
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert "address already in use" in result.stderr  # uvicorn's log
+    last = result.stderr.splitlines()[-1]
+    assert last.startswith(ERROR_PREFIX)
+    assert f"could not start at http://127.0.0.1:{port}" in last
+
+
+class DemoServer:
+    """``invisible-map serve --demo --workers 1`` in its own process group, logging to a file."""
+
+    def __init__(self, database_url: str, tmp_path: Path, run: int) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = tmp_path / f"demo-{run}.log"
+        self._log: IO[bytes] = self.log_path.open("wb")
+        self.process = subprocess.Popen(
+            [
+                *(sys.executable, "-m", "app.cli", "serve", "--demo"),
+                *("--port", str(self.port), "--workers", "1"),
+            ],
+            cwd=REPO_ROOT,
+            env=server_env(
+                database_url,
+                tmp_path / "var",
+                INVISIBLE_MAP_ADMIN_KEY=ADMIN_KEY,
+                INVISIBLE_MAP_POLL_S="0.05",
+            ),
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        self.client = httpx.Client(
+            base_url=self.url, timeout=10.0, headers={"Authorization": f"Bearer {ADMIN_KEY}"}
+        )
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def count(self, path: str, **params: Any) -> int | None:
+        """The ``count`` of a listing, or None while the server is not answering."""
+        if self.process.poll() is not None:
+            raise AssertionError(
+                f"the server exited with {self.process.returncode}:\n{self.log()[-3000:]}"
+            )
+        try:
+            response = self.client.get(path, params=params)
+        except httpx.TransportError:
+            return None
+        return int(response.json()["count"]) if response.status_code == 200 else None
+
+    def terminate(self, *, group: bool = True, timeout_s: float = 60.0) -> int:
+        """SIGTERM to the process group (the server and its worker) or to the server alone;
+        its exit status."""
+        if group:
+            os.killpg(self.process.pid, signal.SIGTERM)
+        else:
+            self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(timeout=timeout_s)
+
+    def close(self) -> None:
+        self.client.close()
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait()
+        self._log.close()
+
+
+def demo_uploads(log: str) -> dict[str, int]:
+    """Session id of each demo session, from the ``demo: NAME: session ID, …`` lines."""
+    return {
+        name: int(session_id)
+        for name, session_id in re.findall(r"^demo: (\w+): session (\d+),", log, re.MULTILINE)
+    }
+
+
+@pytest.mark.slow
+def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'demo.sqlite3'}"
+    first = DemoServer(url, tmp_path, run=1)
+    try:
+        wait_for(
+            lambda: first.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT,
+            timeout_s=60,
+            what="the demo sessions to be uploaded",
+            every_s=0.2,
+        )
+        wait_for(
+            lambda: first.count("/v1/jobs", state="succeeded") == DEMO_SESSION_COUNT,
+            timeout_s=120,
+            what="the demo sessions' jobs to succeed",
+            every_s=0.25,
+        )
+        assert first.count("/v1/jobs") == DEMO_SESSION_COUNT
+        wait_for(lambda: "demo: maps at" in first.log(), timeout_s=10, what="the demo's end")
+        assert first.terminate() == 0
+    finally:
+        first.close()
+    log = first.log()
+    uploads = demo_uploads(log)
+    assert sorted(uploads) == sorted(name for name, _ in cli.DEMO_SESSIONS)
+    assert "not uploaded" not in log
+    assert "Traceback" not in log
+
+    second = DemoServer(url, tmp_path, run=2)
+    try:
+        wait_for(lambda: "demo: maps at" in second.log(), timeout_s=60, what="the demo upload")
+        assert second.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT
+        assert second.count("/v1/jobs") == DEMO_SESSION_COUNT  # no job queued again
+        wait_for(
+            lambda: re.search(r"worker \S+ started", second.log()),
+            timeout_s=30,
+            what="the worker to start",
+        )
+        # `kill PID` of the server alone: it stops its worker itself (not left orphaned)
+        assert second.terminate(group=False) == 0
+    finally:
+        second.close()
+    log = second.log()
+    assert demo_uploads(log) == uploads  # the same sessions, found again
+    assert "SIGTERM received: finishing the current job" in log
+    assert "is gone" not in log
+    assert "Traceback" not in log
+
+
+# --------------------------------------------------------------------------- worker
+
+
+@pytest.mark.slow
+def test_worker_runs_a_queued_job_and_stops_on_sigterm(db: Database, tmp_path: Path) -> None:
+    inserted = insert_session(db, SESSIONS_DIR / "onetag.json")
+    assert get_job(db, inserted.job_id).state is JobState.QUEUED
+    log_path = tmp_path / "worker.log"
+    with log_path.open("wb") as log:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "worker", "--processes", "1"],
+            cwd=REPO_ROOT,
+            env=server_env(
+                db.url.render_as_string(hide_password=False), tmp_path, INVISIBLE_MAP_POLL_S="0.05"
+            ),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+
+            def succeeded() -> bool:
+                if process.poll() is not None:
+                    raise AssertionError(
+                        f"the worker exited with {process.returncode}:\n{log_path.read_text()}"
+                    )
+                return get_job(db, inserted.job_id).state is JobState.SUCCEEDED
+
+            wait_for(succeeded, timeout_s=60, what="the job to succeed", every_s=0.1)
+            time.sleep(0.2)  # idle again, polling
+            os.killpg(process.pid, signal.SIGTERM)
+            assert process.wait(timeout=30) == 0, log_path.read_text()
+        finally:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+    assert "Traceback" not in log_path.read_text()
