@@ -219,6 +219,56 @@ class Client:
     def delete_map(self, map_id: int) -> None:
         self.request("DELETE", f"/v1/maps/{map_id}")
 
+    # ----------------------------------------------------------------------- navigation
+
+    def search_pois(self, map_id: int, query: str = "") -> list[dict[str, Any]]:
+        """Points of interest of the map whose name contains ``query`` (all when empty)."""
+        body = self._json("GET", f"/v1/maps/{map_id}/pois", params={"q": query})
+        pois: list[dict[str, Any]] = body["data"]
+        return pois
+
+    def plan_route(
+        self,
+        map_id: int,
+        start: dict[str, Any],
+        goal: dict[str, Any],
+        *,
+        avoid: list[str] | None = None,
+    ) -> dict[str, Any]:
+        """A route: ends like ``{"tag": 300}``, ``{"poi": "Room 209"}``, ``{"node": 12}`` or
+        ``{"position": [x, y, z]}``; ``avoid`` ⊆ ``["stairs", "elevator"]``."""
+        body = {"from": start, "to": goal, "avoid": avoid or []}
+        result: dict[str, Any] = self._json("POST", f"/v1/maps/{map_id}/routes", json=body)
+        return result
+
+    def geojson(self, map_id: int) -> dict[str, Any]:
+        """The current version's path graph as a GeoJSON FeatureCollection."""
+        result: dict[str, Any] = self._json("GET", f"/v1/maps/{map_id}/geojson")
+        return result
+
+    def start_localization(self, map_id: int) -> dict[str, Any]:
+        """Start a navigation session in the map's current version."""
+        result: dict[str, Any] = self._json("POST", f"/v1/maps/{map_id}/localizations")
+        return result
+
+    def update_localization(
+        self,
+        localization_id: int,
+        *,
+        poses: list[dict[str, Any]],
+        tag_data: list[list[dict[str, Any]]] | None = None,
+    ) -> dict[str, Any]:
+        """Send new odometry poses and tag detections; returns the phone's estimate in the map."""
+        body = {"poses": poses, "tag_data": tag_data or []}
+        result: dict[str, Any] = self._json(
+            "POST", f"/v1/localizations/{localization_id}/updates", json=body
+        )
+        return result
+
+    def get_localization(self, localization_id: int) -> dict[str, Any]:
+        result: dict[str, Any] = self._json("GET", f"/v1/localizations/{localization_id}")
+        return result
+
     # ----------------------------------------------------------------------- keys
 
     def create_key(self, *, role: str, name: str = "") -> dict[str, Any]:

@@ -17,8 +17,9 @@ from fastapi import Depends, FastAPI
 
 from app.api.deps import KeyUsage, current_principal
 from app.api.errors import install_error_handlers
-from app.api.routes import jobs, keys, maps, sessions, system
+from app.api.routes import jobs, keys, localization, maps, navigation, sessions, system
 from app.api.routes.system import package_version
+from app.api.version_cache import VersionCache
 from app.config import Settings, get_settings
 from app.storage.db import Database
 from app.storage.migrate import head_revision
@@ -36,6 +37,8 @@ OPENAPI_TAGS = [
     {"name": "sessions", "description": "Mapping sessions as the phone uploads them."},
     {"name": "jobs", "description": "The durable job queue: build progress, cancel, retry."},
     {"name": "maps", "description": "Maps, their versions, the app's download format, plots."},
+    {"name": "navigation", "description": "Points of interest, routes and the path graph."},
+    {"name": "localization", "description": "Live localization of a navigating phone."},
     {"name": "keys", "description": "API keys (admin)."},
     {"name": "system", "description": "Health, readiness and server information."},
 ]
@@ -65,10 +68,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
+    app.state.version_cache = VersionCache()
     install_error_handlers(app)
     app.include_router(system.router)
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
-    for module in (sessions, jobs, maps, keys):
+    for module in (sessions, jobs, maps, navigation, localization, keys):
         app.include_router(module.router, prefix="/v1", dependencies=authenticated)
     return app
 

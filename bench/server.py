@@ -12,9 +12,13 @@ over HTTP on loopback:
 2. sessions per minute sustained: many real sessions uploaded at once, the time until the last
    map is ready;
 3. ``GET /v1/maps/{id}`` with 50 concurrent clients, next to ``GET /healthz`` on the same server
-   as the floor (p50/p99 and their ratio).
+   as the floor (p50/p99 and their ratio);
+4. ``POST /v1/maps/{id}/routes`` (between random tags of the ``floor_2_straight`` map) and
+   ``POST /v1/localizations/{id}/updates`` (each client replays ``desnat_straight_once`` into that
+   map, 20 poses per update, in its own navigation session) with 50 concurrent clients.
 
-Targets (issue 3): map-ready p95 ≤ 2 s; map GET p99 ≤ 3 × the /healthz p99.
+Targets: map-ready p95 ≤ 2 s; map GET p99 ≤ 3 × the /healthz p99 (issue 3); route p99 ≤ 10 ms,
+localization update p99 ≤ 20 ms at 50 concurrent clients (issue 5).
 The load generator runs on the same 2-core machine as the server, so it competes with it.
 """
 
@@ -22,11 +26,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
+import random
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +43,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.client import Client  # noqa: E402
+from app.domain.localize import session_update_documents  # noqa: E402
+from app.domain.session import load_session  # noqa: E402
 from app.server_process import ServerProcess  # noqa: E402
 from app.storage.db import Database  # noqa: E402
 from app.storage.migrate import upgrade_to_head  # noqa: E402
@@ -43,6 +52,8 @@ from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 LATENCY_SESSION = SESSIONS / "occam_room.json"
+ROUTING_SESSION = SESSIONS / "floor_2_straight.json"
+LOCALIZATION_SESSION = SESSIONS / "desnat_straight_once.json"
 THROUGHPUT_SESSIONS = [
     SESSIONS / f"{name}.json"
     for name in ("occam_room", "floor_2_straight", "straight_209_occam", "desnat_straight_once")
@@ -81,27 +92,66 @@ def sessions_per_minute(client: Client, uploads: int) -> tuple[float, float]:
     return uploads / elapsed_s * 60, elapsed_s
 
 
-async def _hammer(url: str, key: str, clients: int, duration_s: float) -> list[float]:
+#: One client's requests: given its index, yields (method, url, json body) forever.
+RequestPlan = Callable[[int], Iterator[tuple[str, str, Any]]]
+
+
+async def _hammer(key: str, clients: int, duration_s: float, plan: RequestPlan) -> list[float]:
     latencies: list[float] = []
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
     headers = {"Authorization": f"Bearer {key}"}
-    async with httpx.AsyncClient(limits=limits, headers=headers, timeout=30) as http:
+    async with httpx.AsyncClient(limits=limits, headers=headers, timeout=60) as http:
         deadline = time.perf_counter() + duration_s
 
-        async def one_client() -> None:
+        async def one_client(index: int) -> None:
+            requests = plan(index)
             while time.perf_counter() < deadline:
+                method, url, body = next(requests)
                 started = time.perf_counter()
-                response = await http.get(url)
+                response = await http.request(method, url, json=body)
                 latencies.append(time.perf_counter() - started)
-                if response.status_code != 200:
-                    raise RuntimeError(f"GET {url}: {response.status_code} {response.text[:200]}")
+                if response.status_code >= 300:
+                    raise RuntimeError(f"{method} {url}: {response.status_code} {response.text}")
 
-        await asyncio.gather(*(one_client() for _ in range(clients)))
+        await asyncio.gather(*(one_client(k) for k in range(clients)))
     return latencies
 
 
-def concurrent_get_ms(url: str, key: str, clients: int, duration_s: float) -> list[float]:
-    return [s * 1000 for s in asyncio.run(_hammer(url, key, clients, duration_s))]
+def concurrent_ms(key: str, clients: int, duration_s: float, plan: RequestPlan) -> list[float]:
+    return [s * 1000 for s in asyncio.run(_hammer(key, clients, duration_s, plan))]
+
+
+def repeat_get(url: str) -> RequestPlan:
+    return lambda _index: itertools.repeat(("GET", url, None))
+
+
+def random_routes(base: str, map_id: int, tag_ids: list[int]) -> RequestPlan:
+    def plan(index: int) -> Iterator[tuple[str, str, Any]]:
+        rng = random.Random(index)
+        while True:
+            start, goal = rng.sample(tag_ids, 2)
+            body = {"from": {"tag": start}, "to": {"tag": goal}}
+            yield "POST", f"{base}/v1/maps/{map_id}/routes", body
+
+    return plan
+
+
+def localization_replays(base: str, map_id: int, key: str) -> RequestPlan:
+    updates = session_update_documents(load_session(LOCALIZATION_SESSION), 20)
+
+    def plan(_index: int) -> Iterator[tuple[str, str, Any]]:
+        while True:  # a new navigation session each time the walk is over
+            response = httpx.post(
+                f"{base}/v1/maps/{map_id}/localizations",
+                headers={"Authorization": f"Bearer {key}"},
+                timeout=60,
+            )
+            response.raise_for_status()
+            session_id = response.json()["id"]
+            for document in updates:
+                yield "POST", f"{base}/v1/localizations/{session_id}/updates", document
+
+    return plan
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,11 +173,17 @@ def main(argv: list[str] | None = None) -> int:
             client.wait_for_job(client.upload_session(LATENCY_SESSION)["job_id"])  # warm up
             latencies_s = map_ready_latency_s(client, latency_uploads)
             per_minute, throughput_s = sessions_per_minute(client, throughput_uploads)
-            map_id = client.list_maps(limit=1)["data"][0]["id"]
-            map_ms = concurrent_get_ms(
-                f"{server.url}/v1/maps/{map_id}", server.admin_key, 50, load_s
+            floor_2 = client.upload_session(ROUTING_SESSION)
+            client.wait_for_job(floor_2["job_id"])
+            map_id = floor_2["map_id"]
+            key = server.admin_key
+            map_ms = concurrent_ms(key, 50, load_s, repeat_get(f"{server.url}/v1/maps/{map_id}"))
+            health_ms = concurrent_ms(key, 50, load_s, repeat_get(f"{server.url}/healthz"))
+            tag_ids = [tag["tag_id"] for tag in client.get_map(map_id)["current_version"]["tags"]]
+            route_ms = concurrent_ms(key, 50, load_s, random_routes(server.url, map_id, tag_ids))
+            update_ms = concurrent_ms(
+                key, 50, load_s, localization_replays(server.url, map_id, key)
             )
-            health_ms = concurrent_get_ms(f"{server.url}/healthz", server.admin_key, 50, load_s)
             client.close()
 
     backend = "PostgreSQL" if url.startswith("postgresql") else "SQLite"
@@ -147,6 +203,14 @@ def main(argv: list[str] | None = None) -> int:
         "healthz_requests": len(health_ms),
     }
     results["get_map_over_healthz_p99"] = results["get_map_p99_ms"] / results["healthz_p99_ms"]
+    results.update(
+        route_p50_ms=percentile(route_ms, 50),
+        route_p99_ms=percentile(route_ms, 99),
+        route_requests=len(route_ms),
+        localization_update_p50_ms=percentile(update_ms, 50),
+        localization_update_p99_ms=percentile(update_ms, 99),
+        localization_update_requests=len(update_ms),
+    )
     rows = [
         ["measure", "value", "target"],
         [
@@ -173,6 +237,17 @@ def main(argv: list[str] | None = None) -> int:
             "map p99 / healthz p99",
             f"{results['get_map_over_healthz_p99']:.2f}",
             "≤ 3",
+        ],
+        [
+            f"POST /v1/maps/{{id}}/routes p50 / p99, 50 clients ({len(route_ms)} requests)",
+            f"{results['route_p50_ms']:.1f} ms / {results['route_p99_ms']:.1f} ms",
+            "p99 ≤ 10 ms",
+        ],
+        [
+            f"POST /v1/localizations/{{id}}/updates p50 / p99, 50 clients ({len(update_ms)})",
+            f"{results['localization_update_p50_ms']:.1f} ms / "
+            f"{results['localization_update_p99_ms']:.1f} ms",
+            "p99 ≤ 20 ms",
         ],
     ]
     print(f"backend: {backend}, 2 worker processes, uvicorn on 127.0.0.1")

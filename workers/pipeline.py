@@ -1,6 +1,6 @@
 """Jobs as lists of stages, and the runner that carries one out under a lease.
 
-    stages = PIPELINES["build_map"]           # load → optimize → evaluate → store
+    stages = PIPELINES["build_map"]     # load → optimize → evaluate → path_graph → store
     report = run_job(db, lease, stages=stages, control=JobControl(), retry_backoff_s=2.0)
     report.outcome                            # Outcome.SUCCEEDED, FAILED, RETRYING, …
 
@@ -29,14 +29,22 @@ import logging
 import math
 import time
 import zlib
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
+from app.domain.path_graph import (
+    ELEVATOR,
+    JUNCTION,
+    STAIRS,
+    build_path_graph,
+    path_graph_to_json,
+)
 from app.domain.session import Session, decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
 from app.plot import render_map_png
@@ -97,8 +105,9 @@ class JobContext:
 
     Stages read and fill the fields in order: ``load`` sets ``params``, ``raw_upload`` and
     ``session``; ``optimize`` sets ``result``; ``evaluate`` sets ``evaluation`` and ``plot_png``;
-    ``store`` sets ``version`` and ``finished``. ``log_tail`` is the job's log as the worker will
-    next write it (started from ``lease.log_tail``); add to it with :meth:`log`.
+    ``path_graph`` sets ``path_graph``; ``store`` sets ``version`` and ``finished``.
+    ``log_tail`` is the job's log as the worker will next write it (started from
+    ``lease.log_tail``); add to it with :meth:`log`.
     """
 
     db: Database
@@ -111,6 +120,8 @@ class JobContext:
     result: MapResult | None = None
     evaluation: Evaluation | None = None
     plot_png: bytes | None = None
+    #: ``app.domain.path_graph.path_graph_to_json`` of the map's path graph
+    path_graph: dict[str, Any] | None = None
     version: VersionInfo | None = None
     #: set by the stage that committed the job as succeeded (``queue.finish``)
     finished: bool = False
@@ -238,6 +249,21 @@ def evaluate(ctx: JobContext) -> None:
     )
 
 
+def path_graph(ctx: JobContext) -> None:
+    """Where a pedestrian can walk: the optimized path with junctions, floors, stairs and
+    elevators, and the tags and points of interest attached to it."""
+    graph = build_path_graph(_need(ctx.result, "result"))
+    ctx.path_graph = path_graph_to_json(graph)
+    walk = graph.graph
+    kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
+    junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)
+    ctx.log(
+        f"path graph: {walk.number_of_nodes()} nodes ({junctions} junctions), "
+        f"{walk.number_of_edges()} edges ({kinds[STAIRS]} stairs, {kinds[ELEVATOR]} "
+        f"elevator), {len(graph.floor_levels_m)} floor(s)"
+    )
+
+
 def store(ctx: JobContext) -> None:
     """In ONE transaction: end the job as succeeded (fenced: raises LeaseLost, and the
     transaction rolls back, if the lease is gone), then add the map version."""
@@ -255,6 +281,7 @@ def store(ctx: JobContext) -> None:
             evaluation=_need(ctx.evaluation, "evaluation"),
             path_length_m=session.path_length_m(),
             plot_png=ctx.plot_png,
+            path_graph=ctx.path_graph,
         )
     ctx.finished = True
 
@@ -262,7 +289,8 @@ def store(ctx: JobContext) -> None:
 BUILD_MAP_STAGES: tuple[Stage, ...] = (
     Stage(name="load", weight=0.2, run=load),
     Stage(name="optimize", weight=0.6, run=optimize),
-    Stage(name="evaluate", weight=0.15, run=evaluate),
+    Stage(name="evaluate", weight=0.12, run=evaluate),
+    Stage(name="path_graph", weight=0.03, run=path_graph),
     Stage(name="store", weight=0.05, run=store),
 )
 

@@ -12,7 +12,8 @@ What becomes what::
     SessionFormatError                         422 invalid_session, field = the upload's JSON path
     ParameterError                             422 invalid_parameter
     MapNotFound, JobNotFound,
-    SessionNotFound, KeyNotFound               404 not_found
+    SessionNotFound, KeyNotFound,
+    LocalizationNotFound                       404 not_found
     InvalidTransition                          409 invalid_transition (names the job's state)
     IdempotencyConflict                        409 idempotency_conflict
     sqlalchemy OperationalError                503 database_unavailable
@@ -36,6 +37,7 @@ from app.api.schemas import ErrorBody
 from app.domain.errors import ParameterError, SessionFormatError
 from app.storage.keys import KeyNotFound
 from app.storage.maps import MapNotFound
+from app.storage.navigation import LocalizationNotFound
 from app.storage.queue import InvalidTransition, JobNotFound
 from app.storage.sessions import IdempotencyConflict, SessionNotFound
 
@@ -117,7 +119,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(SessionFormatError, _session_format_error)
     app.add_exception_handler(ParameterError, handle(422, "invalid_parameter"))
-    for missing in (MapNotFound, JobNotFound, SessionNotFound, KeyNotFound):
+    for missing in (MapNotFound, JobNotFound, SessionNotFound, KeyNotFound, LocalizationNotFound):
         app.add_exception_handler(missing, handle(404, "not_found"))
     app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
     app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))

@@ -3,6 +3,7 @@
     document = map_to_json(result)          # ours: everything in MapResult, round-trips
     result = map_from_json(document)
     app_map = map_to_app_format(result)     # what the iPhone app downloads
+    app_map = map_to_app_format(result, path_graph=pg)   # … with the path graph's links
 
 Poses are written as ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion), map frame y up.
 """
@@ -25,6 +26,7 @@ from app.domain.frames import (
 )
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
 from app.domain.params import SlamParams
+from app.domain.path_graph import AppVertex, PathGraph, app_neighbors
 
 MAP_FORMAT = "invisible-map/map"
 MAP_FORMAT_VERSION = 1
@@ -163,12 +165,16 @@ def map_from_json(document: Any) -> MapResult:
         raise MapFormatError(f"map document is missing or has a malformed {err}") from err
 
 
-def map_to_app_format(result: MapResult) -> dict[str, Any]:
+def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
     """The app's download format (DESIGN §7).
 
     ``adjChi2`` of a pose is the chi² of the odometry factors touching it; ``vizTags`` the number of
-    tag detections used from it. ``neighbors`` are the path-graph links: until the path graph
-    exists, the previous and next pose.
+    tag detections used from it. ``neighbors`` are the path-graph links: without ``path_graph``,
+    the previous and next pose. With it (built from this ``result``), every pose is still listed
+    and its ``neighbors`` are its graph links (:func:`app.domain.path_graph.app_neighbors`: a pose
+    simplified away links to the ends of the nearest edge); each junction is appended as an extra
+    odometry vertex with ``poseId`` = max pose id + 1, + 2, … (junctions in node-id order), its
+    position, an identity rotation, ``adjChi2`` and ``vizTags`` 0.
     """
     n = result.world_T_phone.shape[0]
     adjacent_chi2 = np.zeros(n)
@@ -176,6 +182,13 @@ def map_to_app_format(result: MapResult) -> dict[str, Any]:
     adjacent_chi2[:-1] += result.residuals.odometry_chi2
     visible_tags = np.bincount(result.residuals.tag_pose_index, minlength=n).astype(float)
     pose_ids = result.pose_id.tolist()
+    if path_graph is None:
+        neighbors = [[int(pose_ids[j]) for j in (i - 1, i + 1) if 0 <= j < n] for i in range(n)]
+        junctions: list[AppVertex] = []
+    else:
+        neighbors, junctions = app_neighbors(
+            path_graph, pose_id=result.pose_id, positions_m=result.world_T_phone[:, :3, 3]
+        )
     return {
         "tag_vertices": [
             {"id": int(tag_id), **_translation_rotation(result.world_T_tag[k])}
@@ -187,9 +200,19 @@ def map_to_app_format(result: MapResult) -> dict[str, Any]:
                 **_translation_rotation(result.world_T_phone[i]),
                 "adjChi2": float(adjacent_chi2[i]),
                 "vizTags": float(visible_tags[i]),
-                "neighbors": [int(pose_ids[j]) for j in (i - 1, i + 1) if 0 <= j < n],
+                "neighbors": neighbors[i],
             }
             for i in range(n)
+        ]
+        + [
+            {
+                "poseId": junction.pose_id,
+                **_translation_rotation(_pose_at(junction.position_m)),
+                "adjChi2": 0.0,
+                "vizTags": 0.0,
+                "neighbors": junction.neighbors,
+            }
+            for junction in junctions
         ],
         "waypoints_vertices": [
             {"id": name, **_translation_rotation(result.world_T_poi[k])}
@@ -213,6 +236,13 @@ def _translation_rotation(T: FloatArray) -> dict[str, dict[str, float]]:
         "translation": {"x": x, "y": y, "z": z},
         "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
     }
+
+
+def _pose_at(position_m: Sequence[float]) -> FloatArray:
+    """(4, 4) the pose with identity rotation at ``position_m``."""
+    T = np.eye(4)
+    T[:3, 3] = position_m
+    return T
 
 
 def _poses(rows: Sequence[Sequence[float]]) -> FloatArray:

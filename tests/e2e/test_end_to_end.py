@@ -11,6 +11,7 @@ import pytest
 
 from app.client import ApiError, Client
 from app.domain.frames import rotation_from_quat_xyzw
+from app.domain.localize import session_update_documents
 from app.domain.params import SlamParams
 from app.domain.session import load_session
 from app.domain.slam import optimize_session
@@ -52,6 +53,16 @@ def test_upload_is_optimized_by_a_separate_worker(database_url, data_dir, tmp_pa
         assert client.list_sessions()["count"] == 1
 
         served = _tag_poses_from_app_map(client.app_map(accepted["map_id"]))
+
+        route = client.plan_route(accepted["map_id"], {"tag": 0}, {"tag": 5})
+        assert route["steps"][-1]["instruction"].startswith("arrive at tag 5")
+        kinds = {f["properties"]["kind"] for f in client.geojson(accepted["map_id"])["features"]}
+        assert {"node", "tag", "walk"} <= kinds
+        navigation = client.start_localization(accepted["map_id"])
+        for document in session_update_documents(load_session(path), 50)[:4]:
+            estimate = client.update_localization(navigation["id"], **document)
+        assert estimate["status"] == "localized"
+        assert client.get_localization(navigation["id"])["updates"] == 4
 
         rebuild = client.rebuild_map(accepted["map_id"], {"tag_position_var_m2": "1e-3"})
         client.wait_for_job(rebuild["job_id"], timeout_s=120)

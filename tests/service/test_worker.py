@@ -118,12 +118,19 @@ def test_log_tail_has_a_line_per_stage(db: Database) -> None:
     messages = [line.split(" ", 1)[1] for line in lines]
     assert messages[0] == "queued"
     assert messages[1].startswith("attempt 1 of 3 started by ")
-    assert [m.split(":")[0] for m in messages[2:6]] == ["load", "optimize", "evaluate", "store"]
+    assert [m.split(":")[0] for m in messages[2:7]] == [
+        "load",
+        "optimize",
+        "evaluate",
+        "path graph",
+        "store",
+    ]
+    assert "junctions" in messages[5]
     assert "poses" in messages[2]
     assert "iterations" in messages[3]
     assert "ms" in messages[3]
     assert "shift metric" in messages[4]
-    assert messages[6:] == ["succeeded"]
+    assert messages[7:] == ["succeeded"]
 
 
 def test_stage_and_progress_are_written_at_each_stage(db: Database) -> None:
@@ -154,10 +161,11 @@ def test_stage_and_progress_are_written_at_each_stage(db: Database) -> None:
     worker_with(db, stages).run_once()
 
     starts = np.cumsum([0.0] + [stage.weight for stage in BUILD_MAP_STAGES])[:-1]
-    assert [name for name, _ in seen] == ["load", "optimize", "store"]
-    np.testing.assert_allclose([p for _, p in seen], starts[[0, 1, 3]], atol=1e-9)
+    assert [name for name, _ in seen] == ["load", "optimize", "path_graph", "store"]
+    # Progress is stored rounded to 4 decimals.
+    np.testing.assert_allclose([p for _, p in seen], starts[[0, 1, 3, 4]], atol=1e-4)
     evaluate_start, evaluate_weight = starts[2], BUILD_MAP_STAGES[2].weight
-    np.testing.assert_allclose(within, [evaluate_start + 0.5 * evaluate_weight] * 2, atol=1e-9)
+    np.testing.assert_allclose(within, [evaluate_start + 0.5 * evaluate_weight] * 2, atol=1e-4)
     assert get_job(db, inserted.job_id).state == JobState.SUCCEEDED
 
 

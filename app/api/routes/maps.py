@@ -46,8 +46,10 @@ from app.api.schemas import (
 from app.domain.errors import ParameterError
 from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
+from app.domain.path_graph import path_graph_from_json
 from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
+from app.storage.navigation import path_graph_document
 from app.storage.sessions import BUILD_MAP
 
 router = APIRouter(prefix="/maps", tags=["maps"])
@@ -211,7 +213,9 @@ def _checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     "/{map_id}/app-map",  # noqa: FAST003 (map_id is read by MapDep)
     summary="Download the map in the app's format",
     description="`{tag_vertices, odometry_vertices, waypoints_vertices}` (DESIGN §7) of the "
-    "current version, or of `?version=N`. 409 map_not_ready while the map has no version.",
+    "current version, or of `?version=N`; `neighbors` are the path graph's links (junctions are "
+    "extra odometry vertices numbered after the last pose). 409 map_not_ready while the map has "
+    "no version.",
     response_model=AppMap,
     responses={
         **NOT_MODIFIED,
@@ -228,7 +232,11 @@ def get_app_map(
     etag = strong_etag("app-map", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
-    app_map = map_to_app_format(map_from_json(maps.map_document(session, info.id, chosen.number)))
+    graph_document = path_graph_document(session, chosen.id)
+    app_map = map_to_app_format(
+        map_from_json(maps.map_document(session, info.id, chosen.number)),
+        path_graph=None if graph_document is None else path_graph_from_json(graph_document),
+    )
     content = json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
     return Response(content=content, media_type="application/json", headers={"ETag": etag})
 

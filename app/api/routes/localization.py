@@ -1,0 +1,178 @@
+"""Live localization: ``POST /v1/maps/{id}/localizations`` starts a navigation session pinned to
+the map's current version; ``POST /v1/localizations/{id}/updates`` folds in the phone's new
+odometry and tag detections and answers where the phone is in the map.
+
+The localizer (``app.domain.localize``) is a pure function of (state, update); its state lives in
+the ``localization`` row, so any API process can take the next update, and a restart loses
+nothing. An update reads the state, computes, and writes the new state only if the row's revision
+is still the one it read; a concurrent update of the same session makes the later one a 409
+``concurrent_update`` (send it again). A malformed update (an unknown tag, pose ids or timestamps
+going backwards, a pose that is not a rigid transform, a non-finite number) is a 422 naming the
+field, and the session is left as it was.
+
+Device keys see only the navigation sessions they started (another's is a 404).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Body, Request, Response
+
+from app.api.deps import CurrentPrincipal, ReadSessionDep, WriteSessionDep, valid_id
+from app.api.errors import ApiError, error_responses
+from app.api.navigation_schemas import (
+    LocalizationEstimate,
+    LocalizationPublic,
+    LocalizationUpdate,
+)
+from app.api.version_cache import VersionCache
+from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
+from app.domain.localize import (
+    LocalizationUpdateError,
+    LocalizerState,
+    parse_update,
+    update,
+)
+from app.storage import maps, navigation
+from app.storage.db import Database
+from app.storage.keys import Principal
+from app.storage.navigation import LocalizationConflict, LocalizationInfo
+
+router = APIRouter(tags=["localization"])
+
+
+def _public(info: LocalizationInfo) -> LocalizationPublic:
+    last = info.state.get("last_result")
+    return LocalizationPublic(
+        id=info.id,
+        map_id=info.map_id,
+        map_version=info.map_version,
+        created_at=info.created_at,
+        updated_at=info.updated_at,
+        updates=info.update_count,
+        estimate=LocalizationEstimate.from_result_json(last) if last else None,
+    )
+
+
+def _owned(info: LocalizationInfo, principal: Principal) -> LocalizationInfo:
+    if not principal.is_admin and info.created_by != principal.subject:
+        raise ApiError(404, "not_found", f"localization session {info.id} not found")
+    return info
+
+
+def _map_tags(request: Request, db: Database, version_id: int) -> dict[int, FloatArray]:
+    def load() -> dict[int, FloatArray]:
+        with db.read() as session:
+            rows = maps.tag_poses(session, version_id)
+        return {
+            row.tag_id: pose_from_xyz_quat_xyzw([*row.position_m, *row.quat_xyzw]) for row in rows
+        }
+
+    cache: VersionCache = request.app.state.version_cache
+    return cache.get(("map_tags", version_id), load)
+
+
+@router.post(
+    "/maps/{map_id}/localizations",
+    status_code=201,
+    summary="Start a navigation session",
+    description="A navigation session in the map's current version (the version stays pinned for "
+    "the session). It is `not_localized` until an update brings a detection of a tag in the map.",
+    responses=error_responses(401, 404, 409, 422),
+)
+def start(
+    map_id: int,
+    principal: CurrentPrincipal,
+    session: WriteSessionDep,
+    response: Response,
+) -> LocalizationPublic:
+    info = maps.get_map(session, valid_id(map_id, "map"))
+    if info.current is None:
+        raise ApiError(409, "map_not_ready", f"map {info.id} has no version yet")
+    created = navigation.create_localization(
+        session,
+        map_id=info.id,
+        map_version_id=info.current.id,
+        created_by=principal.subject,
+        status="not_localized",
+        state={"localizer": LocalizerState.initial().to_json(), "last_result": None},
+    )
+    response.headers["Location"] = f"/v1/localizations/{created.id}"
+    return _public(created)
+
+
+@router.get(
+    "/localizations/{localization_id}",
+    summary="Get a navigation session",
+    description="The session's map version and its latest estimate.",
+    responses=error_responses(401, 404, 422),
+)
+def get(
+    localization_id: int, principal: CurrentPrincipal, session: ReadSessionDep
+) -> LocalizationPublic:
+    info = navigation.get_localization(session, valid_id(localization_id, "localization session"))
+    return _public(_owned(info, principal))
+
+
+@router.post(
+    "/localizations/{localization_id}/updates",
+    summary="Send odometry and detections; get the phone's pose in the map",
+    description="Folds the new poses and detections into the session (warm-started, a cost per "
+    "update that does not grow with the session) and answers the phone's newest pose in the map, "
+    "the session-to-map transform with its covariance, the tags used, and the status "
+    "(`not_localized` until the first known tag). 422 names a malformed field and changes "
+    "nothing; 409 when another update of the same session got in first (send it again).",
+    responses=error_responses(
+        401,
+        404,
+        409,
+        422,
+        examples={
+            422: ("invalid_update", "tag_data[0][0].tag_id: tag 999 is not in this map"),
+            409: ("concurrent_update", "localization session 7 was updated concurrently"),
+        },
+    ),
+)
+def post_update(
+    localization_id: int,
+    body: Annotated[LocalizationUpdate, Body()],
+    principal: CurrentPrincipal,
+    request: Request,
+) -> LocalizationEstimate:
+    db: Database = request.app.state.db
+    localization_id = valid_id(localization_id, "localization session")
+    with db.read() as session:
+        info = _owned(navigation.get_localization(session, localization_id), principal)
+    map_tags = _map_tags(request, db, info.map_version_id)
+    document: dict[str, Any] = body.model_dump()
+    try:
+        state = LocalizerState.from_json(info.state["localizer"])
+        new_state, result = update(state, parse_update(document), map_tags)
+    except LocalizationUpdateError as err:
+        raise ApiError(422, "invalid_update", str(err), field=err.field or None) from err
+    result_json = _finite(result.to_json())
+    try:
+        with db.transaction() as session:
+            navigation.save_update(
+                session,
+                info.id,
+                expected_revision=info.revision,
+                status=result.status,
+                state={"localizer": new_state.to_json(), "last_result": result_json},
+            )
+    except LocalizationConflict as err:
+        raise ApiError(409, "concurrent_update", str(err)) from err
+    return LocalizationEstimate.from_result_json(result_json)
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with non-finite floats (an unbounded covariance) as None, so it is valid JSON."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value

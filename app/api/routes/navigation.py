@@ -1,0 +1,173 @@
+"""``/v1/maps/{id}/pois``, ``/routes`` and ``/geojson``: the path graph of a map's current version.
+
+Map versions never change, so each API process keeps the path graphs it has read in a small LRU
+(``app.api.version_cache``); a route query then costs a Dijkstra search, not a database read and a
+JSON parse. A map with no version yet is a 409 ``map_not_ready``; a
+version built before path graphs existed is a 409 ``no_path_graph`` (rebuild the map).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response
+from sqlalchemy.orm import Session
+
+from app.api.deps import MapDep, ReadSessionDep
+from app.api.errors import ApiError, error_responses
+from app.api.http import strong_etag
+from app.api.navigation_schemas import PoiPublic, PoisPublic, RoutePublic, RouteRequest
+from app.api.version_cache import VersionCache
+from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
+from app.domain.routing import (
+    AmbiguousEndpoint,
+    RouteError,
+    UnknownEndpoint,
+    Unreachable,
+    plan_route,
+    search_pois,
+)
+from app.storage import queue
+from app.storage.maps import MapInfo, VersionInfo
+from app.storage.navigation import path_graph_document
+
+router = APIRouter(prefix="/maps", tags=["navigation"])
+
+
+def current_path_graph(
+    request: Request, session: Session, info: MapInfo
+) -> tuple[VersionInfo, PathGraph]:
+    """The map's current version and its path graph (409 if either does not exist yet)."""
+    version = info.current
+    if version is None:
+        jobs, _ = queue.list_jobs(session, map_id=info.id, limit=1)
+        building = f": its build job {jobs[0].id} is {jobs[0].state}" if jobs else ""
+        raise ApiError(409, "map_not_ready", f"map {info.id} has no version yet{building}")
+
+    def load() -> PathGraph:
+        document = path_graph_document(session, version.id)
+        if document is None:
+            raise ApiError(
+                409,
+                "no_path_graph",
+                f"version {version.number} of map {info.id} has no path graph (it was built "
+                "before path graphs existed): rebuild the map",
+            )
+        return path_graph_from_json(document)
+
+    cache: VersionCache = request.app.state.version_cache
+    return version, cache.get(("path_graph", version.id), load)
+
+
+NOT_READY = (
+    "map_not_ready",
+    "map 12 has no version yet: its build job 31 is running",
+)
+
+
+@router.get(
+    "/{map_id}/pois",  # noqa: FAST003 (map_id is read by MapDep)
+    summary="Search points of interest",
+    description="Points of interest of the map's current version whose name contains `q` "
+    "(case-insensitive): exact names first, then names starting with it, then the rest. Without "
+    "`q`, all of them.",
+    responses=error_responses(401, 404, 409, 422, examples={409: NOT_READY}),
+)
+def list_pois(
+    info: MapDep,
+    session: ReadSessionDep,
+    request: Request,
+    q: Annotated[str, Query(max_length=200, description="part of a name")] = "",
+) -> PoisPublic:
+    version, graph = current_path_graph(request, session, info)
+    found = search_pois(graph, q)
+    return PoisPublic(
+        data=[PoiPublic.from_domain(anchor) for anchor in found],
+        count=len(found),
+        map_version=version.number,
+    )
+
+
+@router.post(
+    "/{map_id}/routes",  # noqa: FAST003 (map_id is read by MapDep)
+    summary="Plan a route",
+    description="The shortest walk on the map's current version from `from` to `to` (each one of "
+    "a tag, a point of interest, a path-graph node or a position `[x, y, z]` in the map frame), "
+    "avoiding stairs and/or elevators if asked: polyline, length, floors and turn-by-turn "
+    "steps. An unknown tag, point of interest or node is a 404; a goal that cannot be reached "
+    "(at all, or without what is avoided) a 409 saying why; an ambiguous name a 422.",
+    responses=error_responses(
+        401,
+        404,
+        409,
+        422,
+        examples={
+            409: (
+                "unreachable",
+                "no route from tag 300 to 'Room 209' without stairs: the goal is on floor 2 and "
+                "every way there uses stairs",
+            ),
+            404: ("not_found", "no point of interest named 'Room 999' in this map"),
+        },
+    ),
+)
+def plan(
+    info: MapDep,
+    body: RouteRequest,
+    session: ReadSessionDep,
+    request: Request,
+) -> RoutePublic:
+    version, graph = current_path_graph(request, session, info)
+    try:
+        route = plan_route(
+            graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
+        )
+    except UnknownEndpoint as err:
+        raise ApiError(404, "not_found", str(err), field=None) from err
+    except Unreachable as err:
+        raise ApiError(409, "unreachable", str(err)) from err
+    except AmbiguousEndpoint as err:
+        raise ApiError(422, "ambiguous_endpoint", str(err)) from err
+    except RouteError as err:
+        raise ApiError(422, "invalid_route", str(err)) from err
+    return RoutePublic.from_domain(route, map_id=info.id, map_version=version.number)
+
+
+@router.get(
+    "/{map_id}/geojson",  # noqa: FAST003 (map_id is read by MapDep)
+    summary="The path graph as GeoJSON",
+    description="A FeatureCollection of the current version's path graph: points with "
+    "`properties.kind` node, junction, tag or poi; lines (edges) with `properties.kind` walk, "
+    "stairs or elevator, `floor` and `length_m`. Coordinates are metres in the map frame "
+    "(see the document's `coordinate_system`), not longitude and latitude.",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "the path graph",
+            "content": {
+                "application/geo+json": {
+                    "example": {
+                        "type": "FeatureCollection",
+                        "features": [
+                            {
+                                "type": "Feature",
+                                "geometry": {"type": "Point", "coordinates": [0.0, 0.0, 0.0]},
+                                "properties": {"kind": "node", "id": 0, "floor": 0},
+                            }
+                        ],
+                    }
+                }
+            },
+        },
+        **error_responses(401, 404, 409, 422, examples={409: NOT_READY}),
+    },
+)
+def geojson(info: MapDep, session: ReadSessionDep, request: Request) -> Response:
+    version, graph = current_path_graph(request, session, info)
+    content = json.dumps(path_graph_to_geojson(graph), separators=(",", ":"), allow_nan=False)
+    return Response(
+        content=content,
+        media_type="application/geo+json",
+        headers={"ETag": strong_etag("geojson", info.id, version.number, version.content_sha256)},
+    )

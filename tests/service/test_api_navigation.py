@@ -1,0 +1,351 @@
+"""Navigation over HTTP: points of interest, routes, GeoJSON and live localization, on maps built
+by the real worker pipeline (path-graph stage included), on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import networkx as nx
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.config import Settings
+from app.domain.localize import session_update_documents
+from app.domain.session import load_session
+from app.main import create_app
+from app.storage import navigation
+from app.storage.navigation import LocalizationConflict
+from tests.service.api_support import ADMIN, ADMIN_KEY, SESSIONS_DIR, Api, running_api
+from workers.main import Worker
+
+pytestmark = pytest.mark.db
+
+FLOOR_2 = SESSIONS_DIR / "floor_2_straight.json"
+DESNAT = SESSIONS_DIR / "desnat_straight_once.json"
+IDENTITY_16 = [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0]
+
+
+def floor_2_with_pois() -> bytes:
+    """floor_2_straight with two points of interest named where poses 400 and 900 were."""
+    document = json.loads(FLOOR_2.read_bytes())
+    poses = {pose["id"]: pose for pose in document["pose_data"]}
+    document["location_data"] = [
+        {
+            "name": name,
+            "pose_id": pose_id + 1,  # the app writes it one too high; the parser corrects it
+            "timestamp": poses[pose_id]["timestamp"],
+            "transform": IDENTITY_16,
+        }
+        for name, pose_id in (("Room 209", 400), ("Elevator lobby", 900))
+    ]
+    return json.dumps(document).encode()
+
+
+def build(api: Api) -> None:
+    """Run the real worker pipeline on every queued job."""
+    worker = Worker(api.db, Settings(database_url="sqlite://", lease_s=60, heartbeat_s=5))
+    while worker.run_once():
+        pass
+
+
+@pytest.fixture
+def nav(database_url: str) -> Iterator[tuple[Api, int]]:
+    with running_api(database_url) as api:
+        map_id = api.uploaded(floor_2_with_pois())["map_id"]
+        build(api)
+        yield api, map_id
+
+
+def route(api: Api, map_id: int, body: dict[str, Any]) -> Any:
+    return api.client.post(f"/v1/maps/{map_id}/routes", json=body, headers=ADMIN)
+
+
+# --------------------------------------------------------------------------- pois, routes
+
+
+def test_pois_are_searchable_by_name(nav):
+    api, map_id = nav
+    everything = api.client.get(f"/v1/maps/{map_id}/pois", headers=ADMIN).json()
+    assert everything["count"] == 2
+    assert everything["map_version"] == 1
+    found = api.client.get(f"/v1/maps/{map_id}/pois", params={"q": "ROOM"}, headers=ADMIN).json()
+    assert [poi["name"] for poi in found["data"]] == ["Room 209"]
+    assert found["data"][0]["floor"] == 1
+    none = api.client.get(f"/v1/maps/{map_id}/pois", params={"q": "kitchen"}, headers=ADMIN)
+    assert none.json() == {"data": [], "count": 0, "map_version": 1}
+
+
+def test_route_from_a_tag_to_a_poi(nav):
+    api, map_id = nav
+    response = route(api, map_id, {"from": {"tag": 300}, "to": {"poi": "Room 209"}})
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["map_version"] == 1
+    assert body["floors"] == [1]
+    polyline = np.array(body["polyline"])
+    assert polyline.shape[1] == 3
+    straight_m = float(np.linalg.norm(polyline[-1] - polyline[0]))
+    assert body["length_m"] >= straight_m - 1e-9
+    along_m = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).sum())
+    assert math.isclose(body["length_m"], along_m, rel_tol=1e-9)
+    assert body["steps"][-1]["kind"] == "arrive"
+    assert body["steps"][-1]["instruction"].startswith("arrive at Room 209")
+    assert all(len(step["position"]) == 3 for step in body["steps"])
+
+
+def test_route_between_positions_and_nodes(nav):
+    api, map_id = nav
+    geo = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN).json()
+    nodes = [f for f in geo["features"] if f["properties"]["kind"] in ("node", "junction")]
+    first, last = nodes[0]["properties"]["id"], nodes[-1]["properties"]["id"]
+    by_node = route(api, map_id, {"from": {"node": first}, "to": {"node": last}})
+    assert by_node.status_code == 200, by_node.text
+    start = by_node.json()["polyline"][0]
+    by_position = route(api, map_id, {"from": {"position": start}, "to": {"node": last}})
+    assert by_position.status_code == 200, by_position.text
+    assert math.isclose(by_position.json()["length_m"], by_node.json()["length_m"], abs_tol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "code"),
+    [
+        ({"from": {"tag": 99999}, "to": {"poi": "Room 209"}}, 404, "not_found"),
+        ({"from": {"tag": 300}, "to": {"poi": "Room 999"}}, 404, "not_found"),
+        ({"from": {"node": 10**9}, "to": {"tag": 300}}, 404, "not_found"),
+        ({"from": {"tag": 300, "poi": "Room 209"}, "to": {"tag": 301}}, 422, "validation_error"),
+        ({"from": {}, "to": {"tag": 301}}, 422, "validation_error"),
+        ({"to": {"tag": 301}}, 422, "validation_error"),
+        ({"from": {"tag": 300}, "to": {"tag": 301}, "avoid": ["ramps"]}, 422, "validation_error"),
+        ({"from": {"position": [0, 0]}, "to": {"tag": 301}}, 422, "validation_error"),
+    ],
+)
+def test_route_failures(nav, body, status, code):
+    api, map_id = nav
+    response = route(api, map_id, body)
+    assert response.status_code == status, response.text
+    assert response.json()["code"] == code
+
+
+def test_a_non_finite_position_is_refused(nav):
+    api, map_id = nav
+    body = '{"from": {"position": [NaN, 0, 0]}, "to": {"tag": 301}}'
+    response = api.client.post(
+        f"/v1/maps/{map_id}/routes",
+        content=body,
+        headers={**ADMIN, "Content-Type": "application/json"},
+    )
+    assert response.status_code == 422
+    assert "from" in (response.json()["field"] or "")
+
+
+def test_navigation_of_an_unknown_or_unbuilt_map(database_url):
+    with running_api(database_url) as api:
+        map_id = api.uploaded(FLOOR_2)["map_id"]  # not built: no worker ran
+        for method, path, body in [
+            ("GET", f"/v1/maps/{map_id}/pois", None),
+            ("POST", f"/v1/maps/{map_id}/routes", {"from": {"tag": 300}, "to": {"tag": 301}}),
+            ("GET", f"/v1/maps/{map_id}/geojson", None),
+            ("POST", f"/v1/maps/{map_id}/localizations", None),
+        ]:
+            response = api.client.request(method, path, json=body, headers=ADMIN)
+            assert response.status_code == 409, (path, response.text)
+            assert response.json()["code"] == "map_not_ready"
+            missing = api.client.request(
+                method, path.replace(f"/{map_id}/", "/999/"), json=body, headers=ADMIN
+            )
+            assert missing.status_code == 404, path
+
+
+def test_geojson_has_the_kinds_the_issue_names(nav):
+    api, map_id = nav
+    response = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN)
+    assert response.status_code == 200
+    assert response.headers["content-type"].startswith("application/geo+json")
+    document = response.json()
+    assert document["type"] == "FeatureCollection"
+    points = [f for f in document["features"] if f["geometry"]["type"] == "Point"]
+    lines = [f for f in document["features"] if f["geometry"]["type"] == "LineString"]
+    assert {f["properties"]["kind"] for f in points} >= {"node", "tag", "poi"}
+    assert {f["properties"]["kind"] for f in lines} <= {"walk", "stairs", "elevator"}
+    assert all(f["properties"]["length_m"] > 0 for f in lines)
+    tags = {f["properties"]["id"] for f in points if f["properties"]["kind"] == "tag"}
+    map_tags = api.client.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert len(tags) == map_tags["current_version"]["tag_count"]
+
+
+def test_app_map_neighbors_come_from_the_path_graph(nav):
+    api, map_id = nav
+    app_map = api.client.get(f"/v1/maps/{map_id}/app-map", headers=ADMIN).json()
+    vertices = {v["poseId"]: v for v in app_map["odometry_vertices"]}
+    links = nx.Graph()
+    links.add_nodes_from(vertices)
+    for pose_id, vertex in vertices.items():
+        assert vertex["neighbors"], f"vertex {pose_id} cannot reach the path"
+        for neighbor in vertex["neighbors"]:
+            assert neighbor in vertices, (pose_id, neighbor)
+            links.add_edge(pose_id, neighbor)
+    assert nx.is_connected(links)
+    # Junctions are extra vertices after the last pose; the path graph has some on this walk.
+    last_pose_id = max(p["id"] for p in json.loads(FLOOR_2.read_bytes())["pose_data"])
+    assert any(pose_id > last_pose_id for pose_id in vertices)
+    # Not previous/next pose any more: simplified straight runs link far-apart poses.
+    assert any(
+        abs(neighbor - pose_id) > 1
+        for pose_id, vertex in vertices.items()
+        if pose_id <= last_pose_id
+        for neighbor in vertex["neighbors"]
+        if neighbor <= last_pose_id
+    )
+    assert {w["id"] for w in app_map["waypoints_vertices"]} == {"Room 209", "Elevator lobby"}
+
+
+# --------------------------------------------------------------------------- localization
+
+
+def start_localization(api: Api, map_id: int, headers: dict[str, str] = ADMIN) -> int:
+    response = api.client.post(f"/v1/maps/{map_id}/localizations", headers=headers)
+    assert response.status_code == 201, response.text
+    assert response.headers["Location"] == f"/v1/localizations/{response.json()['id']}"
+    assert response.json()["estimate"] is None
+    return int(response.json()["id"])
+
+
+def desnat_updates() -> list[dict[str, Any]]:
+    return session_update_documents(load_session(DESNAT), 20)
+
+
+def test_localization_replays_another_session_into_the_map(nav):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    statuses, sigmas = [], []
+    for document in desnat_updates():
+        response = api.client.post(f"/v1/localizations/{sid}/updates", json=document, headers=ADMIN)
+        assert response.status_code == 200, response.text
+        estimate = response.json()
+        statuses.append(estimate["status"])
+        if estimate["status"] == "localized":
+            sigmas.append(estimate["position_sigma_m"])
+            assert len(estimate["position"]) == 3
+            assert np.allclose(np.array(estimate["map_T_phone"])[3], [0, 0, 0, 1])
+    assert statuses[0] == "not_localized"
+    assert statuses[-1] == "localized"
+    assert statuses.index("localized") > 0
+    assert min(sigmas) < 0.5
+    current = api.client.get(f"/v1/localizations/{sid}", headers=ADMIN).json()
+    assert current["updates"] == len(statuses)
+    assert current["map_version"] == 1
+    assert current["estimate"]["status"] == "localized"
+
+
+def test_localization_survives_a_restart_of_the_api(nav, database_url):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    updates = desnat_updates()
+    half = len(updates) // 2
+    for document in updates[:half]:
+        api.client.post(f"/v1/localizations/{sid}/updates", json=document, headers=ADMIN)
+    settings = Settings(database_url=database_url, admin_key=ADMIN_KEY)
+    with TestClient(create_app(settings)) as other_process:
+        response = other_process.post(
+            f"/v1/localizations/{sid}/updates", json=updates[half], headers=ADMIN
+        )
+        assert response.status_code == 200, response.text
+        assert (
+            other_process.get(f"/v1/localizations/{sid}", headers=ADMIN).json()["updates"]
+            == half + 1
+        )
+
+
+def _with_tag(document: dict[str, Any], tag_id: int) -> dict[str, Any]:
+    changed = json.loads(json.dumps(document))
+    pose = changed["poses"][0]
+    changed["tag_data"] = [
+        [
+            {
+                "tag_id": tag_id,
+                "pose_id": pose["id"],
+                "timestamp": pose["timestamp"],
+                "tag_pose": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 1.5, 0, 0, 0, 1],
+                "camera_intrinsics": [1400, 1400, 960, 720],
+                "tag_corners_pixel_coordinates": [0] * 8,
+            }
+        ]
+    ]
+    return changed
+
+
+def _broken(kind: str, document: dict[str, Any]) -> dict[str, Any]:
+    changed = json.loads(json.dumps(document))
+    if kind == "unknown tag":
+        return _with_tag(changed, 999)
+    if kind == "not rigid":
+        changed["poses"][0]["pose"][0] = 3.0
+    elif kind == "backwards":
+        changed["poses"][0]["id"] = 0
+        changed["poses"][0]["timestamp"] = 0.0
+    elif kind == "missing pose field":
+        del changed["poses"][0]["pose"]
+    return changed
+
+
+@pytest.mark.parametrize(
+    ("kind", "field"),
+    [
+        ("unknown tag", "tag_data[0][0].tag_id"),
+        ("not rigid", "poses[0].pose"),
+        ("backwards", "poses[0]"),
+        ("missing pose field", "poses[0].pose"),
+    ],
+)
+def test_malformed_updates_are_refused_and_change_nothing(nav, kind, field):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    updates = desnat_updates()
+    for document in updates[:3]:
+        api.client.post(f"/v1/localizations/{sid}/updates", json=document, headers=ADMIN)
+    with api.db.read() as session:
+        before = navigation.get_localization(session, sid)
+
+    response = api.client.post(
+        f"/v1/localizations/{sid}/updates", json=_broken(kind, updates[3]), headers=ADMIN
+    )
+
+    assert response.status_code == 422, response.text
+    assert response.json()["code"] == "invalid_update"
+    assert (response.json()["field"] or "").startswith(field)
+    with api.db.read() as session:
+        after = navigation.get_localization(session, sid)
+    assert (after.revision, after.state) == (before.revision, before.state)
+    good = api.client.post(f"/v1/localizations/{sid}/updates", json=updates[3], headers=ADMIN)
+    assert good.status_code == 200, good.text
+
+
+def test_a_device_sees_only_its_own_navigation_sessions(nav):
+    api, map_id = nav
+    mine, theirs = api.device(), api.device()
+    sid = start_localization(api, map_id, headers=mine)
+    assert api.client.get(f"/v1/localizations/{sid}", headers=mine).status_code == 200
+    assert api.client.get(f"/v1/localizations/{sid}", headers=theirs).status_code == 404
+    update = api.client.post(
+        f"/v1/localizations/{sid}/updates", json=desnat_updates()[0], headers=theirs
+    )
+    assert update.status_code == 404
+    assert api.client.get("/v1/localizations/999999", headers=mine).status_code == 404
+
+
+def test_a_stale_revision_cannot_overwrite_a_newer_state(nav):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    api.client.post(f"/v1/localizations/{sid}/updates", json=desnat_updates()[0], headers=ADMIN)
+    with api.db.read() as session:
+        info = navigation.get_localization(session, sid)
+    with pytest.raises(LocalizationConflict), api.db.transaction() as session:
+        navigation.save_update(
+            session, sid, expected_revision=info.revision - 1, status="x", state={}
+        )
+    with api.db.read() as session:
+        assert navigation.get_localization(session, sid).state == info.state
