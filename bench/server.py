@@ -184,6 +184,14 @@ def main(argv: list[str] | None = None) -> int:
             update_ms = concurrent_ms(
                 key, 50, load_s, localization_replays(server.url, map_id, key)
             )
+            # One client at a time: the cost of a request without queueing behind 49 others.
+            health_1_ms = concurrent_ms(key, 1, load_s / 3, repeat_get(f"{server.url}/healthz"))
+            route_1_ms = concurrent_ms(
+                key, 1, load_s / 3, random_routes(server.url, map_id, tag_ids)
+            )
+            update_1_ms = concurrent_ms(
+                key, 1, load_s / 3, localization_replays(server.url, map_id, key)
+            )
             client.close()
 
     backend = "PostgreSQL" if url.startswith("postgresql") else "SQLite"
@@ -210,6 +218,12 @@ def main(argv: list[str] | None = None) -> int:
         localization_update_p50_ms=percentile(update_ms, 50),
         localization_update_p99_ms=percentile(update_ms, 99),
         localization_update_requests=len(update_ms),
+        healthz_1_client_p50_ms=percentile(health_1_ms, 50),
+        healthz_1_client_p99_ms=percentile(health_1_ms, 99),
+        route_1_client_p50_ms=percentile(route_1_ms, 50),
+        route_1_client_p99_ms=percentile(route_1_ms, 99),
+        localization_update_1_client_p50_ms=percentile(update_1_ms, 50),
+        localization_update_1_client_p99_ms=percentile(update_1_ms, 99),
     )
     rows = [
         ["measure", "value", "target"],
@@ -248,6 +262,24 @@ def main(argv: list[str] | None = None) -> int:
             f"{results['localization_update_p50_ms']:.1f} ms / "
             f"{results['localization_update_p99_ms']:.1f} ms",
             "p99 ≤ 20 ms",
+        ],
+        [
+            f"GET /healthz p50 / p99, 1 client ({len(health_1_ms)})",
+            f"{results['healthz_1_client_p50_ms']:.1f} ms / "
+            f"{results['healthz_1_client_p99_ms']:.1f} ms",
+            "(floor)",
+        ],
+        [
+            f"POST …/routes p50 / p99, 1 client ({len(route_1_ms)})",
+            f"{results['route_1_client_p50_ms']:.1f} ms / "
+            f"{results['route_1_client_p99_ms']:.1f} ms",
+            "—",
+        ],
+        [
+            f"POST …/updates p50 / p99, 1 client ({len(update_1_ms)})",
+            f"{results['localization_update_1_client_p50_ms']:.1f} ms / "
+            f"{results['localization_update_1_client_p99_ms']:.1f} ms",
+            "—",
         ],
     ]
     print(f"backend: {backend}, 2 worker processes, uvicorn on 127.0.0.1")
