@@ -72,11 +72,10 @@ from app.domain.session import (
     _integer,
     _matrix16,
     _number,
-    _optional_vector,
     _require_list,
     _require_object,
     _rigid,
-    _vector,
+    parse_detection_fields,
 )
 from app.domain.slam import (
     MIN_ODOMETRY_DT_S,
@@ -263,34 +262,9 @@ def _parse_update(document: Any) -> UpdateBatch:
 def _parse_detection(
     detection: Mapping[str, Any], where: str, frame_index: int, frame_size: int
 ) -> dict[str, Any]:
-    tag_id = _integer(detection, "tag_id", where)
-    if tag_id < 0:
-        raise LocalizationUpdateError(f"{where}.tag_id", f"must be ≥ 0, got {tag_id}")
-    pose_id = _integer(detection, "pose_id", where)
-    camera_T_tag = _rigid(
-        _matrix16(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose"
-    )
-    intrinsics = _vector(detection, "camera_intrinsics", where, 4)
-    if intrinsics[0] <= 0 or intrinsics[1] <= 0:
-        raise LocalizationUpdateError(
-            f"{where}.camera_intrinsics", "focal lengths fx, fy must be positive"
-        )
-    corners = _vector(detection, "tag_corners_pixel_coordinates", where, 8).reshape(4, 2)
-    timestamp = _number(detection, "timestamp", where) if "timestamp" in detection else math.nan
-    return {
-        "where": where,
-        "tag_id": tag_id,
-        "pose_id": pose_id,
-        "frame_index": frame_index,
-        "frame_size": frame_size,
-        "timestamp_s": timestamp,
-        "camera_T_tag": camera_T_tag,
-        "intrinsics": intrinsics,
-        "corners_px": corners,
-        "position_variance": _optional_vector(detection, "tag_position_variance", where, 3),
-        "orientation_variance": _optional_vector(detection, "tag_orientation_variance", where, 4),
-        "joint_covariance": _optional_vector(detection, "joint_covar", where, 49).reshape(7, 7),
-    }
+    row = parse_detection_fields(detection, where, frame_index=frame_index, frame_size=frame_size)
+    row["where"] = where
+    return row
 
 
 def _detections_from_rows(rows: Sequence[Mapping[str, Any]]) -> TagDetections:
