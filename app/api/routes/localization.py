@@ -27,6 +27,7 @@ from app.api.navigation_schemas import (
     LocalizationPublic,
     LocalizationUpdate,
 )
+from app.api.routes.maps import chosen_version
 from app.api.version_cache import VersionCache
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
 from app.domain.localize import (
@@ -89,12 +90,11 @@ def start(
     response: Response,
 ) -> LocalizationPublic:
     info = maps.get_map(session, valid_id(map_id, "map"))
-    if info.current is None:
-        raise ApiError(409, "map_not_ready", f"map {info.id} has no version yet")
+    current = chosen_version(session, info, None)  # 409 map_not_ready without a version
     created = navigation.create_localization(
         session,
         map_id=info.id,
-        map_version_id=info.current.id,
+        map_version_id=current.id,
         created_by=principal.subject,
         status="not_localized",
         state={"localizer": LocalizerState.initial().to_json(), "last_result": None},

@@ -228,7 +228,7 @@ def get_app_map(
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
-    chosen = _version(session, info, version)
+    chosen = chosen_version(session, info, version)
     etag = strong_etag("app-map", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
@@ -263,7 +263,7 @@ def get_plot(
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
-    chosen = _version(session, info, version)
+    chosen = chosen_version(session, info, version)
     etag = strong_etag("plot", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
@@ -288,7 +288,7 @@ def delete_map(map_id: int, _admin: AdminPrincipal, session: WriteSessionDep) ->
     maps.delete_map(session, map_id)  # MapNotFound (404) rolls the cancel back
 
 
-def _version(session: Session, info: MapInfo, number: int | None) -> VersionInfo:
+def chosen_version(session: Session, info: MapInfo, number: int | None) -> VersionInfo:
     """The asked-for version (404 if there is none with that number), or the current one
     (409 while there is none)."""
     if number is not None:

@@ -18,6 +18,7 @@ from app.api.deps import MapDep, ReadSessionDep
 from app.api.errors import ApiError, error_responses
 from app.api.http import strong_etag
 from app.api.navigation_schemas import PoiPublic, PoisPublic, RoutePublic, RouteRequest
+from app.api.routes.maps import chosen_version
 from app.api.version_cache import VersionCache
 from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
 from app.domain.routing import (
@@ -28,7 +29,6 @@ from app.domain.routing import (
     plan_route,
     search_pois,
 )
-from app.storage import queue
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
 
@@ -39,11 +39,7 @@ def current_path_graph(
     request: Request, session: Session, info: MapInfo
 ) -> tuple[VersionInfo, PathGraph]:
     """The map's current version and its path graph (409 if either does not exist yet)."""
-    version = info.current
-    if version is None:
-        jobs, _ = queue.list_jobs(session, map_id=info.id, limit=1)
-        building = f": its build job {jobs[0].id} is {jobs[0].state}" if jobs else ""
-        raise ApiError(409, "map_not_ready", f"map {info.id} has no version yet{building}")
+    version = chosen_version(session, info, None)
 
     def load() -> PathGraph:
         document = path_graph_document(session, version.id)
