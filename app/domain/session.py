@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Container, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -269,24 +269,36 @@ def _parse_detection(
     frame_index: int,
     frame_size: int,
 ) -> dict[str, Any]:
-    row = parse_detection_fields(detection, where, frame_index=frame_index, frame_size=frame_size)
-    pose_id = row.pop("pose_id")
-    if pose_id not in index_of_pose_id:
-        raise SessionFormatError(f"{where}.pose_id", f"no pose with id {pose_id} in pose_data")
-    row["pose_index"] = index_of_pose_id[pose_id]
+    row = parse_detection_fields(
+        detection,
+        where,
+        frame_index=frame_index,
+        frame_size=frame_size,
+        known_pose_ids=index_of_pose_id,
+    )
+    row["pose_index"] = index_of_pose_id[row.pop("pose_id")]
     return row
 
 
 def parse_detection_fields(
-    detection: Mapping[str, Any], where: str, *, frame_index: int, frame_size: int
+    detection: Mapping[str, Any],
+    where: str,
+    *,
+    frame_index: int,
+    frame_size: int,
+    known_pose_ids: Container[int] | None = None,
 ) -> dict[str, Any]:
     """One detection of the upload's ``tag_data`` (DESIGN §2) as checked values, its ``pose_id``
-    as written (the caller resolves it). Also used for localization updates, whose detections
-    have the same format. Raises :class:`SessionFormatError` naming ``where`` and the field."""
+    as written (checked against ``known_pose_ids`` when given; else the caller resolves it). Also
+    used for localization updates, whose detections have the same format. Fields are checked in
+    order (tag_id, pose_id, tag_pose, …); the first fault raises :class:`SessionFormatError`
+    naming ``where`` and the field."""
     tag_id = _integer(detection, "tag_id", where)
     if tag_id < 0:
         raise SessionFormatError(f"{where}.tag_id", f"must be ≥ 0, got {tag_id}")
     pose_id = _integer(detection, "pose_id", where)
+    if known_pose_ids is not None and pose_id not in known_pose_ids:
+        raise SessionFormatError(f"{where}.pose_id", f"no pose with id {pose_id} in pose_data")
     camera_T_tag = _rigid(
         _matrix16(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose"
     )
