@@ -61,7 +61,7 @@ import numpy.typing as npt
 from gtsam.symbol_shorthand import X
 
 from app.domain.errors import InvisibleMapError, ParameterError, SessionFormatError
-from app.domain.frames import PHONE_T_CAMERA_CV, FloatArray, se3_inverse
+from app.domain.frames import FloatArray, se3_inverse
 from app.domain.json_values import json_type_name
 from app.domain.params import SlamParams
 from app.domain.screening import screen_detections
@@ -75,7 +75,8 @@ from app.domain.session import (
     _require_list,
     _require_object,
     _rigid,
-    parse_detection_fields,
+    detections_from_rows,
+    parse_detection_rows,
 )
 from app.domain.slam import (
     MIN_ODOMETRY_DT_S,
@@ -237,60 +238,14 @@ def _parse_update(document: Any) -> UpdateBatch:
                 f"time goes backwards: {timestamp_s[i]} s after {timestamp_s[i - 1]} s",
             )
 
-    tag_data = document.get("tag_data", [])
-    _require_list(tag_data, "tag_data")
-    rows: list[dict[str, Any]] = []
-    for f, frame in enumerate(tag_data):
-        where_frame = f"tag_data[{f}]"
-        if isinstance(frame, Mapping):  # a bare detection where a frame was expected
-            frame = [frame]
-        _require_list(frame, where_frame)
-        for d, detection in enumerate(frame):
-            where = f"{where_frame}[{d}]"
-            _require_object(detection, where)
-            rows.append(_parse_detection(detection, where, f, len(frame)))
+    rows = parse_detection_rows(document.get("tag_data", []))
     return UpdateBatch(
         pose_id=pose_id,
         timestamp_s=timestamp_s,
         session_T_phone=session_T_phone,
         detection_pose_id=np.array([r["pose_id"] for r in rows], dtype=np.int64),
         detection_field=tuple(r["where"] for r in rows),
-        detections=_detections_from_rows(rows),
-    )
-
-
-def _parse_detection(
-    detection: Mapping[str, Any], where: str, frame_index: int, frame_size: int
-) -> dict[str, Any]:
-    row = parse_detection_fields(detection, where, frame_index=frame_index, frame_size=frame_size)
-    row["where"] = where
-    return row
-
-
-def _detections_from_rows(rows: Sequence[Mapping[str, Any]]) -> TagDetections:
-    m = len(rows)
-    camera_T_tag = (
-        np.stack([r["camera_T_tag"] for r in rows]) if m else np.empty((0, 4, 4), dtype=np.float64)
-    )
-    return TagDetections(
-        tag_id=np.array([r["tag_id"] for r in rows], dtype=np.int64),
-        pose_index=np.array([r["pose_id"] for r in rows], dtype=np.int64),
-        frame_index=np.array([r["frame_index"] for r in rows], dtype=np.int64),
-        frame_size=np.array([r["frame_size"] for r in rows], dtype=np.int64),
-        timestamp_s=np.array([r["timestamp_s"] for r in rows], dtype=np.float64),
-        camera_T_tag=camera_T_tag,
-        phone_T_tag=PHONE_T_CAMERA_CV @ camera_T_tag,
-        intrinsics=np.array([r["intrinsics"] for r in rows], dtype=np.float64).reshape(m, 4),
-        corners_px=np.array([r["corners_px"] for r in rows], dtype=np.float64).reshape(m, 4, 2),
-        position_variance_m2=np.array(
-            [r["position_variance"] for r in rows], dtype=np.float64
-        ).reshape(m, 3),
-        orientation_variance=np.array(
-            [r["orientation_variance"] for r in rows], dtype=np.float64
-        ).reshape(m, 4),
-        joint_covariance=np.array([r["joint_covariance"] for r in rows], dtype=np.float64).reshape(
-            m, 7, 7
-        ),
+        detections=detections_from_rows(rows, [r["pose_id"] for r in rows]),
     )
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Container, Mapping
+from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -233,6 +233,16 @@ def _parse_poses(pose_data: Any) -> tuple[IntArray, FloatArray, FloatArray]:
 
 
 def _parse_tag_data(tag_data: Any, index_of_pose_id: Mapping[int, int]) -> TagDetections:
+    rows = parse_detection_rows(tag_data, known_pose_ids=index_of_pose_id)
+    return detections_from_rows(rows, [index_of_pose_id[r["pose_id"]] for r in rows])
+
+
+def parse_detection_rows(
+    tag_data: Any, *, known_pose_ids: Container[int] | None = None
+) -> list[dict[str, Any]]:
+    """The detections of a ``tag_data`` list (frames of detections; a bare detection where a
+    frame was expected is taken as a frame of one), each as :func:`parse_detection_fields` reads
+    it plus ``where``, its JSON path. Used for uploads and for localization updates."""
     _require_list(tag_data, "tag_data")
     rows: list[dict[str, Any]] = []
     for f, frame in enumerate(tag_data):
@@ -243,12 +253,28 @@ def _parse_tag_data(tag_data: Any, index_of_pose_id: Mapping[int, int]) -> TagDe
         for d, detection in enumerate(frame):
             where = f"{where_frame}[{d}]"
             _require_object(detection, where)
-            rows.append(_parse_detection(detection, where, index_of_pose_id, f, len(frame)))
+            row = parse_detection_fields(
+                detection,
+                where,
+                frame_index=f,
+                frame_size=len(frame),
+                known_pose_ids=known_pose_ids,
+            )
+            row["where"] = where
+            rows.append(row)
+    return rows
+
+
+def detections_from_rows(
+    rows: Sequence[Mapping[str, Any]], pose_index: Sequence[int]
+) -> TagDetections:
+    """:class:`TagDetections` of rows from :func:`parse_detection_rows`; ``pose_index`` is each
+    detection's pose (a row of the session's poses; localization keeps the pose id there)."""
     if not rows:
         return _empty_detections()
     return TagDetections(
         tag_id=np.array([r["tag_id"] for r in rows], dtype=np.int64),
-        pose_index=np.array([r["pose_index"] for r in rows], dtype=np.int64),
+        pose_index=np.array(pose_index, dtype=np.int64),
         frame_index=np.array([r["frame_index"] for r in rows], dtype=np.int64),
         frame_size=np.array([r["frame_size"] for r in rows], dtype=np.int64),
         timestamp_s=np.array([r["timestamp_s"] for r in rows], dtype=np.float64),
@@ -260,24 +286,6 @@ def _parse_tag_data(tag_data: Any, index_of_pose_id: Mapping[int, int]) -> TagDe
         orientation_variance=np.stack([r["orientation_variance"] for r in rows]),
         joint_covariance=np.stack([r["joint_covariance"] for r in rows]),
     )
-
-
-def _parse_detection(
-    detection: Mapping[str, Any],
-    where: str,
-    index_of_pose_id: Mapping[int, int],
-    frame_index: int,
-    frame_size: int,
-) -> dict[str, Any]:
-    row = parse_detection_fields(
-        detection,
-        where,
-        frame_index=frame_index,
-        frame_size=frame_size,
-        known_pose_ids=index_of_pose_id,
-    )
-    row["pose_index"] = index_of_pose_id[row.pop("pose_id")]
-    return row
 
 
 def parse_detection_fields(
