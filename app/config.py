@@ -7,7 +7,9 @@ when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
 [256 MiB: the body after gunzip], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
 [5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
 ``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
-doubling per attempt].
+doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
+``admin-session-secret`` of the data directory (mode 0600), so that every API process sharing
+that directory agrees; it signs the admin dashboard's login cookies].
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 SQLITE_FILE_NAME = "invisible-map.sqlite3"
 MIN_ADMIN_KEY_LENGTH = 16
+MIN_SESSION_SECRET_LENGTH = 32
 
 
 class Settings(BaseSettings):
@@ -42,6 +45,10 @@ class Settings(BaseSettings):
     poll_s: float = Field(default=0.25, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     retry_backoff_s: float = Field(default=2.0, ge=0)
+    session_secret: str | None = Field(
+        default=None,
+        description="signs the admin dashboard's cookies; unset: a random secret in data_dir",
+    )
 
     @field_validator("database_url")
     @classmethod
@@ -60,6 +67,16 @@ class Settings(BaseSettings):
                 f"INVISIBLE_MAP_ADMIN_KEY must be at least {MIN_ADMIN_KEY_LENGTH} characters"
             )
         return key or None
+
+    @field_validator("session_secret")
+    @classmethod
+    def _secret_long_enough(cls, secret: str | None) -> str | None:
+        if secret and len(secret) < MIN_SESSION_SECRET_LENGTH:
+            raise ValueError(
+                f"INVISIBLE_MAP_SESSION_SECRET must be at least {MIN_SESSION_SECRET_LENGTH} "
+                "characters"
+            )
+        return secret or None
 
     @model_validator(mode="after")
     def _heartbeat_within_lease(self) -> Settings:

@@ -26,6 +26,7 @@ from app.domain.frames import FloatArray
 from app.domain.map_result import MapResult
 from app.domain.metrics import umeyama_rigid
 from app.domain.session import Session
+from app.domain.uncertainty import horizontal_position_ellipse
 
 RAW_COLOUR = "#9e9e9e"
 OPTIMIZED_COLOUR = "#1565c0"
@@ -124,19 +125,22 @@ def _masked(xz: FloatArray, mask: np.ndarray) -> FloatArray:
 
 
 def _draw_position_ellipse(axis: Axes, result: MapResult, k: int) -> None:
-    covariance = result.tag_covariance[k]
-    if not np.all(np.isfinite(covariance)):
+    ellipse = horizontal_position_ellipse(
+        result.world_T_tag[k, :3, :3], result.tag_covariance[k], sigmas=2.0
+    )
+    if ellipse is None:
         return
-    world_R_tag = result.world_T_tag[k, :3, :3]
-    position_cov_world = world_R_tag @ covariance[3:, 3:] @ world_R_tag.T
-    cov_xz = position_cov_world[np.ix_([0, 2], [0, 2])]
-    eigenvalues, eigenvectors = np.linalg.eigh(cov_xz)
-    eigenvalues = np.maximum(eigenvalues, 0.0)
-    angle_deg = float(np.degrees(np.arctan2(eigenvectors[1, 1], eigenvectors[0, 1])))
-    width, height = 2 * 2 * np.sqrt(eigenvalues[::-1])  # 2σ
     x, z = result.world_T_tag[k, [0, 2], 3]
     axis.add_patch(
-        Ellipse((x, z), width, height, angle=angle_deg, fill=False, lw=0.8, color=TAG_COLOUR)
+        Ellipse(
+            (x, z),
+            ellipse.width_m,
+            ellipse.height_m,
+            angle=ellipse.angle_deg,
+            fill=False,
+            lw=0.8,
+            color=TAG_COLOUR,
+        )
     )
 
 

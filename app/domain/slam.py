@@ -110,19 +110,20 @@ def optimize_session(
             f"got {initial_world_T_phone.shape}"
         )
     started = time.perf_counter()
-    screening = screen_detections(session.detections, params)
-    problem = _build_problem(session, params, screening.used, initial_world_T_phone)
+    inputs = GraphInputs(session, params, initial_world_T_phone)
+    screening = inputs.screening
+    problem = _build_problem(inputs, params)
     build_ms = (time.perf_counter() - started) * 1e3
 
     started = time.perf_counter()
     values, iterations, initial_error, final_error = _levenberg_marquardt(
-        problem.graph, problem.initial, params, on_iteration
+        problem.graph, inputs.initial, params, on_iteration
     )
     optimize_ms = (time.perf_counter() - started) * 1e3
 
     n = session.num_poses
     world_T_phone = np.stack([values.atPose3(X(i)).matrix() for i in range(n)])
-    tag_ids = np.array(sorted(problem.tag_rows), dtype=np.int64)
+    tag_ids = np.array(sorted(inputs.tag_rows), dtype=np.int64)
     world_T_tag = (
         np.stack([values.atPose3(L(int(t))).matrix() for t in tag_ids])
         if tag_ids.size
@@ -135,7 +136,7 @@ def optimize_session(
 
     pre = first_observation_tag_poses(session)
     warnings = list(session.warnings) + list(screening.warnings)
-    dropped = sorted(set(pre) - set(problem.tag_rows))
+    dropped = sorted(set(pre) - set(inputs.tag_rows))
     if dropped:
         warnings.append(f"tags {dropped} are not in the map: every detection of them was rejected")
     return MapResult(
@@ -151,11 +152,11 @@ def optimize_session(
         ),
         tag_covariance=tag_covariance,
         tag_detection_count=np.array(
-            [len(problem.tag_rows[int(t)]) for t in tag_ids], dtype=np.int64
+            [len(inputs.tag_rows[int(t)]) for t in tag_ids], dtype=np.int64
         ),
         detections_used=int(screening.used.sum()),
         rejections=screening.rejections,
-        residuals=_residuals(problem, values),
+        residuals=_residuals(inputs, problem, values),
         stats=OptimizationStats(
             iterations=iterations,
             initial_error=initial_error,
@@ -164,7 +165,7 @@ def optimize_session(
             optimize_ms=optimize_ms,
             marginals_ms=marginals_ms,
             num_factors=int(problem.graph.size()),
-            num_variables=int(problem.initial.size()),
+            num_variables=int(inputs.initial.size()),
         ),
         poi_names=tuple(poi.name for poi in session.pois),
         world_T_poi=(
@@ -182,103 +183,139 @@ def linearize_and_solve_ms(session: Session, params: SlamParams | None = None) -
     The floor for LM: it cannot take less than one Gauss–Newton step on the same graph.
     """
     params = params or SlamParams()
-    screening = screen_detections(session.detections, params)
-    problem = _build_problem(session, params, screening.used)
+    inputs = GraphInputs(session, params)
+    problem = _build_problem(inputs, params)
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(problem.graph)
     started = time.perf_counter()
-    linear = problem.graph.linearize(problem.initial)
+    linear = problem.graph.linearize(inputs.initial)
     delta = linear.optimize(ordering)  # multifrontal: the cheaper of the two here
-    problem.initial.retract(delta)
+    inputs.initial.retract(delta)
     return (time.perf_counter() - started) * 1e3
 
 
 # --------------------------------------------------------------------------- building
 
 
+class GraphInputs:
+    """What the factor graph is built from that no noise parameter changes: the screened
+    detections, the odometry steps, the measured up vectors, the tag measurements and the initial
+    values. A sweep prepares them once (:func:`prepare_graph_inputs`) and builds a graph per trial.
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        params: SlamParams,
+        initial_world_T_phone: FloatArray | None = None,
+    ) -> None:
+        self.session = session
+        self.screening = screen_detections(session.detections, params)
+        world_T_phone = session.world_T_phone
+        start_T_phone = world_T_phone if initial_world_T_phone is None else initial_world_T_phone
+        n = session.num_poses
+        self.gauge_pose = to_pose3(world_T_phone[0])
+        self.odometry_dt_s = np.round(
+            np.maximum(np.diff(session.timestamp_s), MIN_ODOMETRY_DT_S), 4
+        )
+        self.phone_T_next = [
+            to_pose3(relative_se3(world_T_phone[i], world_T_phone[i + 1])) for i in range(n - 1)
+        ]
+        phone_up = np.einsum("nji,j->ni", world_T_phone[:, :3, :3], WORLD_UP)
+        self.phone_up = [gtsam.Unit3(phone_up[i]) for i in range(n)]
+        detections = session.detections
+        self.tag_detection_rows = [int(row) for row in np.flatnonzero(self.screening.used)]
+        self.tag_ids = [int(detections.tag_id[row]) for row in self.tag_detection_rows]
+        self.tag_pose_indices = [int(detections.pose_index[row]) for row in self.tag_detection_rows]
+        self.phone_T_tag = [
+            to_pose3(detections.phone_T_tag[row]) for row in self.tag_detection_rows
+        ]
+        self.camera_T_tag = detections.camera_T_tag[self.tag_detection_rows]
+        self.initial = gtsam.Values()
+        for i in range(n):
+            self.initial.insert(X(i), to_pose3(start_T_phone[i]))
+        self.tag_rows: dict[int, list[int]] = {}
+        for row, tag_id, pose_index in zip(
+            self.tag_detection_rows, self.tag_ids, self.tag_pose_indices, strict=True
+        ):
+            if tag_id not in self.tag_rows:
+                self.tag_rows[tag_id] = []
+                first_T_tag = start_T_phone[pose_index] @ detections.phone_T_tag[row]
+                self.initial.insert(L(tag_id), to_pose3(first_T_tag))
+            self.tag_rows[tag_id].append(row)
+
+
+def prepare_graph_inputs(session: Session, params: SlamParams | None = None) -> GraphInputs:
+    """Screen ``session`` with ``params``' rejection thresholds and precompute the graph's
+    measurements, for :func:`optimize_tag_poses` with many noise parameters."""
+    return GraphInputs(session, params or SlamParams())
+
+
+def optimize_tag_poses(inputs: GraphInputs, params: SlamParams) -> dict[int, FloatArray]:
+    """The optimized ``world_T_tag`` of every tag in the graph, and nothing else (no residuals,
+    no marginals): what a sweep trial needs. ``params``' noise fields are used; its rejection
+    thresholds were applied when ``inputs`` were prepared."""
+    problem = _build_problem(inputs, params)
+    values, _, _, _ = _levenberg_marquardt(problem.graph, inputs.initial, params, None)
+    return {tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(inputs.tag_rows)}
+
+
 class _Problem:
-    """The factor graph, its initial values, and its factors by kind (for the residuals)."""
+    """The factor graph and its factors by kind (for the residuals)."""
 
     def __init__(self) -> None:
         self.graph = gtsam.NonlinearFactorGraph()
-        self.initial = gtsam.Values()
         self.odometry_factors: list[gtsam.BetweenFactorPose3] = []
         self.gravity_factors: list[gtsam.AttitudeFactorPose3] = []
         self.tag_factors: list[gtsam.BetweenFactorPose3] = []
-        self.tag_detection_rows: list[int] = []
-        self.tag_pose_indices: list[int] = []
         self.tag_covariances: list[FloatArray] = []
-        self.tag_rows: dict[int, list[int]] = {}
 
     def add(self, factor: gtsam.NonlinearFactor, of_kind: list[Any]) -> None:
         of_kind.append(factor)
         self.graph.add(factor)
 
 
-def _build_problem(
-    session: Session,
-    params: SlamParams,
-    used: np.ndarray,
-    initial_world_T_phone: FloatArray | None = None,
-) -> _Problem:
+def _build_problem(inputs: GraphInputs, params: SlamParams) -> _Problem:
     problem = _Problem()
-    n = session.num_poses
-    world_T_phone = session.world_T_phone
-    start_T_phone = world_T_phone if initial_world_T_phone is None else initial_world_T_phone
 
     # 2a. gauge prior
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
         pose_sigmas(rot_rad=GAUGE_PRIOR_SIGMA_RAD, trans_m=GAUGE_PRIOR_SIGMA_M)
     )
-    problem.graph.add(gtsam.PriorFactorPose3(X(0), to_pose3(world_T_phone[0]), prior_noise))
+    problem.graph.add(gtsam.PriorFactorPose3(X(0), inputs.gauge_pose, prior_noise))
 
     # 2b. odometry, noise growing with the time between poses
-    dt_s = np.maximum(np.diff(session.timestamp_s), MIN_ODOMETRY_DT_S)
     noise_by_dt: dict[float, gtsam.noiseModel.Base] = {}
-    for i in range(n - 1):
-        key_dt = round(float(dt_s[i]), 4)
+    for i, phone_T_next in enumerate(inputs.phone_T_next):
+        key_dt = float(inputs.odometry_dt_s[i])
         noise = noise_by_dt.get(key_dt)
         if noise is None:
             noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(key_dt, params))
             noise_by_dt[key_dt] = noise
-        phone_T_next = relative_se3(world_T_phone[i], world_T_phone[i + 1])
         problem.add(
-            gtsam.BetweenFactorPose3(X(i), X(i + 1), to_pose3(phone_T_next), noise),
-            problem.odometry_factors,
+            gtsam.BetweenFactorPose3(X(i), X(i + 1), phone_T_next, noise), problem.odometry_factors
         )
 
     # 2c. gravity: the measured up direction in the phone frame, held to the map's up
     gravity_noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(params.gravity_var_rad2))
     world_up = gtsam.Unit3(WORLD_UP)
-    phone_up = np.einsum("nji,j->ni", world_T_phone[:, :3, :3], WORLD_UP)
-    for i in range(n):
+    for i, phone_up in enumerate(inputs.phone_up):
         problem.add(
-            gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, gtsam.Unit3(phone_up[i])),
+            gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, phone_up),
             problem.gravity_factors,
         )
 
-    for i in range(n):
-        problem.initial.insert(X(i), to_pose3(start_T_phone[i]))
-
     # 2d. tags
-    detections = session.detections
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
-    for row in np.flatnonzero(used):
-        tag_id = int(detections.tag_id[row])
-        pose_index = int(detections.pose_index[row])
-        covariance = tag_covariance_in_tag_frame(detections.camera_T_tag[row], params)
+    for k, tag_id in enumerate(inputs.tag_ids):
+        covariance = tag_covariance_in_tag_frame(inputs.camera_T_tag[k], params)
         noise = gtsam.noiseModel.Gaussian.Covariance(covariance)
         if huber is not None:
             noise = gtsam.noiseModel.Robust.Create(huber, noise)
-        phone_T_tag = detections.phone_T_tag[row]
-        factor = gtsam.BetweenFactorPose3(X(pose_index), L(tag_id), to_pose3(phone_T_tag), noise)
+        factor = gtsam.BetweenFactorPose3(
+            X(inputs.tag_pose_indices[k]), L(tag_id), inputs.phone_T_tag[k], noise
+        )
         problem.add(factor, problem.tag_factors)
-        problem.tag_detection_rows.append(int(row))
-        problem.tag_pose_indices.append(pose_index)
         problem.tag_covariances.append(covariance)
-        if tag_id not in problem.tag_rows:
-            problem.tag_rows[tag_id] = []
-            problem.initial.insert(L(tag_id), to_pose3(start_T_phone[pose_index] @ phone_T_tag))
-        problem.tag_rows[tag_id].append(int(row))
     return problem
 
 
@@ -330,7 +367,7 @@ def _tag_marginals(
     return covariance
 
 
-def _residuals(problem: _Problem, values: gtsam.Values) -> FactorResiduals:
+def _residuals(inputs: GraphInputs, problem: _Problem, values: gtsam.Values) -> FactorResiduals:
     odometry_chi2 = np.array([2.0 * factor.error(values) for factor in problem.odometry_factors])
     gravity_chi2 = np.array([2.0 * factor.error(values) for factor in problem.gravity_factors])
     tag_errors = (
@@ -348,17 +385,20 @@ def _residuals(problem: _Problem, values: gtsam.Values) -> FactorResiduals:
         odometry_chi2=odometry_chi2.reshape(-1),
         gravity_chi2=gravity_chi2.reshape(-1),
         tag_chi2=tag_chi2.reshape(-1),
-        tag_detection_index=np.array(problem.tag_detection_rows, dtype=np.int64),
-        tag_pose_index=np.array(problem.tag_pose_indices, dtype=np.int64),
+        tag_detection_index=np.array(inputs.tag_detection_rows, dtype=np.int64),
+        tag_pose_index=np.array(inputs.tag_pose_indices, dtype=np.int64),
         tag_translation_m=np.linalg.norm(tag_errors[:, 3:], axis=1),
         tag_rotation_rad=np.linalg.norm(tag_errors[:, :3], axis=1),
     )
 
 
 __all__ = [
+    "GraphInputs",
     "linearize_and_solve_ms",
     "odometry_sigmas",
     "optimize_session",
+    "optimize_tag_poses",
     "pose_sigmas",
+    "prepare_graph_inputs",
     "tag_covariance_in_tag_frame",
 ]

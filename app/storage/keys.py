@@ -102,6 +102,19 @@ def authenticate(
     row = session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
     if row is None or not hmac.compare_digest(row.secret_sha256, _digest(key)):
         return None
+    return _principal_if_active(row, now)
+
+
+def active_principal(
+    session: Session, key_id: int, *, now: datetime | None = None
+) -> Principal | None:
+    """The principal of key ``key_id`` if it still works (exists, not revoked, not expired), else
+    None: how a login made with the key earlier (the admin dashboard's) is checked again."""
+    row = session.get(ApiKey, key_id)
+    return None if row is None else _principal_if_active(row, now or utc_now())
+
+
+def _principal_if_active(row: ApiKey, now: datetime) -> Principal | None:
     if row.revoked_at is not None or (row.expires_at is not None and row.expires_at <= now):
         return None
     return Principal(subject=f"key:{row.id}", role=Role(row.role), key_id=row.id)

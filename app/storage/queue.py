@@ -174,15 +174,22 @@ def list_jobs(
     *,
     state: JobState | None = None,
     map_id: int | None = None,
+    session_id: int | None = None,
+    finished_after: datetime | None = None,
     limit: int = 50,
     offset: int = 0,
 ) -> tuple[list[JobInfo], int]:
-    """Jobs, newest first, and how many match in all."""
+    """Jobs, newest first, and how many match in all: only those in ``state``, of ``map_id``,
+    of ``session_id``, or finished after ``finished_after`` when given."""
     conditions: list[ColumnElement[bool]] = []
     if state is not None:
         conditions.append(Job.state == state.value)
     if map_id is not None:
         conditions.append(Job.map_id == map_id)
+    if session_id is not None:
+        conditions.append(Job.session_id == session_id)
+    if finished_after is not None:
+        conditions.append(Job.finished_at > finished_after)
     where = and_(*conditions) if conditions else and_(True)
     total = session.scalar(select(func.count()).select_from(Job).where(where)) or 0
     rows = session.scalars(

@@ -285,12 +285,22 @@ def get_session(session: Session, session_id: int) -> SessionInfo:
 
 
 def list_sessions(
-    session: Session, *, limit: int = 50, offset: int = 0, uploaded_by: str | None = None
+    session: Session,
+    *,
+    limit: int = 50,
+    offset: int = 0,
+    uploaded_by: str | None = None,
+    name_contains: str | None = None,
 ) -> tuple[list[SessionInfo], int]:
-    """Sessions, newest first, and how many match in all; only ``uploaded_by``'s when given."""
-    where: ColumnElement[bool] = (
-        SessionRow.uploaded_by == uploaded_by if uploaded_by is not None else and_(True)
-    )
+    """Sessions, newest first, and how many match in all; only ``uploaded_by``'s when given, and
+    only those whose map name contains ``name_contains`` (case-insensitive) when given."""
+    conditions: list[ColumnElement[bool]] = []
+    if uploaded_by is not None:
+        conditions.append(SessionRow.uploaded_by == uploaded_by)
+    if name_contains:
+        pattern = "%" + _escape_like(name_contains) + "%"
+        conditions.append(SessionRow.map_name.ilike(pattern, escape="\\"))
+    where = and_(*conditions) if conditions else and_(True)
     total = session.scalar(select(func.count()).select_from(SessionRow).where(where)) or 0
     rows = list(
         session.scalars(
@@ -302,6 +312,11 @@ def list_sessions(
         )
     )
     return _infos(session, rows), total
+
+
+def _escape_like(text: str) -> str:
+    """``text`` matched literally by LIKE (its ``%``, ``_`` and ``\\`` escaped with ``\\``)."""
+    return text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
 
 
 def uploader_of(session: Session, session_id: int) -> str | None:

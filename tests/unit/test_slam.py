@@ -229,14 +229,11 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
     from gtsam.symbol_shorthand import L, X
 
     from app.domain import slam
-    from app.domain.screening import screen_detections
 
     session = load_session(DATA / "sessions" / "occam_room.json")
     params = SlamParams()
     result = optimize_session(session, params)
-    problem = slam._build_problem(
-        session, params, screen_detections(session.detections, params).used
-    )
+    problem = slam._build_problem(slam.prepare_graph_inputs(session, params), params)
     values = gtsam.Values()
     for i in range(session.num_poses):
         values.insert(X(i), gtsam.Pose3(result.world_T_phone[i]))

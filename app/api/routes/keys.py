@@ -6,6 +6,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 
 from fastapi import APIRouter, Response
+from sqlalchemy.orm import Session
 
 from app.api.deps import AdminPrincipal, ReadSessionDep, WriteSessionDep, valid_id
 from app.api.errors import ApiError, error_responses
@@ -26,11 +27,17 @@ router = APIRouter(prefix="/keys", tags=["keys"])
 def create_key(
     new: KeyCreate, _admin: AdminPrincipal, session: WriteSessionDep, response: Response
 ) -> KeyCreated:
-    if new.expires_at is not None and new.expires_at <= datetime.now(UTC):
-        raise ApiError(422, "validation_error", "expires_at is in the past", field="expires_at")
-    info, secret = keys.create_key(session, name=new.name, role=new.role, expires_at=new.expires_at)
+    info, secret = create_checked_key(session, new)
     response.headers["Location"] = f"/v1/keys/{info.id}"
     return KeyCreated(**KeyPublic.from_domain(info).model_dump(), key=secret)
+
+
+def create_checked_key(session: Session, new: KeyCreate) -> tuple[keys.KeyInfo, str]:
+    """Store the key ``new`` describes (422 if it would already have expired); returns it and its
+    secret."""
+    if new.expires_at is not None and new.expires_at <= datetime.now(UTC):
+        raise ApiError(422, "validation_error", "expires_at is in the past", field="expires_at")
+    return keys.create_key(session, name=new.name, role=new.role, expires_at=new.expires_at)
 
 
 @router.get(

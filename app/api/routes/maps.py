@@ -173,15 +173,9 @@ def rebuild_map(
     response: Response,
     body: Annotated[RebuildRequest | None, Body()] = None,
 ) -> RebuildAccepted:
-    overrides = _checked_overrides(body.params if body else {})
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    job_id = queue.enqueue(
-        session,
-        kind=BUILD_MAP,
-        map_id=info.id,
-        session_id=info.session_id,
-        params=overrides,
-        max_attempts=settings.max_attempts,
+    overrides = checked_overrides(body.params if body else {})
+    info, job_id = enqueue_rebuild(
+        session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
     )
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     return RebuildAccepted(
@@ -193,7 +187,24 @@ def rebuild_map(
     )
 
 
-def _checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
+def enqueue_rebuild(
+    session: Session, map_id: int, overrides: dict[str, Any], *, max_attempts: int
+) -> tuple[MapInfo, int]:
+    """Queue a build of map ``map_id``'s session with ``overrides`` (already checked, see
+    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound."""
+    info = maps.get_map(session, map_id)
+    job_id = queue.enqueue(
+        session,
+        kind=BUILD_MAP,
+        map_id=info.id,
+        session_id=info.session_id,
+        params=overrides,
+        max_attempts=max_attempts,
+    )
+    return info, job_id
+
+
+def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), or a 422
     naming the first bad parameter."""
     defaults = SlamParams()
@@ -232,13 +243,18 @@ def get_app_map(
     etag = strong_etag("app-map", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
-    graph_document = path_graph_document(session, chosen.id)
+    content = app_map_content(session, chosen)
+    return Response(content=content, media_type="application/json", headers={"ETag": etag})
+
+
+def app_map_content(session: Session, version: VersionInfo) -> bytes:
+    """The app's map file (DESIGN §7) of ``version``, as compact JSON bytes."""
+    graph_document = path_graph_document(session, version.id)
     app_map = map_to_app_format(
-        map_from_json(maps.map_document(session, info.id, chosen.number)),
+        map_from_json(maps.map_document(session, version.map_id, version.number)),
         path_graph=None if graph_document is None else path_graph_from_json(graph_document),
     )
-    content = json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
-    return Response(content=content, media_type="application/json", headers={"ETag": etag})
+    return json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
 
 
 @router.get(
@@ -283,9 +299,14 @@ def get_plot(
     responses=error_responses(401, 403, 404, 422),
 )
 def delete_map(map_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> None:
-    map_id = valid_id(map_id, "map")
+    delete_map_and_jobs(session, valid_id(map_id, "map"))
+
+
+def delete_map_and_jobs(session: Session, map_id: int) -> None:
+    """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel)."""
     queue.cancel_unfinished_for_map(session, map_id)
-    maps.delete_map(session, map_id)  # MapNotFound (404) rolls the cancel back
+    maps.delete_map(session, map_id)
 
 
 def chosen_version(session: Session, info: MapInfo, number: int | None) -> VersionInfo:

@@ -23,6 +23,8 @@ from app.api.version_cache import VersionCache
 from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
 from app.domain.routing import (
     AmbiguousEndpoint,
+    Endpoint,
+    Route,
     RouteError,
     UnknownEndpoint,
     Unreachable,
@@ -40,6 +42,11 @@ def current_path_graph(
 ) -> tuple[VersionInfo, PathGraph]:
     """The map's current version and its path graph (409 if either does not exist yet)."""
     version = chosen_version(session, info, None)
+    return version, version_path_graph(request, session, version)
+
+
+def version_path_graph(request: Request, session: Session, version: VersionInfo) -> PathGraph:
+    """The path graph of ``version`` (cached per process; 409 if the version has none)."""
 
     def load() -> PathGraph:
         document = path_graph_document(session, version.id)
@@ -47,13 +54,35 @@ def current_path_graph(
             raise ApiError(
                 409,
                 "no_path_graph",
-                f"version {version.number} of map {info.id} has no path graph (it was built "
-                "before path graphs existed): rebuild the map",
+                f"version {version.number} of map {version.map_id} has no path graph (it was "
+                "built before path graphs existed): rebuild the map",
             )
         return path_graph_from_json(document)
 
     cache: VersionCache = request.app.state.version_cache
-    return version, cache.get(("path_graph", version.id), load)
+    return cache.get(("path_graph", version.id), load)
+
+
+def planned_route(
+    graph: PathGraph, start: Endpoint, goal: Endpoint, *, avoid: frozenset[str]
+) -> Route:
+    """:func:`plan_route`, its refusals as API errors: an unknown end 404, an unreachable goal
+    409, an ambiguous name or another bad request 422."""
+    try:
+        return plan_route(graph, start, goal, avoid=avoid)
+    except UnknownEndpoint as err:
+        raise ApiError(404, "not_found", str(err), field=None) from err
+    except Unreachable as err:
+        raise ApiError(409, "unreachable", str(err)) from err
+    except AmbiguousEndpoint as err:
+        raise ApiError(422, "ambiguous_endpoint", str(err)) from err
+    except RouteError as err:
+        raise ApiError(422, "invalid_route", str(err)) from err
+
+
+def geojson_content(graph: PathGraph) -> str:
+    """The path graph as a GeoJSON FeatureCollection, compact JSON."""
+    return json.dumps(path_graph_to_geojson(graph), separators=(",", ":"), allow_nan=False)
 
 
 NOT_READY = (
@@ -115,18 +144,9 @@ def plan(
     request: Request,
 ) -> RoutePublic:
     version, graph = current_path_graph(request, session, info)
-    try:
-        route = plan_route(
-            graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
-        )
-    except UnknownEndpoint as err:
-        raise ApiError(404, "not_found", str(err), field=None) from err
-    except Unreachable as err:
-        raise ApiError(409, "unreachable", str(err)) from err
-    except AmbiguousEndpoint as err:
-        raise ApiError(422, "ambiguous_endpoint", str(err)) from err
-    except RouteError as err:
-        raise ApiError(422, "invalid_route", str(err)) from err
+    route = planned_route(
+        graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
+    )
     return RoutePublic.from_domain(route, map_id=info.id, map_version=version.number)
 
 
@@ -161,9 +181,8 @@ def plan(
 )
 def geojson(info: MapDep, session: ReadSessionDep, request: Request) -> Response:
     version, graph = current_path_graph(request, session, info)
-    content = json.dumps(path_graph_to_geojson(graph), separators=(",", ":"), allow_nan=False)
     return Response(
-        content=content,
+        content=geojson_content(graph),
         media_type="application/geo+json",
         headers={"ETag": strong_etag("geojson", info.id, version.number, version.content_sha256)},
     )

@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Response
+from sqlalchemy.orm import Session
 
 from app.api.deps import (
     CurrentPrincipal,
@@ -258,13 +259,19 @@ def get_raw_session(
     session: ReadSessionDep,
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
+    return raw_upload_response(session, info.id, accept_encoding)
+
+
+def raw_upload_response(session: Session, session_id: int, accept_encoding: str | None) -> Response:
+    """The raw upload of ``session_id`` as a JSON attachment, gzip-encoded if the client accepts
+    it. Raises SessionNotFound."""
     headers = {
-        "Content-Disposition": f'attachment; filename="session-{info.id}.json"',
+        "Content-Disposition": f'attachment; filename="session-{session_id}.json"',
         "Vary": "Accept-Encoding",
     }
     if accepts_gzip(accept_encoding):
         headers["Content-Encoding"] = "gzip"
-        content = sessions.raw_upload_gzip(session, info.id)
+        content = sessions.raw_upload_gzip(session, session_id)
     else:
-        content = sessions.raw_upload(session, info.id)
+        content = sessions.raw_upload(session, session_id)
     return Response(content=content, media_type="application/json", headers=headers)
