@@ -150,6 +150,72 @@ def tag_rmse_m(map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, Float
 # --------------------------------------------------------------------------- shift metric
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ShiftPairs:
+    """The consecutive single-tag sightings of different tags that the shift metric compares,
+    taken once from a session so that many maps of it can be scored (a sweep).
+
+    tag_a, tag_b: (P,) the tag seen first and the one seen next.
+    rel_obs: (P, 4, 4) ``world_T_B,obs · world_T_A,obs⁻¹``; reach_m: (P,) ``‖rel_obs.t‖`` > 0.
+    """
+
+    tag_a: npt.NDArray[np.int64]
+    tag_b: npt.NDArray[np.int64]
+    rel_obs: FloatArray
+    reach_m: FloatArray
+
+
+def shift_pairs(session: Session, *, detection_mask: BoolArray | None = None) -> ShiftPairs:
+    """The pairs :func:`shift_metric` averages over, before any map is known (see there)."""
+    detections = session.detections
+    count = len(detections)
+    selected = detections.frame_size == 1
+    if detection_mask is not None:
+        mask = np.asarray(detection_mask)
+        if mask.shape != (count,) or mask.dtype != np.bool_:
+            raise ValueError(
+                f"detection_mask must be a bool array of shape ({count},), "
+                f"got {mask.dtype} {mask.shape}"
+            )
+        selected = selected & mask
+    rows = np.flatnonzero(selected)
+    world_T_tag_obs = (
+        session.world_T_phone[detections.pose_index[rows]] @ detections.phone_T_tag[rows]
+    )
+    tag_ids = detections.tag_id[rows].astype(np.int64)
+    different = tag_ids[:-1] != tag_ids[1:]
+    first, second = np.flatnonzero(different), np.flatnonzero(different) + 1
+    rel_obs = world_T_tag_obs[second] @ se3_inverse(world_T_tag_obs[first])
+    reach_m = np.linalg.norm(rel_obs[:, :3, 3], axis=1)
+    keep = reach_m > 0.0
+    return ShiftPairs(
+        tag_a=tag_ids[first][keep],
+        tag_b=tag_ids[second][keep],
+        rel_obs=rel_obs[keep],
+        reach_m=reach_m[keep],
+    )
+
+
+def mean_shift_ratio(pairs: ShiftPairs, map_T_tag: Mapping[int, FloatArray]) -> float:
+    """The shift metric of ``map_T_tag`` over ``pairs``; pairs with a tag not in the map are
+    skipped (not bridged); NaN when no pair is left."""
+    in_map = np.array(
+        [
+            int(a) in map_T_tag and int(b) in map_T_tag
+            for a, b in zip(pairs.tag_a, pairs.tag_b, strict=True)
+        ],
+        dtype=bool,
+    )
+    if not in_map.any():
+        return math.nan
+    map_T_a = _stack(map_T_tag, tuple(int(t) for t in pairs.tag_a[in_map]))
+    map_T_b = _stack(map_T_tag, tuple(int(t) for t in pairs.tag_b[in_map]))
+    rel_map = map_T_b @ se3_inverse(map_T_a)
+    shift = pairs.rel_obs[in_map] @ se3_inverse(rel_map)
+    ratios = np.linalg.norm(shift[:, :3, 3], axis=1) / pairs.reach_m[in_map]
+    return float(np.mean(ratios))
+
+
 def shift_metric(
     session: Session,
     map_T_tag: Mapping[int, FloatArray],
@@ -174,36 +240,7 @@ def shift_metric(
     Note that, as defined, ``rel_obs.t = t_B - R_B·R_Aᵀ·t_A`` depends on where the session's world
     origin is; the metric assumes map and session share the session's world frame.
     """
-    detections = session.detections
-    count = len(detections)
-    selected = detections.frame_size == 1
-    if detection_mask is not None:
-        mask = np.asarray(detection_mask)
-        if mask.shape != (count,) or mask.dtype != np.bool_:
-            raise ValueError(
-                f"detection_mask must be a bool array of shape ({count},), "
-                f"got {mask.dtype} {mask.shape}"
-            )
-        selected = selected & mask
-    rows = np.flatnonzero(selected)
-    ratios: list[float] = []
-    if rows.size >= 2:
-        world_T_tag_obs = (
-            session.world_T_phone[detections.pose_index[rows]] @ detections.phone_T_tag[rows]
-        )
-        tag_ids = [int(t) for t in detections.tag_id[rows]]
-        for k in range(len(rows) - 1):
-            tag_a, tag_b = tag_ids[k], tag_ids[k + 1]
-            if tag_a == tag_b or tag_a not in map_T_tag or tag_b not in map_T_tag:
-                continue
-            rel_obs = world_T_tag_obs[k + 1] @ se3_inverse(world_T_tag_obs[k])
-            rel_map = np.asarray(map_T_tag[tag_b]) @ se3_inverse(np.asarray(map_T_tag[tag_a]))
-            shift = rel_obs @ se3_inverse(rel_map)
-            reach_m = float(np.linalg.norm(rel_obs[:3, 3]))
-            if reach_m <= 0.0:
-                continue
-            ratios.append(float(np.linalg.norm(shift[:3, 3])) / reach_m)
-    return float(np.mean(ratios)) if ratios else math.nan
+    return mean_shift_ratio(shift_pairs(session, detection_mask=detection_mask), map_T_tag)
 
 
 def _stack(poses: Mapping[int, FloatArray], tag_ids: tuple[int, ...]) -> FloatArray:
