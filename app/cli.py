@@ -4,6 +4,10 @@
                           [--app-map FILE] [--plot FILE.png]
     invisible-map evaluate SESSION… --gt GT [--gt GT …] [--param NAME=VALUE …] [--json]
     invisible-map demo [--out DIR]
+    invisible-map sweep SESSION [--gt GT] [--grid | --trials N] [--objective shift|ground_truth]
+                        [--space JSON] [--processes N] [--plot-dir DIR] [--json]
+    invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
+                        [--two-floors] [--noise NAME=VALUE …] [--seed N]
     invisible-map serve | worker | migrate | keys …   (the server: see app/server_cli.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
@@ -21,7 +25,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from app.domain.errors import InvisibleMapError, ParameterError
+from app.cli_params import add_param_option as _add_param_option
+from app.cli_params import slam_params as _params
+from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.frames import FloatArray
 from app.domain.ground_truth import load_ground_truth
@@ -32,6 +38,7 @@ from app.domain.session import Session, load_session
 from app.domain.slam import optimize_session
 from app.server_cli import ServerCommandError, add_server_commands
 from app.tables import render_markdown_table
+from app.tuning_cli import add_sweep_commands
 
 PROGRAM = "invisible-map"
 #: The demo sessions and their ground truth, shipped in the repository (see data/README.md).
@@ -111,28 +118,9 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", type=Path, default=Path("out"), help="output folder (./out)")
     _add_param_option(demo)
     demo.set_defaults(handler=_demo)
+    add_sweep_commands(commands)
     add_server_commands(commands)
     return parser
-
-
-def _add_param_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="override a SLAM parameter (see SlamParams), e.g. tag_position_var_m2=1e-4",
-    )
-
-
-def _params(pairs: Sequence[str]) -> SlamParams:
-    overrides = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        if not sep or not name.strip():
-            raise ParameterError(f"--param expects NAME=VALUE, got {pair!r}")
-        overrides[name.strip()] = value.strip()
-    return SlamParams().with_overrides(overrides)
 
 
 # --------------------------------------------------------------------------- process

@@ -379,6 +379,62 @@ def simulate_session(config: SimulationConfig) -> SimulatedSession:
     )
 
 
+def simulate_along_trajectory(
+    config: SimulationConfig,
+    world_T_phone_true: FloatArray,
+    world_T_tag_true: dict[int, FloatArray],
+    detection_pose_index: IntArray,
+    detection_tag_id: IntArray,
+) -> SimulatedSession:
+    """A session along a given true trajectory, seeing given tags at given poses (the paper's
+    simulation: the truth is a real session's *optimized* map, the detections its used ones).
+
+    Odometry drift and tag-measurement noise come from ``config`` (and its seed) as in
+    :func:`simulate_session`; ``config.num_poses`` and ``rate_hz`` must match the trajectory
+    (``detection_pose_index`` in upload order, i.e. non-decreasing). No points of interest.
+    """
+    n = world_T_phone_true.shape[0]
+    if config.num_poses != n:
+        raise ParameterError(f"config.num_poses is {config.num_poses}, the trajectory has {n}")
+    order = np.asarray(detection_pose_index, dtype=np.int64)
+    if order.size and (np.any(np.diff(order) < 0) or order[0] < 0 or order[-1] >= n):
+        raise ParameterError("detection_pose_index must be non-decreasing pose rows")
+    streams = np.random.SeedSequence(config.seed).spawn(6)
+    _, _, rng_odometry, rng_tags, rng_outliers, _ = (np.random.default_rng(s) for s in streams)
+    world_T_phone_odometry = _drift_odometry(config, world_T_phone_true, rng_odometry)
+    tag_ids = np.asarray(detection_tag_id, dtype=np.int64)
+    world_T_tags = (
+        np.stack([world_T_tag_true[int(t)] for t in tag_ids])
+        if tag_ids.size
+        else (np.empty((0, 4, 4)))
+    )
+    camera_T_tag_true = PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone_true[order]) @ world_T_tags
+    detections = _measure(config, camera_T_tag_true, rng_tags, rng_outliers)
+    upload = _upload(config, world_T_phone_odometry, order, tag_ids, detections, [])
+    return SimulatedSession(
+        config=config,
+        upload=upload,
+        world_T_phone_true=world_T_phone_true,
+        world_T_phone_odometry=world_T_phone_odometry,
+        world_T_tag_true=dict(world_T_tag_true),
+        world_T_poi_true={},
+        detection_tag_id=tag_ids,
+        detection_pose_index=order,
+        camera_T_tag_true=camera_T_tag_true,
+        detection_is_outlier=detections.is_outlier,
+        building=Building(
+            node_xyz_m=np.empty((0, 3)),
+            edge_nodes=np.empty((0, 2), dtype=np.int64),
+            edge_polylines_m=(),
+            free_space_boxes_m=np.empty((0, 2, 3)),
+            world_T_tag=dict(world_T_tag_true),
+            corridor_tag_ids=(),
+            tag_offset_along_m={},
+            floor_heights_m=(),
+        ),
+    )
+
+
 # --------------------------------------------------------------------------- building
 
 

@@ -250,13 +250,18 @@ def prepare_graph_inputs(session: Session, params: SlamParams | None = None) -> 
     return GraphInputs(session, params or SlamParams())
 
 
-def optimize_tag_poses(inputs: GraphInputs, params: SlamParams) -> dict[int, FloatArray]:
-    """The optimized ``world_T_tag`` of every tag in the graph, and nothing else (no residuals,
-    no marginals): what a sweep trial needs. ``params``' noise fields are used; its rejection
-    thresholds were applied when ``inputs`` were prepared."""
+def optimize_tag_poses(
+    inputs: GraphInputs, params: SlamParams, *, initial: gtsam.Values | None = None
+) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
+    """The optimized ``world_T_tag`` of every tag in the graph, the number of LM iterations and
+    the solution (no residuals, no marginals): what a sweep trial needs. ``params``' noise fields
+    are used; its rejection thresholds were applied when ``inputs`` were prepared. ``initial``
+    (default: raw odometry and first observations) is where LM starts."""
     problem = _build_problem(inputs, params)
-    values, _, _, _ = _levenberg_marquardt(problem.graph, inputs.initial, params, None)
-    return {tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(inputs.tag_rows)}
+    start = inputs.initial if initial is None else initial
+    values, iterations, _, _ = _levenberg_marquardt(problem.graph, start, params, None)
+    poses = {tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(inputs.tag_rows)}
+    return poses, iterations, values
 
 
 class _Problem:

@@ -1,0 +1,266 @@
+"""The ``sweep`` and ``simulate`` commands of ``invisible-map`` (see ``app/cli.py``).
+
+invisible-map sweep data/sessions/occam_room.json --gt data/ground_truth/occam_room_tape.json
+invisible-map sweep SESSION --trials 100 --json           # Optuna's sampler, 100 trials
+invisible-map simulate sim.json --poses 2000 --two-floors --noise outlier_fraction=0.05
+invisible-map simulate sim.json --from-session data/sessions/floor_2_straight.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from app.cli_params import add_param_option, slam_params
+from app.domain.errors import ParameterError
+from app.domain.ground_truth import load_ground_truth
+from app.domain.map_io import save_json
+from app.domain.session import load_session, parse_session
+from app.domain.simulate import (
+    SimulatedSession,
+    SimulationConfig,
+    simulate_along_trajectory,
+    simulate_session,
+)
+from app.domain.slam import optimize_session
+from app.domain.tuning import SearchSpace, TuningTarget, summarize
+from app.sweep_runner import SweepPlan, run_sweep
+
+#: ``--noise`` may set these fields of SimulationConfig.
+NOISE_FIELDS = tuple(
+    f.name
+    for f in dataclasses.fields(SimulationConfig)
+    if f.name.startswith(("odom_", "tag_position_noise", "tag_depth_noise", "tag_rotation_noise"))
+    or f.name in ("corner_noise_px", "outlier_fraction")
+)
+
+
+def add_sweep_commands(commands: Any) -> None:
+    sweep = commands.add_parser(
+        "sweep",
+        help="sweep the SLAM hyperparameters over a grid or with a sampler",
+        description="Optimize SESSION once per trial and score every map by the shift metric "
+        "(and by the ground-truth metric with --gt). Default: the paper-sized 10×10×10 grid.",
+    )
+    sweep.add_argument("session", type=Path, metavar="SESSION")
+    sweep.add_argument("--gt", type=Path, help="ground truth (RTAB-Map export or GT JSON)")
+    how = sweep.add_mutually_exclusive_group()
+    how.add_argument("--grid", action="store_true", help="every grid point (the default)")
+    how.add_argument("--trials", type=int, help="Optuna's TPE sampler with this many trials")
+    sweep.add_argument(
+        "--objective",
+        choices=("shift", "ground_truth"),
+        default="shift",
+        help="what chooses the best trial (ground_truth needs --gt)",
+    )
+    sweep.add_argument(
+        "--space",
+        help='swept parameters as JSON, {"NAME": {"low": L, "high": H, "num": N}, …} '
+        "(default: the paper grid)",
+    )
+    sweep.add_argument("--processes", type=int, default=None, help="worker processes (all CPUs)")
+    sweep.add_argument("--seed", type=int, default=0, help="sampler seed")
+    add_param_option(sweep)
+    sweep.add_argument("--plot-dir", type=Path, help="write heatmap.png (and shift_vs_gt.png)")
+    sweep.add_argument("--runs-out", type=Path, help="write every trial as JSON here")
+    sweep.add_argument("--json", action="store_true", help="print the summary as JSON")
+    sweep.set_defaults(handler=sweep_command)
+
+    simulate = commands.add_parser(
+        "simulate",
+        help="write a synthetic session in the app's upload format, with its ground truth",
+        description="A procedural building walk (default) or, with --from-session, a real "
+        "session's optimized trajectory and tags as the truth, with controlled noise.",
+    )
+    simulate.add_argument("out", type=Path, metavar="OUT.json", help="the session to write")
+    simulate.add_argument("--gt-out", type=Path, help="ground truth (default OUT.gt.json)")
+    simulate.add_argument("--from-session", type=Path, help="take the truth from this session")
+    simulate.add_argument("--poses", type=int, default=1000, help="poses of a procedural walk")
+    simulate.add_argument("--two-floors", action="store_true", help="a second floor with stairs")
+    simulate.add_argument(
+        "--noise",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help=f"a noise level; names: {', '.join(NOISE_FIELDS)}",
+    )
+    simulate.add_argument("--seed", type=int, default=0)
+    simulate.set_defaults(handler=simulate_command)
+
+
+def sweep_command(args: argparse.Namespace) -> int:
+    from app.cli import CommandError
+
+    base_params = slam_params(args.param)
+    ground_truth = load_ground_truth(args.gt) if args.gt else None
+    session = load_session(args.session)
+    space = SearchSpace.paper_grid() if args.space is None else _space(args.space)
+    if args.trials is not None:
+        plan = SweepPlan(
+            method="sampler",
+            space=space,
+            trials=args.trials,
+            objective=args.objective,
+            seed=args.seed,
+        )
+    else:
+        plan = SweepPlan(method="grid", space=space, objective=args.objective)
+    if args.objective == "ground_truth" and ground_truth is None:
+        raise CommandError("--objective ground_truth needs --gt")
+    if args.processes is not None and args.processes < 1:
+        raise CommandError(f"--processes must be ≥ 1, got {args.processes}")
+
+    started = time.perf_counter()
+    with tqdm(total=plan.total, desc="sweep", unit=" trials", disable=None, file=sys.stderr) as bar:
+        trials = run_sweep(
+            session,
+            plan,
+            base_params=base_params,
+            ground_truth=ground_truth,
+            processes=args.processes,
+            on_progress=lambda n: _advance(bar, n),
+        )
+    wall_s = time.perf_counter() - started
+    baseline = TuningTarget.prepare(session, base_params, ground_truth).baseline()
+    summary = summarize(trials, plan.objective, baseline)
+    report = {
+        "dataset": args.session.stem,
+        "method": plan.method,
+        "runs": len(trials),
+        "best_params": summary.best_values,
+        "best_shift": summary.best_shift,
+        "gt_metric_pre": summary.gt_metric_pre,
+        "gt_metric_at_best_shift": summary.gt_metric_at_best_shift,
+        "gt_metric_best": summary.gt_metric_best,
+        "wall_s": round(wall_s, 3),
+        **{k: v for k, v in summary.to_dict().items() if k not in ("runs",)},
+    }
+    report = {
+        k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in report.items()
+    }
+    written = []
+    if args.plot_dir:
+        from app.sweep_plots import heatmap_png, shift_vs_gt_png
+
+        args.plot_dir.mkdir(parents=True, exist_ok=True)
+        (args.plot_dir / "heatmap.png").write_bytes(
+            heatmap_png(space, trials, objective=plan.objective)
+        )
+        written.append(args.plot_dir / "heatmap.png")
+        if ground_truth is not None:
+            (args.plot_dir / "shift_vs_gt.png").write_bytes(shift_vs_gt_png(trials))
+            written.append(args.plot_dir / "shift_vs_gt.png")
+    if args.runs_out:
+        save_json([t.to_dict() for t in trials], args.runs_out)
+        written.append(args.runs_out)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        _print_summary(report)
+        for path in written:
+            print(f"wrote {path}")
+    return 0
+
+
+def _advance(bar: tqdm[Any], n: int) -> None:
+    bar.update(n)
+
+
+def _print_summary(report: dict[str, Any]) -> None:
+    def fmt(value: Any) -> str:
+        return "n/a" if value is None else f"{value:.4g}"
+
+    runs, method, wall_s = report["runs"], report["method"], report["wall_s"]
+    print(f"{report['dataset']}: {runs} trials ({method}) in {wall_s:.1f} s")
+    print(f"best by {report['objective']}: {report['best_params']}")
+    print(f"shift metric: pre {fmt(report['shift_pre'])}  best {fmt(report['best_shift'])}")
+    if report["gt_metric_pre"] is not None:
+        print(
+            f"ground-truth metric: pre {fmt(report['gt_metric_pre'])}  "
+            f"at the shift-chosen trial {fmt(report['gt_metric_at_best_shift'])}  "
+            f"best {fmt(report['gt_metric_best'])}  "
+            f"(Spearman ρ shift vs GT {fmt(report['shift_gt_spearman'])})"
+        )
+
+
+def _space(text: str) -> SearchSpace:
+    source = Path(text).read_text() if not text.lstrip().startswith("{") else text
+    try:
+        document = json.loads(source)
+    except json.JSONDecodeError as err:
+        raise ParameterError(f"--space is not valid JSON: {err}") from err
+    if not isinstance(document, dict):
+        raise ParameterError("--space must be a JSON object of parameters")
+    return SearchSpace.from_dict(document)
+
+
+def simulate_command(args: argparse.Namespace) -> int:
+    noise = _noise(args.noise)
+    if args.from_session:
+        simulated = _simulate_from_session(args.from_session, noise, args.seed)
+    else:
+        config = SimulationConfig(num_poses=args.poses, two_floors=args.two_floors, seed=args.seed)
+        simulated = simulate_session(dataclasses.replace(config, **noise))
+    parse_session(simulated.upload)  # what the server would do with it: must not raise
+    gt_out = args.gt_out or args.out.with_suffix(".gt.json")
+    save_json(simulated.upload, args.out)
+    save_json(simulated.ground_truth_json(detected_only=True), gt_out)
+    print(simulated)
+    print(f"wrote {args.out}")
+    print(f"wrote {gt_out}")
+    return 0
+
+
+def _noise(pairs: list[str]) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, raw = pair.partition("=")
+        name = name.strip()
+        if not sep or name not in NOISE_FIELDS:
+            raise ParameterError(
+                f"--noise expects NAME=VALUE with NAME one of {', '.join(NOISE_FIELDS)}; "
+                f"got {pair!r}"
+            )
+        try:
+            values[name] = float(raw)
+        except ValueError as err:
+            raise ParameterError(f"--noise {name}: not a number: {raw!r}") from err
+    return values
+
+
+def _simulate_from_session(path: Path, noise: dict[str, Any], seed: int) -> SimulatedSession:
+    """The paper's simulation: the optimized map of a real session is the truth."""
+    session = load_session(path)
+    result = optimize_session(session, slam_params([]))
+    used = result.residuals.tag_detection_index
+    dt_s = float(
+        max(
+            1e-3, (session.timestamp_s[-1] - session.timestamp_s[0]) / max(1, session.num_poses - 1)
+        )
+    )
+    rate_hz = 1.0 / dt_s
+    config = SimulationConfig(
+        num_poses=session.num_poses,
+        rate_hz=rate_hz,
+        detection_rate_hz=rate_hz,
+        map_id=f"{session.map_id}_simulated",
+        num_points_of_interest=0,
+        seed=seed,
+    )
+    config = dataclasses.replace(config, **noise)
+    truth = {int(t): result.world_T_tag[k] for k, t in enumerate(result.tag_ids)}
+    return simulate_along_trajectory(
+        config,
+        result.world_T_phone,
+        truth,
+        session.detections.pose_index[used],
+        session.detections.tag_id[used],
+    )
