@@ -17,7 +17,16 @@ from fastapi import Depends, FastAPI
 
 from app.api.deps import KeyUsage, current_principal
 from app.api.errors import install_error_handlers
-from app.api.routes import jobs, keys, localization, maps, navigation, sessions, system
+from app.api.routes import (
+    jobs,
+    keys,
+    localization,
+    maps,
+    navigation,
+    sessions,
+    sweeps,
+    system,
+)
 from app.api.routes.system import package_version
 from app.api.version_cache import VersionCache
 from app.config import Settings, get_settings
@@ -37,6 +46,7 @@ OPENAPI_TAGS = [
     {"name": "sessions", "description": "Mapping sessions as the phone uploads them."},
     {"name": "jobs", "description": "The durable job queue: build progress, cancel, retry."},
     {"name": "maps", "description": "Maps, their versions, the app's download format, plots."},
+    {"name": "sweeps", "description": "Hyperparameter sweeps over all workers (admin)."},
     {"name": "navigation", "description": "Points of interest, routes and the path graph."},
     {"name": "localization", "description": "Live localization of a navigating phone."},
     {"name": "keys", "description": "API keys (admin)."},
@@ -72,7 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(system.router)
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
-    for module in (sessions, jobs, maps, navigation, localization, keys):
+    for module in (sessions, jobs, maps, sweeps, navigation, localization, keys):
         app.include_router(module.router, prefix="/v1", dependencies=authenticated)
     return app
 

@@ -43,8 +43,10 @@ from app.config import Settings
 from app.storage import queue
 from app.storage.db import Database
 from app.storage.queue import Lease
+from app.storage.sweeps import SWEEP_TRIALS
 from workers.lease import JobControl, LeaseKeeper
 from workers.pipeline import PIPELINES, JobReport, Outcome, Stage, run_job
+from workers.sweep import SWEEP_STAGES
 
 logger = logging.getLogger("workers")
 
@@ -61,11 +63,15 @@ def new_worker_id() -> str:
     return f"{socket.gethostname()[:60]}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
 
 
+#: Every job kind a worker runs: building maps, and the trials of sweeps.
+JOB_PIPELINES: Mapping[str, Sequence[Stage]] = {**PIPELINES, SWEEP_TRIALS: SWEEP_STAGES}
+
+
 class Worker:
     """Claims and runs jobs, one at a time; see the module docstring.
 
     ``pipelines`` maps each job kind this worker runs to its stages (default:
-    :data:`workers.pipeline.PIPELINES`); it only claims those kinds.
+    :data:`JOB_PIPELINES`); it only claims those kinds.
     """
 
     def __init__(
@@ -78,7 +84,7 @@ class Worker:
     ) -> None:
         self.db = db
         self.settings = settings
-        self.pipelines = dict(pipelines if pipelines is not None else PIPELINES)
+        self.pipelines = dict(pipelines if pipelines is not None else JOB_PIPELINES)
         self.worker_id = worker_id or new_worker_id()
         self.jobs_done = 0
         self.current_job_id: int | None = None

@@ -1,6 +1,6 @@
 """Jobs as lists of stages, and the runner that carries one out under a lease.
 
-    stages = PIPELINES["build_map"]     # load → optimize → evaluate → path_graph → store
+    stages = PIPELINES["build_map"]     # load → tune → optimize → evaluate → path_graph → store
     report = run_job(db, lease, stages=stages, control=JobControl(), retry_backoff_s=2.0)
     report.outcome                            # Outcome.SUCCEEDED, FAILED, RETRYING, …
 
@@ -47,13 +47,15 @@ from app.domain.path_graph import (
 )
 from app.domain.session import Session, decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
+from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
 from app.plot import render_map_png
 from app.storage import maps, queue
 from app.storage.db import Database
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
-from app.storage.sessions import SessionNotFound, raw_upload
+from app.storage.sessions import AUTO_TUNE_TRIALS, SessionNotFound, raw_upload
+from app.sweep_runner import SweepPlan
 from workers.lease import JobControl
 
 logger = logging.getLogger(__name__)
@@ -122,6 +124,11 @@ class JobContext:
     plot_png: bytes | None = None
     #: ``app.domain.path_graph.path_graph_to_json`` of the map's path graph
     path_graph: dict[str, Any] | None = None
+    #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
+    auto_tune_trials: int = 0
+    #: sweep_trials jobs (``workers/sweep.py``): the prepared session and the finished trials
+    tuning_target: TuningTarget | None = None
+    trials: list[Trial] | None = None
     version: VersionInfo | None = None
     #: set by the stage that committed the job as succeeded (``queue.finish``)
     finished: bool = False
@@ -192,25 +199,60 @@ def load(ctx: JobContext) -> None:
     lease = ctx.lease
     if lease.session_id is None or lease.map_id is None:
         raise PermanentJobError(f"a {lease.kind} job needs a session and a map")
-    ctx.params = SlamParams().with_overrides(lease.params)
-    try:
-        with ctx.db.read() as tx:
-            raw = raw_upload(tx, lease.session_id)
-    except SessionNotFound as err:
-        raise PermanentJobError(f"the raw upload of session {lease.session_id} is missing") from err
-    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
-        raise PermanentJobError(
-            f"the stored upload of session {lease.session_id} is corrupt (not valid gzip: {err})"
-        ) from err
-    ctx.raw_upload = raw
-    ctx.session = parse_session(
-        decode_json_bytes(raw, source=f"stored upload of session {lease.session_id}")
-    )
-    session = ctx.session
+    overrides = dict(lease.params)
+    ctx.auto_tune_trials = _auto_tune_trials(overrides.pop(AUTO_TUNE_TRIALS, 0))
+    ctx.params = SlamParams().with_overrides(overrides)
+    ctx.raw_upload, ctx.session = load_session_upload(ctx.db, lease.session_id)
+    raw, session = ctx.raw_upload, ctx.session
     ctx.log(
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"
     )
+
+
+def _auto_tune_trials(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 1000:
+        raise PermanentJobError(f"{AUTO_TUNE_TRIALS} must be an integer 0–1000, got {value!r}")
+    return value
+
+
+def tune(ctx: JobContext) -> None:
+    """With ``auto_tune_trials`` N > 0: choose the noise variances by the shift metric (Optuna's
+    sampler, N trials over the paper grid's box, warm-started) before the final optimization."""
+    if ctx.auto_tune_trials <= 0:
+        return
+    session, params = _need(ctx.session, "session"), _need(ctx.params, "params")
+    target = TuningTarget.prepare(session, params)
+    plan = SweepPlan(method="sampler", space=SearchSpace.paper_grid(), trials=ctx.auto_tune_trials)
+    trials: list[Trial] = []
+    while batch := plan.next_batch(trials, len(trials)):
+        trials.extend(target.run(values) for values in batch)
+        ctx.report(len(trials) / plan.total)
+    best = best_trial(trials, "shift")
+    if best is None:
+        ctx.log(f"tune: no trial of {len(trials)} converged; keeping the parameters")
+        return
+    ctx.params = params.with_overrides(best.values)
+    shift_pre = target.baseline()[0]
+    ctx.log(
+        f"tune: {len(trials)} trials, shift {shift_pre:.4g} (pre-optimized) → {best.shift:.4g} "
+        f"with {', '.join(f'{k}={v:.3g}' for k, v in best.values.items())}"
+    )
+
+
+def load_session_upload(db: Database, session_id: int) -> tuple[bytes, Session]:
+    """A session's stored raw upload and its parse; PermanentJobError if missing or corrupt."""
+    try:
+        with db.read() as tx:
+            raw = raw_upload(tx, session_id)
+    except SessionNotFound as err:
+        raise PermanentJobError(f"the raw upload of session {session_id} is missing") from err
+    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
+        raise PermanentJobError(
+            f"the stored upload of session {session_id} is corrupt (not valid gzip: {err})"
+        ) from err
+    source = f"stored upload of session {session_id}"
+    return raw, parse_session(decode_json_bytes(raw, source=source))
 
 
 def optimize(ctx: JobContext) -> None:
@@ -288,7 +330,8 @@ def store(ctx: JobContext) -> None:
 
 BUILD_MAP_STAGES: tuple[Stage, ...] = (
     Stage(name="load", weight=0.2, run=load),
-    Stage(name="optimize", weight=0.6, run=optimize),
+    Stage(name="tune", weight=0.3, run=tune),
+    Stage(name="optimize", weight=0.3, run=optimize),
     Stage(name="evaluate", weight=0.12, run=evaluate),
     Stage(name="path_graph", weight=0.03, run=path_graph),
     Stage(name="store", weight=0.05, run=store),

@@ -40,6 +40,7 @@ from app.storage.maps import MapNotFound
 from app.storage.navigation import LocalizationNotFound
 from app.storage.queue import InvalidTransition, JobNotFound
 from app.storage.sessions import IdempotencyConflict, SessionNotFound
+from app.storage.sweeps import SweepNotFound
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +120,14 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(SessionFormatError, _session_format_error)
     app.add_exception_handler(ParameterError, handle(422, "invalid_parameter"))
-    for missing in (MapNotFound, JobNotFound, SessionNotFound, KeyNotFound, LocalizationNotFound):
+    for missing in (
+        MapNotFound,
+        JobNotFound,
+        SessionNotFound,
+        KeyNotFound,
+        LocalizationNotFound,
+        SweepNotFound,
+    ):
         app.add_exception_handler(missing, handle(404, "not_found"))
     app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
     app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))

@@ -550,6 +550,7 @@ class RebuildRequest(BaseModel):
             "examples": [
                 {"params": {"tag_position_var_m2": 1e-3, "huber_k": 0}},
                 {"params": {"tag_sizes_m": {"301": 0.15}, "max_reprojection_px": "12"}},
+                {"auto_tune_trials": 40},
             ]
         },
     )
@@ -557,6 +558,13 @@ class RebuildRequest(BaseModel):
     params: dict[str, Any] = Field(
         default_factory=dict,
         description="name → value of any SlamParams field (see the README's parameter table)",
+    )
+    auto_tune_trials: int = Field(
+        default=0,
+        ge=0,
+        le=1000,
+        description="first choose the noise variances by the shift metric with this many "
+        "sampler trials (0: use the parameters as given)",
     )
 
 

@@ -3,7 +3,8 @@
 
 Tables (singular, snake_case): ``api_key``, ``session`` with its ``session_upload`` (the raw
 upload, gzip-compressed, written once), ``map``, ``map_version`` with one ``map_tag`` row per tag,
-``job`` (the queue) and ``worker`` (who is alive and what it runs).
+``job`` (the queue) and ``worker`` (who is alive and what it runs), ``localization``, and
+``sweep`` with one ``sweep_trial`` row per finished trial.
 """
 
 from __future__ import annotations
@@ -216,6 +217,9 @@ class Job(Base):
     lease_token: Mapped[int] = mapped_column(default=0)
     lease_expires_at: Mapped[datetime | None]
     cancel_requested: Mapped[bool] = mapped_column(default=False)
+    #: the sweep whose trials a ``sweep_trials`` job runs (no foreign key: the map's cascade
+    #: removes both)
+    sweep_id: Mapped[int | None] = mapped_column(index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32))
     error: Mapped[str | None] = mapped_column(Text)
@@ -312,3 +316,59 @@ class Localization(Base):
     status: Mapped[str] = mapped_column(String(32))
     update_count: Mapped[int] = mapped_column(default=0)
     state: Mapped[dict[str, Any]]
+
+
+class Sweep(Base):
+    """A hyperparameter sweep of one map's session (``app.domain.tuning``).
+
+    Its trials run as ``sweep_trials`` jobs; ``trials_started`` counts the trials handed to jobs
+    so far (all of a grid's at once; a sampler's a batch at a time). ``ground_truth`` is the
+    ground-truth file form (``{"poses": [...]}``) or null; ``baseline`` the pre-optimized map's
+    metrics. ``state`` is ``running`` until every trial is stored (``succeeded``) or a job of it
+    failed or was canceled.
+    """
+
+    __tablename__ = "sweep"
+    __table_args__ = (NEVER_REUSE_IDS,)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    session_id: Mapped[int] = mapped_column(ForeignKey("session.id", ondelete="CASCADE"))
+    method: Mapped[str] = mapped_column(String(16))
+    objective: Mapped[str] = mapped_column(String(16))
+    space: Mapped[dict[str, Any]]
+    base_params: Mapped[dict[str, Any]]
+    trials_total: Mapped[int]
+    trials_started: Mapped[int] = mapped_column(default=0)
+    batch: Mapped[int]
+    seed: Mapped[int] = mapped_column(default=0)
+    ground_truth: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
+    baseline: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
+    state: Mapped[str] = mapped_column(String(16), default="running")
+    error: Mapped[str | None] = mapped_column(Text)
+    applied_job_id: Mapped[int | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    finished_at: Mapped[datetime | None]
+
+
+class SweepTrial(Base):
+    """One finished trial of a sweep; ``number`` is its place in the sweep (unique), so a trial
+    stored twice (a job run again after its worker died) is refused by the database."""
+
+    __tablename__ = "sweep_trial"
+    __table_args__ = (UniqueConstraint("sweep_id", "number"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    sweep_id: Mapped[int] = mapped_column(ForeignKey("sweep.id", ondelete="CASCADE"))
+    number: Mapped[int]
+    #: the swept parameters' values, name → value
+    values: Mapped[dict[str, Any]]
+    shift: Mapped[float | None] = mapped_column(Float)
+    gt_metric: Mapped[float | None] = mapped_column(Float)
+    tag_rmse_m: Mapped[float | None] = mapped_column(Float)
+    iterations: Mapped[int]
+    converged: Mapped[bool]
+    duration_s: Mapped[float] = mapped_column(Float)
+    error: Mapped[str | None] = mapped_column(Text)
+    job_id: Mapped[int | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)

@@ -140,6 +140,7 @@ def enqueue(
     params: dict[str, Any] | None = None,
     max_attempts: int = 3,
     priority: int = 0,
+    sweep_id: int | None = None,
     now: datetime | None = None,
 ) -> int:
     """Add a queued job in the caller's transaction; returns its id."""
@@ -152,6 +153,7 @@ def enqueue(
         params=params or {},
         max_attempts=max_attempts,
         priority=priority,
+        sweep_id=sweep_id,
         run_after=now,
         created_at=now,
         updated_at=now,

@@ -35,6 +35,8 @@ from app.storage.orm import Job, MapRow, SessionRow, SessionUpload, utc_now
 
 #: The job kind that turns a session into a map version.
 BUILD_MAP = "build_map"
+#: A build_map job parameter: tune the noise variances by the shift metric first (trial count).
+AUTO_TUNE_TRIALS = "auto_tune_trials"
 #: Longest ``map_id`` (the app's map name) a session may have, characters.
 MAX_MAP_NAME_LENGTH = 200
 #: Longest idempotency key, characters.
@@ -169,6 +171,7 @@ def create_session(
     uploaded_by: str,
     idempotency_key: str | None = None,
     max_attempts: int = 3,
+    auto_tune_trials: int = 0,
     now: datetime | None = None,
 ) -> UploadResult:
     """Store a validated upload with its map and build job in the caller's transaction.
@@ -221,7 +224,7 @@ def create_session(
         kind=BUILD_MAP,
         map_id=map_id,
         session_id=row.id,
-        params={},
+        params={AUTO_TUNE_TRIALS: auto_tune_trials} if auto_tune_trials else {},
         max_attempts=max_attempts,
         now=now,
     )

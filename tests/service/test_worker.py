@@ -153,18 +153,19 @@ def test_stage_and_progress_are_written_at_each_stage(db: Database) -> None:
         within.append(get_job(db, ctx.lease.job_id).progress)
 
     stages = [probe(stage) for stage in BUILD_MAP_STAGES]
-    stages[2] = Stage(
+    evaluate = [stage.name for stage in BUILD_MAP_STAGES].index("evaluate")
+    stages[evaluate] = Stage(
         name="evaluate",
-        weight=stages[2].weight,
-        run=lambda ctx: (report_within_stage(ctx), BUILD_MAP_STAGES[2].run(ctx))[1],
+        weight=stages[evaluate].weight,
+        run=lambda ctx: (report_within_stage(ctx), BUILD_MAP_STAGES[evaluate].run(ctx))[1],
     )
     worker_with(db, stages).run_once()
 
     starts = np.cumsum([0.0] + [stage.weight for stage in BUILD_MAP_STAGES])[:-1]
-    assert [name for name, _ in seen] == ["load", "optimize", "path_graph", "store"]
+    assert [name for name, _ in seen] == ["load", "tune", "optimize", "path_graph", "store"]
     # Progress is stored rounded to 4 decimals.
-    np.testing.assert_allclose([p for _, p in seen], starts[[0, 1, 3, 4]], atol=1e-4)
-    evaluate_start, evaluate_weight = starts[2], BUILD_MAP_STAGES[2].weight
+    np.testing.assert_allclose([p for _, p in seen], starts[[0, 1, 2, 4, 5]], atol=1e-4)
+    evaluate_start, evaluate_weight = starts[evaluate], BUILD_MAP_STAGES[evaluate].weight
     np.testing.assert_allclose(within, [evaluate_start + 0.5 * evaluate_weight] * 2, atol=1e-4)
     assert get_job(db, inserted.job_id).state == JobState.SUCCEEDED
 
@@ -312,7 +313,7 @@ def test_cancel_requested_while_running_stops_at_the_next_stage(db: Database) ->
 
     info = get_job(db, inserted.job_id)
     assert info.state == JobState.CANCELED
-    assert ran == ["load", "optimize", "api_cancels"]
+    assert ran == ["load", "tune", "optimize", "api_cancels"]
     assert info.log_tail.splitlines()[-2].endswith("cancel requested: stopping before evaluate")
     assert info.log_tail.endswith("canceled\n")
     assert version_count(db) == 0

@@ -50,7 +50,7 @@ from app.domain.path_graph import path_graph_from_json
 from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
-from app.storage.sessions import BUILD_MAP
+from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP
 
 router = APIRouter(prefix="/maps", tags=["maps"])
 
@@ -174,6 +174,8 @@ def rebuild_map(
     body: Annotated[RebuildRequest | None, Body()] = None,
 ) -> RebuildAccepted:
     overrides = checked_overrides(body.params if body else {})
+    if body and body.auto_tune_trials:
+        overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
     info, job_id = enqueue_rebuild(
         session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
     )

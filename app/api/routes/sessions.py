@@ -163,6 +163,15 @@ def upload_session(
     response: Response,
     idempotency_key: IdempotencyKey = None,
     content_encoding: ContentEncoding = None,  # noqa: ARG001 (read with the body; here for the docs)
+    auto_tune_trials: Annotated[
+        int,
+        Query(
+            ge=0,
+            le=1000,
+            description="tune the noise variances by the shift metric with this many sampler "
+            "trials before building (0: the default parameters)",
+        ),
+    ] = 0,
 ) -> SessionCreated:
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
     result = _replayed(db, principal, idempotency_key, upload.sha256)
@@ -177,6 +186,7 @@ def upload_session(
                 uploaded_by=principal.subject,
                 idempotency_key=idempotency_key,
                 max_attempts=settings.max_attempts,
+                auto_tune_trials=auto_tune_trials,
             )
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:
