@@ -246,3 +246,57 @@ def test_embedded_mode_starts_and_stops_worker_processes(db: Database, database_
     assert version_count(db) == 4
     with db.read() as tx:
         assert tx.scalars(select(WorkerRow)).all() == []
+
+
+def test_kill_9_mid_sweep_every_trial_is_stored_exactly_once(
+    db: Database, database_url: str, tmp_path: Path, workers: list[WorkerProcess]
+) -> None:
+    """A sweep's job whose worker is killed is run again by another worker, and the sweep ends
+    with each of its trials stored once (the trials of the dead attempt were never stored)."""
+    from app.domain.tuning import Axis, SearchSpace
+    from app.storage import sweeps
+    from app.storage.orm import SweepTrial
+    from app.sweep_runner import GRID_CHUNK, SweepPlan
+
+    inserted = insert_session(db, session_bytes("occam_room"))
+    space = SearchSpace((Axis("odom_linear_var_m2_per_s", 1e-6, 1e-1, 3 * GRID_CHUNK),))
+    with db.transaction() as tx:
+        sweep_id = sweeps.create_sweep(
+            tx,
+            map_id=inserted.map_id,
+            session_id=inserted.session_id,
+            plan=SweepPlan(method="grid", space=space),
+            base_params={},
+            ground_truth=None,
+            max_attempts=3,
+        )
+        tx.get(Job, inserted.job_id).state = JobState.CANCELED.value  # only the sweep's jobs
+    doomed = start(workers, database_url, tmp_path)
+
+    def running_trials() -> Job | None:
+        if doomed.proc.poll() is not None:
+            raise AssertionError(f"the worker exited early:\n{doomed.output()}")
+        with db.read() as tx:
+            return tx.scalars(
+                select(Job).where(Job.sweep_id == sweep_id, Job.stage == "trials")
+            ).first()
+
+    wait_for(lambda: running_trials() is not None, timeout_s=60, what="a sweep job's trials")
+    os.kill(doomed.proc.pid, signal.SIGKILL)
+    assert doomed.wait(10) == -signal.SIGKILL
+    start(workers, database_url, tmp_path)
+
+    def sweep_state() -> str:
+        with db.read() as tx:
+            return sweeps.get_sweep(tx, sweep_id).state
+
+    wait_for(lambda: sweep_state() != "running", timeout_s=120, what="the sweep to end")
+    with db.read() as tx:
+        info = sweeps.get_sweep(tx, sweep_id)
+        numbers = sorted(
+            tx.scalars(select(SweepTrial.number).where(SweepTrial.sweep_id == sweep_id))
+        )
+        attempts = sorted(tx.scalars(select(Job.attempts).where(Job.sweep_id == sweep_id)))
+    assert (info.state, info.trials_done) == ("succeeded", 3 * GRID_CHUNK)
+    assert numbers == list(range(3 * GRID_CHUNK))
+    assert attempts[-1] == 2  # the killed job ran again
