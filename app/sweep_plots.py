@@ -113,10 +113,13 @@ def _score_curve(axes, space, trials, objective, label) -> None:  # type: ignore
     axes.set_ylabel(label)
 
 
-def shift_vs_gt_png(trials: Sequence[Trial]) -> bytes:
+def shift_vs_gt_png(trials: Sequence[Trial], *, gt_metric_pre: float | None = None) -> bytes:
     """Shift metric against ground-truth metric over the converged trials (the paper's Fig. 3),
-    with the Spearman correlation and both metrics' choices marked."""
+    with the Spearman correlation, both metrics' choices marked and, when given, the
+    pre-optimized map's ground-truth metric as a line."""
     figure, axes = plt.subplots(figsize=(6.0, 4.8))
+    if gt_metric_pre is not None and math.isfinite(gt_metric_pre):
+        axes.axhline(gt_metric_pre, color="#616161", linestyle="--", label="pre-optimized")
     usable = [
         t for t in trials if t.converged and math.isfinite(t.shift) and math.isfinite(t.gt_metric)
     ]

@@ -156,7 +156,9 @@ def sweep_command(args: argparse.Namespace) -> int:
         )
         written.append(args.plot_dir / "heatmap.png")
         if ground_truth is not None:
-            (args.plot_dir / "shift_vs_gt.png").write_bytes(shift_vs_gt_png(trials))
+            (args.plot_dir / "shift_vs_gt.png").write_bytes(
+                shift_vs_gt_png(trials, gt_metric_pre=summary.gt_metric_pre)
+            )
             written.append(args.plot_dir / "shift_vs_gt.png")
     if args.runs_out:
         save_json([t.to_dict() for t in trials], args.runs_out)

@@ -185,7 +185,8 @@ def get_shift_vs_gt(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionD
     info = _sweep(session, sweep_id)
     if not info.has_ground_truth:
         raise ApiError(409, NO_GROUND_TRUTH[0], f"sweep {info.id} has no ground truth")
-    png = shift_vs_gt_png(sweeps.list_trials(session, info.id))
+    gt_metric_pre = (info.baseline or {}).get("gt_metric")
+    png = shift_vs_gt_png(sweeps.list_trials(session, info.id), gt_metric_pre=gt_metric_pre)
     return Response(content=png, media_type="image/png")
 
 
