@@ -5,7 +5,8 @@
 
 Nothing connects at import time: the lifespan creates the :class:`Database` from
 ``settings.resolved_database_url`` and keeps it on ``app.state.db``. CORS is not enabled (the API
-is for the app and for admins' tools, not for pages on other origins).
+is for the app and for admins' tools, not for pages on other origins). The admin dashboard's pages
+are under ``/admin`` (``app.admin``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 
+from app.admin.router import router as admin_router
 from app.api.deps import KeyUsage, current_principal
 from app.api.errors import install_error_handlers
 from app.api.routes import (
@@ -84,6 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
     for module in (sessions, jobs, maps, sweeps, navigation, localization, keys):
         app.include_router(module.router, prefix="/v1", dependencies=authenticated)
+    app.include_router(admin_router)  # /admin: the dashboard (cookie login; not in OpenAPI)
     return app
 
 

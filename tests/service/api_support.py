@@ -21,6 +21,7 @@ from sqlalchemy import func, select
 from app.config import Settings
 from app.domain.evaluation import evaluate_map
 from app.domain.params import SlamParams
+from app.domain.path_graph import build_path_graph, path_graph_to_json
 from app.domain.session import decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
 from app.main import create_app
@@ -110,8 +111,9 @@ def session_variant(path: Path, **changes: Any) -> bytes:
     return json.dumps(document).encode()
 
 
-def run_next_job(db: Database, *, plot: bool = False) -> int | None:
-    """Do what a worker does with the next queued build job; returns its id (None if none)."""
+def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) -> int | None:
+    """Do what a worker does with the next queued build job; returns its id (None if none).
+    The version gets a plot and a path graph only when asked (they take time)."""
     lease = queue.claim(db, worker_id="test-worker", lease_s=60)
     if lease is None:
         return None
@@ -136,6 +138,7 @@ def run_next_job(db: Database, *, plot: bool = False) -> int | None:
             evaluation=evaluation,
             path_length_m=parsed.path_length_m(),
             plot_png=png,
+            path_graph=path_graph_to_json(build_path_graph(result)) if path_graph else None,
         )
         queue.finish(session, lease, log_tail=lease.log_tail)
     return lease.job_id

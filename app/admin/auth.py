@@ -1,0 +1,275 @@
+"""Who is logged in to the dashboard, and the checks every request and form goes through.
+
+Logging in takes an admin API key (a key with role admin, or ``INVISIBLE_MAP_ADMIN_KEY``); a
+device key is refused. The login is a signed cookie (:mod:`app.admin.signing`) carrying the key's
+identity, a random nonce and an expiry — no table. On every request the key is checked again: a
+key revoked or expired since (or a changed ``INVISIBLE_MAP_ADMIN_KEY``) ends the login at once.
+
+    user: DashboardUserDep          # a page: 303 to /admin/login?next=… without a valid login
+    form: CheckedFormDep            # a form post: the login, then its CSRF token (403 if wrong)
+
+CSRF: every form carries ``csrf_token``, an HMAC of the login's nonce, checked against the cookie
+(synchronizer token; the cookie is also ``SameSite=Strict``). The login form itself, made before
+there is a login, uses a double-submit cookie. Login attempts are limited per client address
+(:class:`LoginThrottle`, in memory per process).
+"""
+
+from __future__ import annotations
+
+import hmac
+import secrets
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Annotated
+from urllib.parse import quote
+
+from fastapi import Depends, Request, Response
+from starlette.datastructures import FormData
+
+from app.admin.signing import Signer, load_or_create_secret
+from app.api.deps import DbDep, SettingsDep
+from app.config import Settings
+from app.storage import keys
+from app.storage.db import Database
+from app.storage.keys import ENVIRONMENT_ADMIN, Principal
+from app.storage.orm import Role
+
+LOGIN_COOKIE = "im_admin_login"
+LOGIN_FORM_COOKIE = "im_admin_login_form"
+COOKIE_PATH = "/admin"
+#: How long a dashboard login lasts, s.
+LOGIN_TTL_S = 8 * 3600
+#: How long the login form's CSRF cookie lasts, s.
+LOGIN_FORM_TTL_S = 3600
+#: Login attempts allowed per client address per window.
+LOGIN_ATTEMPTS = 10
+LOGIN_WINDOW_S = 60.0
+
+
+class LoginRequired(Exception):
+    """Raised when a page needs a login and the request has none (or one no longer valid);
+    answered with 303 to the login page, ``next`` being where to come back to."""
+
+    def __init__(self, next_url: str) -> None:
+        super().__init__("login required")
+        self.next_url = next_url
+
+    @property
+    def login_url(self) -> str:
+        return f"{COOKIE_PATH}/login?next={quote(self.next_url, safe='/')}"
+
+
+class CsrfRefused(Exception):
+    """Raised when a form arrives without the CSRF token of the login that made it (403)."""
+
+
+class LoginThrottle:
+    """At most ``attempts`` login attempts per client address in any ``window_s`` seconds."""
+
+    def __init__(self, attempts: int = LOGIN_ATTEMPTS, window_s: float = LOGIN_WINDOW_S) -> None:
+        self.attempts = attempts
+        self.window_s = window_s
+        self._times: dict[str, deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def retry_after_s(self, client: str) -> int | None:
+        """Record an attempt from ``client``; None if allowed, else the seconds to wait."""
+        now_s = time.monotonic()
+        with self._lock:
+            times = self._times.setdefault(client, deque())
+            while times and times[0] <= now_s - self.window_s:
+                times.popleft()
+            if len(times) >= self.attempts:
+                return max(1, int(times[0] + self.window_s - now_s + 1))
+            times.append(now_s)
+            if len(self._times) > 10_000:  # forget idle addresses
+                for address in [a for a, t in self._times.items() if not t]:
+                    del self._times[address]
+            return None
+
+
+class AdminState:
+    """What the dashboard keeps per process: the signer and the login throttle."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.signer = Signer(load_or_create_secret(settings))
+        self.throttle = LoginThrottle()
+
+
+_state_lock = threading.Lock()
+
+
+def admin_state(request: Request) -> AdminState:
+    """The app's :class:`AdminState`, made on first use."""
+    app_state = request.app.state
+    with _state_lock:
+        state: AdminState | None = getattr(app_state, "admin", None)
+        if state is None:
+            state = AdminState(app_state.settings)
+            app_state.admin = state
+    return state
+
+
+AdminStateDep = Annotated[AdminState, Depends(admin_state)]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DashboardUser:
+    """A logged-in admin: who, and the CSRF token its forms must carry."""
+
+    principal: Principal
+    csrf_token: str
+
+    @property
+    def label(self) -> str:
+        """How the page names who is logged in."""
+        subject = self.principal.subject
+        return "the server's admin key" if subject == ENVIRONMENT_ADMIN else f"API key {subject}"
+
+
+# --------------------------------------------------------------------------- logging in and out
+
+
+def start_login(
+    response: Response, request: Request, state: AdminState, principal: Principal, key: str
+) -> None:
+    """Set the login cookie for ``principal``, who logged in with ``key``. The cookie names a
+    stored key by id; the environment's admin key (which has none) by a keyed fingerprint."""
+    payload = {"sub": principal.subject, "kid": principal.key_id, "nonce": secrets.token_hex(16)}
+    if principal.key_id is None:
+        payload["fp"] = state.signer.fingerprint(key)
+    token = state.signer.sign("login", payload, ttl_s=LOGIN_TTL_S)
+    set_cookie(response, request, LOGIN_COOKIE, token, max_age_s=LOGIN_TTL_S)
+
+
+def end_login(response: Response) -> None:
+    response.delete_cookie(LOGIN_COOKIE, path=COOKIE_PATH, httponly=True, samesite="strict")
+
+
+def set_cookie(
+    response: Response, request: Request, name: str, value: str, *, max_age_s: int
+) -> None:
+    """A dashboard cookie: HttpOnly, SameSite=Strict, path /admin, Secure over https."""
+    response.set_cookie(
+        name,
+        value,
+        max_age=max_age_s,
+        path=COOKIE_PATH,
+        httponly=True,
+        samesite="strict",
+        secure=request.url.scheme == "https",
+    )
+
+
+def login_form_token(request: Request, state: AdminState) -> str:
+    """The login form's CSRF token: the one in its cookie if still valid, else a new one (the
+    caller sets it with :func:`set_login_form_cookie`)."""
+    payload = state.signer.unsign("login-form", request.cookies.get(LOGIN_FORM_COOKIE))
+    if payload is not None and isinstance(payload.get("token"), str):
+        return str(payload["token"])
+    return secrets.token_hex(16)
+
+
+def set_login_form_cookie(
+    response: Response, request: Request, state: AdminState, token: str
+) -> None:
+    signed = state.signer.sign("login-form", {"token": token}, ttl_s=LOGIN_FORM_TTL_S)
+    set_cookie(response, request, LOGIN_FORM_COOKIE, signed, max_age_s=LOGIN_FORM_TTL_S)
+
+
+def login_form_token_ok(request: Request, state: AdminState, submitted: object) -> bool:
+    """Whether a login form carries the token of its cookie (double submit)."""
+    payload = state.signer.unsign("login-form", request.cookies.get(LOGIN_FORM_COOKIE))
+    if payload is None or not isinstance(submitted, str):
+        return False
+    return hmac.compare_digest(str(payload.get("token", "")), submitted)
+
+
+def client_address(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
+# --------------------------------------------------------------------------- every request
+
+
+def dashboard_user(
+    request: Request, state: AdminStateDep, settings: SettingsDep, db: DbDep
+) -> DashboardUser:
+    """The logged-in admin, checked again against the keys; LoginRequired otherwise."""
+    payload = state.signer.unsign("login", request.cookies.get(LOGIN_COOKIE))
+    principal = None if payload is None else _still_valid(payload, state, settings, db)
+    if principal is None or payload is None:
+        raise LoginRequired(_here(request))
+    user = DashboardUser(
+        principal=principal, csrf_token=state.signer.csrf_token(str(payload.get("nonce", "")))
+    )
+    request.state.admin_user = user
+    return user
+
+
+def _still_valid(
+    payload: dict[str, object], state: AdminState, settings: Settings, db: Database
+) -> Principal | None:
+    """The principal the login cookie's payload stands for, if its key still works."""
+    key_id = payload.get("kid")
+    if key_id is None:
+        fingerprint = payload.get("fp")
+        admin_key = settings.admin_key
+        if payload.get("sub") != ENVIRONMENT_ADMIN or admin_key is None:
+            return None
+        if not isinstance(fingerprint, str):
+            return None
+        if not hmac.compare_digest(fingerprint, state.signer.fingerprint(admin_key)):
+            return None
+        return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
+    if not isinstance(key_id, int):
+        return None
+    with db.read() as session:
+        principal = keys.active_principal(session, key_id)
+    return principal if principal is not None and principal.is_admin else None
+
+
+def _here(request: Request) -> str:
+    """Where to come back to after logging in: this page (for a GET), else the overview."""
+    if request.method != "GET":
+        return COOKIE_PATH
+    query = request.url.query
+    return request.url.path + (f"?{query}" if query else "")
+
+
+DashboardUserDep = Annotated[DashboardUser, Depends(dashboard_user)]
+
+
+async def posted_form(request: Request) -> FormData:
+    """The posted form, unchecked (only the login form, which has no login yet, uses it)."""
+    return await request.form()
+
+
+PostedFormDep = Annotated[FormData, Depends(posted_form)]
+
+
+async def checked_form(request: Request, user: DashboardUserDep) -> FormData:
+    """The posted form, if it carries the login's CSRF token; CsrfRefused (403) otherwise."""
+    form = await request.form()
+    token = form.get("csrf_token")
+    if not isinstance(token, str) or not hmac.compare_digest(token, user.csrf_token):
+        raise CsrfRefused("the form's security token is missing or wrong")
+    return form
+
+
+CheckedFormDep = Annotated[FormData, Depends(checked_form)]
+
+
+def safe_next(next_url: str | None) -> str:
+    """``next_url`` if it is a dashboard path on this site, else the overview."""
+    if (
+        next_url
+        and next_url.startswith(COOKIE_PATH)
+        and not next_url.startswith("//")
+        and "\\" not in next_url
+        and not next_url.startswith(f"{COOKIE_PATH}/login")
+    ):
+        return next_url
+    return COOKIE_PATH

@@ -1,0 +1,97 @@
+"""``/admin/keys``: API keys — create (the secret shown once, on the answer to the form), list,
+revoke. Revoking the key you are logged in with ends your dashboard login."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, time
+
+from fastapi import Request, Response
+from pydantic import ValidationError
+
+from app.admin.auth import CheckedFormDep, DashboardUserDep
+from app.admin.routing import admin_router
+from app.admin.templating import redirect, render
+from app.api.deps import DbDep, valid_id
+from app.api.errors import ApiError
+from app.api.routes.keys import create_checked_key
+from app.api.schemas import KeyCreate
+from app.storage import keys
+from app.storage.orm import Role
+
+router = admin_router()
+
+
+def _keys_page(
+    request: Request,
+    db: DbDep,
+    *,
+    created: tuple[keys.KeyInfo, str] | None = None,
+    error: str | None = None,
+    submitted: dict[str, str] | None = None,
+    status_code: int = 200,
+) -> Response:
+    with db.read() as session:
+        infos = keys.list_keys(session)
+    now = datetime.now(UTC)
+    return render(
+        request,
+        "keys.html",
+        status_code=status_code,
+        section="keys",
+        title="API keys",
+        keys=infos,
+        now=now,
+        roles=list(Role),
+        created=created,
+        error=error,
+        submitted=submitted or {},
+    )
+
+
+@router.get("/keys")
+def key_list(request: Request, _user: DashboardUserDep, db: DbDep) -> Response:
+    return _keys_page(request, db)
+
+
+def _key_create(form: dict[str, str]) -> KeyCreate:
+    """The form as a :class:`KeyCreate` (the API's schema); ApiError 422 with a readable reason."""
+    expires = form.get("expires_on", "")
+    try:
+        expires_at = (
+            datetime.combine(datetime.fromisoformat(expires).date(), time(0), tzinfo=UTC)
+            if expires
+            else None
+        )
+    except ValueError as err:
+        raise ApiError(
+            422, "validation_error", "Expires on: not a date", field="expires_on"
+        ) from err
+    try:
+        return KeyCreate(
+            name=form.get("name", ""), role=form.get("role", ""), expires_at=expires_at
+        )
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(part) for part in first["loc"]) or "form"
+        raise ApiError(422, "validation_error", f"{where}: {first['msg']}", field=where) from err
+
+
+@router.post("/keys")
+def create_key(request: Request, form: CheckedFormDep, db: DbDep) -> Response:
+    submitted = {name: str(value).strip() for name, value in form.items() if isinstance(value, str)}
+    try:
+        new = _key_create(submitted)
+        with db.transaction() as session:
+            created = create_checked_key(session, new)
+    except ApiError as err:
+        return _keys_page(
+            request, db, error=err.detail, submitted=submitted, status_code=err.status_code
+        )
+    return _keys_page(request, db, created=created, status_code=201)
+
+
+@router.post("/keys/{key_id}/revoke")
+def revoke_key(request: Request, _form: CheckedFormDep, db: DbDep, key_id: int) -> Response:
+    with db.transaction() as session:
+        info = keys.revoke_key(session, valid_id(key_id, "API key"))
+    return redirect(request, "/admin/keys", flash=f"Key {info.id} ({info.name}) is revoked.")

@@ -1,0 +1,128 @@
+"""``/admin/login`` and ``/admin/logout``.
+
+A login takes an admin API key. The answers: a device key 403 ("a device key cannot log in"), an
+unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` attempts a
+minute from one address 429 with ``Retry-After``, a form without its CSRF token 403. Success sets
+the login cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Query, Request, Response
+
+from app.admin.auth import (
+    AdminStateDep,
+    CheckedFormDep,
+    PostedFormDep,
+    client_address,
+    end_login,
+    login_form_token,
+    login_form_token_ok,
+    safe_next,
+    set_login_form_cookie,
+    start_login,
+)
+from app.admin.routing import admin_router
+from app.admin.templating import redirect, render
+from app.api.deps import DbDep, KeyUsage, SettingsDep
+from app.storage import keys
+
+router = admin_router()
+
+
+def _login_page(
+    request: Request,
+    state: AdminStateDep,
+    *,
+    next_url: str,
+    error: str | None = None,
+    status_code: int = 200,
+) -> Response:
+    token = login_form_token(request, state)
+    response = render(
+        request,
+        "login.html",
+        status_code=status_code,
+        section="login",
+        title="Log in",
+        next_url=safe_next(next_url),
+        form_token=token,
+        error=error,
+    )
+    set_login_form_cookie(response, request, state, token)
+    return response
+
+
+@router.get("/login")
+def login_form(
+    request: Request,
+    state: AdminStateDep,
+    next_url: Annotated[str, Query(alias="next", max_length=2000)] = "/admin",
+) -> Response:
+    return _login_page(request, state, next_url=next_url)
+
+
+@router.post("/login")
+def log_in(
+    request: Request, state: AdminStateDep, settings: SettingsDep, db: DbDep, form: PostedFormDep
+) -> Response:
+    wait_s = state.throttle.retry_after_s(client_address(request))
+    if wait_s is not None:
+        response = _login_page(
+            request,
+            state,
+            next_url="/admin",
+            error=f"Too many login attempts from your address. Wait {wait_s} s and try again.",
+            status_code=429,
+        )
+        response.headers["Retry-After"] = str(wait_s)
+        return response
+    next_url = str(form.get("next") or "/admin")
+    if not login_form_token_ok(request, state, form.get("form_token")):
+        return _login_page(
+            request,
+            state,
+            next_url=next_url,
+            error="The login form expired or its security token is missing. Try again.",
+            status_code=403,
+        )
+    key = str(form.get("key") or "").strip()
+    if not key:
+        return _login_page(
+            request, state, next_url=next_url, error="Enter an admin API key.", status_code=422
+        )
+    with db.read() as session:
+        principal = keys.authenticate(session, key, admin_key=settings.admin_key)
+    if principal is None:
+        return _login_page(
+            request,
+            state,
+            next_url=next_url,
+            error="That key is unknown, revoked or expired.",
+            status_code=401,
+        )
+    if not principal.is_admin:
+        return _login_page(
+            request,
+            state,
+            next_url=next_url,
+            error="That is a device key: a device key cannot log in. Use an admin key.",
+            status_code=403,
+        )
+    if principal.key_id is not None:
+        usage: KeyUsage = request.app.state.key_usage
+        if usage.due(principal.key_id):
+            with db.transaction() as session:
+                keys.touch(session, principal.key_id)
+    response = redirect(request, safe_next(next_url), flash="You are logged in.")
+    start_login(response, request, state, principal, key)
+    return response
+
+
+@router.post("/logout")
+def log_out(request: Request, _form: CheckedFormDep) -> Response:
+    response = redirect(request, "/admin/login", flash="You are logged out.")
+    end_login(response)
+    return response

@@ -1,0 +1,147 @@
+"""The dashboard's route class: errors become pages, every response gets the security headers.
+
+The API answers errors with JSON (``app.api.errors``); a person in a browser should get a page
+that says what went wrong, with the same status. :class:`AdminRoute` wraps each dashboard
+endpoint (its dependencies included) so that:
+
+    LoginRequired                         303 to /admin/login?next=…
+    CsrfRefused                           403 page
+    ApiError (shared API helpers)         its status and detail
+    MapNotFound, JobNotFound, SweepNotFound, …   404 page
+    InvalidTransition                     409 page (e.g. cancel a finished job)
+    ParameterError                        422 page
+    RequestValidationError                422 page (a malformed query or path parameter)
+    OperationalError                      503 page
+    anything else                         500 page (logged with its traceback)
+
+Pages and forms that can say more (the rebuild form re-shown with its error) catch their errors
+themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import RedirectResponse
+from fastapi.routing import APIRoute
+from sqlalchemy.exc import OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.admin.auth import CsrfRefused, LoginRequired
+from app.admin.templating import add_security_headers, render
+from app.api.errors import ApiError, field_path
+from app.domain.errors import ParameterError
+from app.storage.keys import KeyNotFound
+from app.storage.maps import MapNotFound
+from app.storage.navigation import LocalizationNotFound
+from app.storage.queue import InvalidTransition, JobNotFound
+from app.storage.sessions import SessionNotFound
+from app.storage.sweeps import SweepNotFound
+
+logger = logging.getLogger(__name__)
+
+NOT_FOUND = (
+    MapNotFound,
+    JobNotFound,
+    SessionNotFound,
+    KeyNotFound,
+    LocalizationNotFound,
+    SweepNotFound,
+)
+TITLE_OF_STATUS = {
+    400: "Bad request",
+    403: "Refused",
+    404: "Not found",
+    409: "Not possible now",
+    422: "Invalid input",
+    429: "Too many attempts",
+    500: "Server error",
+    503: "Database unavailable",
+}
+
+
+class AdminRoute(APIRoute):
+    """An :class:`APIRoute` whose errors are dashboard pages (see the module docstring)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def admin_handler(request: Request) -> Response:
+            try:
+                response = await handler(request)
+            except LoginRequired as exc:
+                response = RedirectResponse(exc.login_url, status_code=303)
+            except Exception as exc:  # every error is a page; unexpected ones are logged
+                response = error_page(request, exc)
+            add_security_headers(response)
+            return response
+
+        return admin_handler
+
+
+def admin_router() -> APIRouter:
+    """A router for dashboard pages: under ``/admin``, hidden from the OpenAPI document."""
+    return APIRouter(prefix="/admin", route_class=AdminRoute, include_in_schema=False)
+
+
+def error_page(request: Request, exc: Exception) -> Response:
+    """The page for an error raised while serving a dashboard request."""
+    status, message = _status_and_message(request, exc)
+    response = render(
+        request,
+        "error.html",
+        status_code=status,
+        section=None,
+        title=TITLE_OF_STATUS.get(status, "Error"),
+        status=status,
+        message=message,
+    )
+    if isinstance(exc, ApiError):
+        for name, value in exc.headers.items():
+            if name.lower() != "www-authenticate":
+                response.headers[name] = value
+    return response
+
+
+def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
+    if isinstance(exc, CsrfRefused):
+        return 403, f"{exc} Go back, reload the page and try again."
+    if isinstance(exc, ApiError):
+        return exc.status_code, _sentence(exc.detail)
+    if isinstance(exc, NOT_FOUND):
+        return 404, _sentence(str(exc))
+    if isinstance(exc, InvalidTransition):
+        return 409, _sentence(str(exc))
+    if isinstance(exc, ParameterError):
+        return 422, _sentence(str(exc))
+    if isinstance(exc, RequestValidationError):
+        parts = []
+        for error in exc.errors():
+            where = field_path(error.get("loc", ())) or "request"
+            message = str(error.get("msg", "invalid"))
+            parts.append(f"Invalid {where}: {message[:1].lower()}{message[1:]}")
+        return 422, _sentence("; ".join(parts) or "Invalid request")
+    if isinstance(exc, StarletteHTTPException):
+        return exc.status_code, _sentence(str(exc.detail))
+    if isinstance(exc, OperationalError):
+        logger.error("database unavailable during %s %s: %s", request.method, request.url, exc)
+        return 503, "The database is unavailable or busy; try again shortly."
+    logger.error(
+        "unhandled error in %s %s",
+        request.method,
+        request.url.path,
+        exc_info=exc,
+        extra={"action": "internal_error"},
+    )
+    return 500, "Something went wrong on the server; it has been logged."
+
+
+def _sentence(text: str) -> str:
+    text = text.strip()
+    if not text:
+        return text
+    return text[0].upper() + text[1:] + ("" if text.endswith((".", "!", "?")) else ".")

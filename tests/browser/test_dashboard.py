@@ -1,0 +1,237 @@
+"""The admin dashboard in a real browser (headless Chromium through Playwright) against a real
+server and worker: logging in, live progress, the map plot, rebuild, cancel, keys, CSRF, and an
+automated accessibility check (axe-core) of every page.
+
+The tests share one server, one worker and one logged-in page (see conftest.py) and run in file
+order: the cancel test needs the worker off, the later ones turn it on.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+import pytest
+from axe_playwright_python.sync_playwright import Axe
+from dashboard_support import TIMEOUT_MS, log_in
+from playwright.sync_api import expect
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+SESSIONS = Path(__file__).resolve().parents[2] / "data" / "sessions"
+OCCAM = SESSIONS / "occam_room.json"
+ONETAG = SESSIONS / "onetag.json"
+OCCAM_IDEMPOTENCY_KEY = "browser-occam"
+#: How long a build may take to be seen succeeding (the worker imports gtsam first), ms.
+BUILD_TIMEOUT_MS = 120_000
+#: axe-core impacts that fail the check.
+FAILING_IMPACTS = {"serious", "critical"}
+
+
+@pytest.fixture(scope="module")
+def built_map(api, worker):
+    """The occam_room session uploaded and built (once per module)."""
+    worker.on()
+    accepted = api.upload_session(OCCAM, idempotency_key=OCCAM_IDEMPOTENCY_KEY)
+    api.wait_for_job(accepted["job_id"], timeout_s=BUILD_TIMEOUT_MS / 1000)
+    return accepted
+
+
+def test_without_a_login_a_page_redirects_to_the_login_and_back(browser, server):
+    context = browser.new_context(base_url=server.url)
+    context.set_default_timeout(TIMEOUT_MS)
+    tab = context.new_page()
+    response = tab.goto("/admin/maps?page=1")
+    assert response is not None
+    redirect = response.request.redirected_from
+    assert redirect is not None
+    assert redirect.response().status == 303
+    assert tab.url == f"{server.url}/admin/login?next=/admin/maps%3Fpage%3D1"
+    expect(tab.get_by_role("heading", name="Log in")).to_be_visible()
+
+    tab.get_by_label("Admin API key").fill(server.admin_key)
+    tab.get_by_role("button", name="Log in").click()
+    expect(tab).to_have_url(f"{server.url}/admin/maps?page=1")
+    expect(tab.get_by_role("heading", name="Maps", exact=True)).to_be_visible()
+
+    tab.get_by_role("button", name="Log out").click()
+    expect(tab.get_by_role("status").filter(has_text="logged out")).to_be_visible()
+    tab.goto("/admin")
+    expect(tab).to_have_url(f"{server.url}/admin/login?next=/admin")
+    context.close()
+
+
+def test_log_in_with_the_admin_key(browser, server):
+    context = browser.new_context(base_url=server.url)
+    tab = context.new_page()
+    log_in(tab, server)
+    expect(tab.get_by_role("heading", name="Overview")).to_be_visible()
+    expect(tab.get_by_text("Logged in with the server's admin key")).to_be_visible()
+    cookie = next(c for c in context.cookies() if c["name"] == "im_admin_login")
+    assert cookie["httpOnly"]
+    assert cookie["sameSite"] == "Strict"
+    assert cookie["path"] == "/admin"
+    context.close()
+
+
+def test_cancel_a_queued_job(page, api, worker):
+    worker.off()  # so that the job stays queued
+    job_id = api.upload_session(ONETAG)["job_id"]
+    page.goto(f"/admin/jobs/{job_id}")
+    expect(page.locator("#job-state")).to_have_text("queued")
+    page.get_by_role("button", name=f"Cancel job {job_id}").click()
+    expect(page.locator(".flash")).to_have_text(f"Job {job_id} canceled.")
+    expect(page.locator("#job-state")).to_have_text("canceled")
+    assert api.get_job(job_id)["state"] == "canceled"
+    expect(page.get_by_role("button", name=f"Retry job {job_id}")).to_be_visible()
+
+
+def test_the_overview_shows_an_upload_succeed_without_reloading(page, api, worker):
+    page.goto("/admin")
+    page.evaluate("window.notReloaded = true")
+    worker.on()
+    job_id = api.upload_session(OCCAM, idempotency_key=OCCAM_IDEMPOTENCY_KEY)["job_id"]
+    row = page.locator(f'#recent-jobs tr[data-job-id="{job_id}"]')
+    expect(row).to_be_visible()
+    expect(row).to_have_attribute("data-job-state", "succeeded", timeout=BUILD_TIMEOUT_MS)
+    expect(row.locator("progress")).to_have_attribute("value", "1.0")
+    expect(row).to_contain_text("100%")
+    assert page.evaluate("window.notReloaded") is True
+    expect(page.locator("#live-announcer")).to_contain_text(f"Job {job_id}: succeeded.")
+    expect(page.locator("#workers-heading + div table tbody tr")).to_have_count(1)
+
+
+def _plotted_tags(page) -> int:
+    """How many tag markers the plots of the page drew (in the SVG), over all floors."""
+    return page.evaluate(
+        """() => Array.from(document.querySelectorAll('.plot')).reduce((total, plot) => {
+            const index = plot._fullData.findIndex((trace) => trace.name === 'Tags');
+            const layer = plot.querySelectorAll('.scatterlayer .trace')[index];
+            return total + layer.querySelectorAll('.points .point').length;
+        }, 0)"""
+    )
+
+
+def test_the_map_page_plots_every_tag(page, api, built_map):
+    tags = api.get_map(built_map["map_id"])["current_version"]["tags"]
+    assert len(tags) > 1
+    page.goto(f"/admin/maps/{built_map['map_id']}")
+    expect(page.locator(".plot").first).to_have_attribute("data-rendered", "true")
+    assert _plotted_tags(page) == len(tags)
+    expect(page.locator(".tag-table tbody th")).to_have_count(len(tags))
+    expect(page.locator("#tag-count")).to_have_text(str(len(tags)))
+
+
+def test_rebuild_with_other_parameters_makes_a_new_version(page, api, built_map, worker):
+    worker.on()
+    map_id = built_map["map_id"]
+    before = len(api.map_versions(map_id))
+    page.goto(f"/admin/maps/{map_id}")
+    page.get_by_label("Tag position variance at 1 m").fill("1e-3")
+    page.get_by_role("button", name=f"Rebuild map {map_id}").click()
+    expect(page.locator(".flash")).to_contain_text("tag_position_var_m2 = 0.001")
+    versions = page.locator("#versions tbody tr")
+    expect(versions).to_have_count(before + 1, timeout=BUILD_TIMEOUT_MS)  # live, no reload
+    expect(versions.last).to_contain_text("tag_position_var_m2 = 0.001")
+    expect(page.locator("#new-version-notice")).to_contain_text(f"Version {before + 1} is ready")
+    page.get_by_role("link", name="show its plot and figures").click()
+    expect(page.get_by_role("heading", name=f"Version {before + 1} (current)")).to_be_visible()
+    newest = api.map_versions(map_id)[-1]
+    assert newest["number"] == before + 1
+    assert newest["params"]["tag_position_var_m2"] == 1e-3
+
+
+def test_the_route_tester_draws_a_route_and_its_steps(page, built_map):
+    page.goto(f"/admin/maps/{built_map['map_id']}/route")
+    page.locator("#route-from").select_option("tag:0")
+    expect(page.locator(".plot").first).to_have_attribute("data-rendered", "true")
+    page.get_by_role("radio", name="To").check()
+    tag_marker = page.locator(".scatterlayer .trace .points .point").nth(5)
+    tag_marker.click(force=True)  # clicking a tag on the map chooses it
+    expect(page.locator("#route-to")).to_have_value("tag:5")
+    page.get_by_role("button", name="Plan the route").click()
+    expect(page.locator("#route-steps li").last).to_contain_text("arrive at tag 5")
+    expect(page.locator(".plot").first).to_have_attribute("data-rendered", "true")
+    assert page.evaluate(
+        "() => document.querySelector('.plot')._fullData.some((t) => t.name === 'Route')"
+    )
+
+
+def test_create_and_revoke_a_key(page, server):
+    page.goto("/admin/keys")
+    page.get_by_label("Name (who or what uses it)").fill("browser test phone")
+    page.get_by_label("Role").select_option("device")
+    page.get_by_role("button", name="Create the key").click()
+    expect(page.locator("#created-heading")).to_contain_text("created")
+    secret = page.locator("#new-key").input_value()
+    key_id = int(page.locator("#created-heading").inner_text().split()[1])
+    headers = {"Authorization": f"Bearer {secret}"}
+    assert httpx.get(f"{server.url}/v1/info", headers=headers).status_code == 200
+
+    page.once("dialog", lambda dialog: dialog.accept())
+    page.get_by_role("button", name=f"Revoke key {key_id}").click()
+    expect(page.locator(".flash")).to_contain_text(f"Key {key_id} (browser test phone) is revoked")
+    expect(page.locator(f"#key-{key_id} .key-status")).to_contain_text("revoked")
+    expect(page.locator("#new-key")).to_have_count(0)  # shown once only
+    assert httpx.get(f"{server.url}/v1/info", headers=headers).status_code == 401
+
+
+def test_a_form_posted_without_its_csrf_token_is_refused(page, api):
+    keys_before = len(api.list_keys())
+    page.goto("/admin/keys")
+    page.locator("#create-key-form input[name=csrf_token]").evaluate("input => input.remove()")
+    page.get_by_label("Name (who or what uses it)").fill("forged")
+    with page.expect_response(
+        lambda r: r.url.endswith("/admin/keys") and r.request.method == "POST"
+    ) as answer:
+        page.get_by_role("button", name="Create the key").click()
+    assert answer.value.status == 403
+    expect(page.get_by_role("heading", name="Refused")).to_be_visible()
+    assert len(api.list_keys()) == keys_before
+
+
+def _pages(built_map, api) -> dict[str, str]:
+    job_id = api.list_jobs()["data"][0]["id"]
+    map_id = built_map["map_id"]
+    return {
+        "overview": "/admin",
+        "sessions": "/admin/sessions",
+        "session": f"/admin/sessions/{built_map['session_id']}",
+        "jobs": "/admin/jobs",
+        "job": f"/admin/jobs/{job_id}",
+        "maps": "/admin/maps",
+        "map": f"/admin/maps/{map_id}",
+        "routes": "/admin/routes",
+        "route": f"/admin/maps/{map_id}/route?from=tag:0&to=tag:5",
+        "keys": "/admin/keys",
+        "not found": "/admin/maps/999999",
+    }
+
+
+def _serious_violations(page) -> list[str]:
+    results = Axe().run(page)
+    return [
+        f"{violation['id']} ({violation['impact']}): {violation['help']} — "
+        + "; ".join(node["target"][0] for node in violation["nodes"][:5])
+        for violation in results.response["violations"]
+        if violation["impact"] in FAILING_IMPACTS
+    ]
+
+
+def test_every_page_has_no_serious_accessibility_violation(page, browser, server, api, built_map):
+    failures = {}
+    for name, path in _pages(built_map, api).items():
+        page.goto(path)
+        if page.locator(".plot").count():
+            expect(page.locator(".plot").first).to_have_attribute("data-rendered", "true")
+        found = _serious_violations(page)
+        if found:
+            failures[name] = found
+    context = browser.new_context(base_url=server.url)
+    login = context.new_page()
+    login.goto("/admin/login")
+    found = _serious_violations(login)
+    if found:
+        failures["login"] = found
+    context.close()
+    assert not failures, failures

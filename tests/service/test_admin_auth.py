@@ -1,0 +1,267 @@
+"""The admin dashboard's login, its cookie, CSRF, the login throttle and the security headers.
+SQLite only: none of it depends on the database beyond reading keys (the pages' tests run on
+both)."""
+
+from __future__ import annotations
+
+import shutil
+import stat
+from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+from admin_support import csrf_token, log_in, logged_in
+from api_support import ADMIN, ADMIN_KEY, Api, running_api
+from fastapi.testclient import TestClient
+from sqlalchemy import update
+
+from app.admin.auth import LOGIN_ATTEMPTS, LOGIN_COOKIE
+from app.admin.signing import SECRET_FILE_NAME, Signer
+from app.admin.templating import SECURITY_HEADERS
+from app.main import create_app
+from app.storage.orm import ApiKey, Role
+
+pytestmark = pytest.mark.db
+
+
+@pytest.fixture
+def database_url(sqlite_template: Path, tmp_path: Path) -> str:
+    """A fresh migrated SQLite database (this module's tests run on SQLite alone)."""
+    path = tmp_path / "test.sqlite3"
+    shutil.copyfile(sqlite_template, path)
+    return f"sqlite:///{path}"
+
+
+@pytest.fixture
+def api(database_url: str, tmp_path: Path) -> Iterator[Api]:
+    with running_api(database_url, data_dir=tmp_path) as running:
+        yield running
+
+
+# --------------------------------------------------------------------------- without a login
+
+
+@pytest.mark.parametrize(
+    ("path", "login_url"),
+    [
+        ("/admin", "/admin/login?next=/admin"),
+        ("/admin/maps?page=2", "/admin/login?next=/admin/maps%3Fpage%3D2"),
+        ("/admin/jobs/1", "/admin/login?next=/admin/jobs/1"),
+        ("/admin/live/overview", "/admin/login?next=/admin/live/overview"),
+        ("/admin/no/such/page", "/admin/login?next=/admin/no/such/page"),
+    ],
+)
+def test_a_page_without_a_login_redirects_to_the_login(api: Api, path: str, login_url: str) -> None:
+    response = api.client.get(path, follow_redirects=False)
+    assert response.status_code == 303
+    assert response.headers["location"] == login_url
+
+
+def test_a_form_without_a_login_redirects_and_changes_nothing(api: Api) -> None:
+    response = api.client.post("/admin/keys", data={"name": "x", "role": "admin"})
+    assert response.status_code == 200  # followed to the login page
+    assert "Log in" in response.text
+    assert api.client.get("/v1/keys", headers=ADMIN).json()["count"] == 0
+
+
+def test_a_forged_or_foreign_cookie_is_no_login(api: Api) -> None:
+    forged = Signer(b"another secret, not the server's" * 2).sign(
+        "login", {"sub": "env-admin", "kid": None, "nonce": "n"}, ttl_s=3600
+    )
+    for value in (forged, "garbage", forged.replace(".", "")):
+        api.client.cookies.set(LOGIN_COOKIE, value, path="/admin")
+        assert api.client.get("/admin", follow_redirects=False).status_code == 303
+
+
+def test_the_login_page_is_public_and_says_what_key_it_wants(api: Api) -> None:
+    page = api.client.get("/admin/login")
+    assert page.status_code == 200
+    assert 'for="key"' in page.text
+    assert "Device keys cannot log in" in page.text
+
+
+# --------------------------------------------------------------------------- logging in
+
+
+def test_the_admin_key_logs_in_with_a_strict_http_only_cookie(api: Api) -> None:
+    response = log_in(api.client, next_url="/admin/maps")
+    assert response.status_code == 303
+    assert response.headers["location"] == "/admin/maps"
+    cookie = next(
+        header
+        for header in response.headers.get_list("set-cookie")
+        if header.startswith(LOGIN_COOKIE + "=")
+    )
+    assert "HttpOnly" in cookie
+    assert "SameSite=strict" in cookie
+    assert "Path=/admin" in cookie
+    assert "Secure" not in cookie  # plain http here; https sets Secure
+    assert api.client.get("/admin").status_code == 200
+
+
+def test_over_https_the_cookie_is_secure(database_url: str, tmp_path: Path) -> None:
+    with running_api(database_url, data_dir=tmp_path) as api:
+        client = TestClient(api.app, base_url="https://testserver")
+        response = log_in(client)
+        assert response.status_code == 303
+        assert all("Secure" in h for h in response.headers.get_list("set-cookie"))
+
+
+def test_an_admin_key_from_the_database_logs_in(api: Api) -> None:
+    _, secret = api.create_key(Role.ADMIN, name="ops")
+    assert log_in(api.client, secret).status_code == 303
+    assert "Logged in with API key key:" in api.client.get("/admin").text
+
+
+@pytest.mark.parametrize(
+    ("key", "status", "message"),
+    [
+        ("im_nope_nope", 401, "unknown, revoked or expired"),
+        ("not a key at all", 401, "unknown, revoked or expired"),
+        ("", 422, "Enter an admin API key"),
+    ],
+)
+def test_a_bad_key_is_refused_with_a_reason(api: Api, key: str, status: int, message: str) -> None:
+    response = log_in(api.client, key)
+    assert response.status_code == status
+    assert message in response.text
+    assert api.client.get("/admin", follow_redirects=False).status_code == 303
+
+
+def test_a_device_key_cannot_log_in(api: Api) -> None:
+    _, secret = api.create_key(Role.DEVICE)
+    response = log_in(api.client, secret)
+    assert response.status_code == 403
+    assert "a device key cannot log in" in response.text
+    assert LOGIN_COOKIE not in response.cookies
+
+
+def test_an_expired_key_cannot_log_in(api: Api) -> None:
+    _, secret = api.create_key(Role.ADMIN, expires_at=datetime.now(UTC) + timedelta(seconds=1))
+    with api.db.transaction() as session:
+        session.execute(update(ApiKey).values(expires_at=datetime.now(UTC) - timedelta(seconds=1)))
+    assert log_in(api.client, secret).status_code == 401
+
+
+def test_next_may_only_lead_into_the_dashboard(api: Api) -> None:
+    for evil in ("https://evil.example/", "//evil.example/admin", "/v1/keys", "/admin\\@evil"):
+        response = log_in(api.client, next_url=evil)
+        assert response.headers["location"] == "/admin", evil
+
+
+def test_the_login_form_without_its_token_is_refused(api: Api) -> None:
+    response = api.client.post("/admin/login", data={"key": ADMIN_KEY, "next": "/admin"})
+    assert response.status_code == 403
+    assert "security token" in response.text
+
+
+def test_login_attempts_are_limited_per_address(api: Api) -> None:
+    for _ in range(LOGIN_ATTEMPTS):
+        assert log_in(api.client, "im_wrong_key").status_code == 401
+    refused = log_in(api.client)  # even the right key, until the minute is over
+    assert refused.status_code == 429
+    assert int(refused.headers["retry-after"]) >= 1
+    assert "Too many login attempts" in refused.text
+
+
+# --------------------------------------------------------------------------- while logged in
+
+
+def test_revoking_the_key_ends_its_dashboard_login(api: Api) -> None:
+    key_id, secret = api.create_key(Role.ADMIN, name="ops")
+    logged_in(api.client, secret)
+    token = csrf_token(api.client, "/admin/keys")
+    response = api.client.post(
+        f"/admin/keys/{key_id}/revoke", data={"csrf_token": token}, follow_redirects=False
+    )
+    assert response.status_code == 303
+    assert api.client.get("/admin/keys", follow_redirects=False).status_code == 303
+
+
+def test_a_changed_environment_admin_key_ends_its_logins(database_url: str, tmp_path: Path) -> None:
+    with running_api(database_url, data_dir=tmp_path) as api:
+        logged_in(api.client)
+        cookie = api.client.cookies.get(LOGIN_COOKIE)
+    changed = api.settings.model_copy(update={"admin_key": "another-admin-key-0123456789"})
+    with TestClient(create_app(changed)) as client:
+        client.cookies.set(LOGIN_COOKIE, cookie or "", path="/admin")
+        assert client.get("/admin", follow_redirects=False).status_code == 303
+
+
+def test_logout_ends_the_login(api: Api) -> None:
+    logged_in(api.client)
+    token = csrf_token(api.client)
+    response = api.client.post("/admin/logout", data={"csrf_token": token})
+    assert response.status_code == 200
+    assert "You are logged out." in response.text
+    assert api.client.get("/admin", follow_redirects=False).status_code == 303
+
+
+@pytest.mark.parametrize("token", [None, "", "wrong-token"])
+@pytest.mark.parametrize(
+    "action",
+    ["/admin/keys", "/admin/logout", "/admin/jobs/1/cancel", "/admin/maps/1/rebuild"],
+)
+def test_a_form_without_the_right_csrf_token_is_refused(
+    api: Api, action: str, token: str | None
+) -> None:
+    logged_in(api.client)
+    data = {"name": "forged", "role": "admin"}
+    if token is not None:
+        data["csrf_token"] = token
+    response = api.client.post(action, data=data, follow_redirects=False)
+    assert response.status_code == 403
+    assert "security token is missing or wrong" in response.text
+    assert api.client.get("/admin", follow_redirects=False).status_code == 200  # still logged in
+
+
+def test_the_csrf_token_of_another_login_is_refused(api: Api) -> None:
+    logged_in(api.client)
+    token = csrf_token(api.client)
+    other = TestClient(api.app)
+    logged_in(other)
+    response = other.post("/admin/keys", data={"csrf_token": token, "name": "x", "role": "admin"})
+    assert response.status_code == 403
+
+
+# --------------------------------------------------------------------------- headers, secret
+
+
+def test_every_dashboard_answer_has_the_security_headers(api: Api) -> None:
+    answers = [api.client.get("/admin/login"), api.client.get("/admin", follow_redirects=False)]
+    logged_in(api.client)
+    answers += [api.client.get("/admin"), api.client.get("/admin/maps/12345")]
+    answers.append(api.client.get("/admin/static/admin.css"))
+    for answer in answers:
+        for name, value in SECURITY_HEADERS.items():
+            assert answer.headers[name] == value
+        policy = answer.headers["content-security-policy"]
+        assert "http" not in policy  # no other origin
+        assert "frame-ancestors 'none'" in policy
+
+
+def test_the_signing_secret_is_kept_in_the_data_dir_for_every_process(
+    database_url: str, tmp_path: Path
+) -> None:
+    with running_api(database_url, data_dir=tmp_path) as first:
+        logged_in(first.client)
+        cookie = first.client.cookies.get(LOGIN_COOKIE)
+    secret_file = tmp_path / SECRET_FILE_NAME
+    assert stat.S_IMODE(secret_file.stat().st_mode) == 0o600
+    with running_api(database_url, data_dir=tmp_path) as second:  # another API process
+        second.client.cookies.set(LOGIN_COOKIE, cookie or "", path="/admin")
+        assert second.client.get("/admin", follow_redirects=False).status_code == 200
+
+
+def test_a_configured_session_secret_is_used_instead_of_the_file(
+    database_url: str, tmp_path: Path
+) -> None:
+    with running_api(database_url, data_dir=tmp_path, session_secret="s" * 40) as api:
+        logged_in(api.client)
+    assert not (tmp_path / SECRET_FILE_NAME).exists()
+
+
+def test_the_dashboard_is_not_in_the_openapi_document(api: Api) -> None:
+    paths = api.client.get("/openapi.json").json()["paths"]
+    assert not [path for path in paths if path.startswith("/admin")]
