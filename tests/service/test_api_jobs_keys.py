@@ -238,7 +238,7 @@ def v1_routes(api: Api) -> list[tuple[str, str]]:
     routes = []
     for path, operations in api.app.openapi()["paths"].items():
         if path.startswith("/v1"):
-            for name in ("session_id", "job_id", "map_id", "key_id", "number"):
+            for name in ("session_id", "job_id", "map_id", "key_id", "number", "sweep_id"):
                 path = path.replace("{" + name + "}", "1")
             routes.extend((method.upper(), path) for method in operations)
     assert len(routes) >= 20
@@ -278,6 +278,13 @@ ADMIN_ONLY = [
     ("GET", "/v1/keys"),
     ("GET", "/v1/keys/1"),
     ("DELETE", "/v1/keys/1"),
+    ("POST", "/v1/maps/1/sweeps"),
+    ("GET", "/v1/sweeps"),
+    ("GET", "/v1/sweeps/1"),
+    ("GET", "/v1/sweeps/1/heatmap.png"),
+    ("GET", "/v1/sweeps/1/shift-vs-gt.png"),
+    ("POST", "/v1/sweeps/1/apply"),
+    ("POST", "/v1/sweeps/1/cancel"),
 ]
 
 
