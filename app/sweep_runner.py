@@ -91,14 +91,17 @@ def run_sweep(
 ) -> list[Trial]:
     """Every trial of ``plan``, in the plan's order; ``on_progress(n)`` after each n finish."""
     check_objective(plan.objective, has_ground_truth=bool(ground_truth))
+    if processes is not None and processes < 1:
+        raise ParameterError(f"processes must be ≥ 1, got {processes}")
     params = base_params or SlamParams()
-    processes = max(1, processes or os.cpu_count() or 1)
+    processes = processes or os.cpu_count() or 1
     trials: list[Trial] = []
     with ProcessPoolExecutor(
         processes, initializer=_init_worker, initargs=(session, params, ground_truth)
     ) as pool:
         while batch := plan.next_batch(trials, len(trials)):
-            size = GRID_CHUNK if plan.method == "grid" else math.ceil(len(batch) / processes)
+            # at most GRID_CHUNK per task, and every process gets a share of a small batch
+            size = min(GRID_CHUNK, math.ceil(len(batch) / processes))
             chunks = [batch[i : i + size] for i in range(0, len(batch), size)]
             for chunk_trials in pool.map(_run_chunk, chunks):
                 trials.extend(chunk_trials)

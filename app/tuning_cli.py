@@ -194,7 +194,12 @@ def _print_summary(report: dict[str, Any]) -> None:
 
 
 def _space(text: str) -> SearchSpace:
-    source = Path(text).read_text() if not text.lstrip().startswith("{") else text
+    """``--space``: a JSON object, or the path of a file holding one."""
+    source = (
+        text
+        if text.lstrip().startswith(("{", "[")) or not Path(text).exists()
+        else (Path(text).read_text())
+    )
     try:
         document = json.loads(source)
     except json.JSONDecodeError as err:

@@ -153,19 +153,13 @@ class SearchSpace:
             unknown = set(spec) - {"low", "high", "num"}
             if unknown:
                 raise ParameterError(f"{name}: unknown field(s) {sorted(unknown)}")
-            try:
-                axes.append(
-                    Axis(
-                        str(name),
-                        float(spec["low"]),
-                        float(spec["high"]),
-                        int(spec.get("num", PAPER_GRID_VALUES)),
-                    )
-                )
-            except KeyError as err:
-                raise ParameterError(f"{name}: missing {err.args[0]!r}") from err
-            except (TypeError, ValueError) as err:
-                raise ParameterError(f"{name}: {err}") from err
+            if "low" not in spec or "high" not in spec:
+                raise ParameterError(f"{name}: missing {'low' if 'low' not in spec else 'high'!r}")
+            num = spec.get("num", PAPER_GRID_VALUES)
+            if isinstance(num, bool) or not isinstance(num, int):
+                raise ParameterError(f"{name}: num must be an integer, got {num!r}")
+            low, high = _number(spec["low"], name), _number(spec["high"], name)
+            axes.append(Axis(str(name), low, high, num))
         return cls(tuple(axes))
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -208,6 +202,8 @@ class Trial:
     def score(self, objective: str) -> float:
         """The value minimized; +inf when undefined or unconverged, so such a trial is never
         the best."""
+        if objective not in OBJECTIVES:
+            raise ParameterError(f"unknown objective {objective!r}; one of {', '.join(OBJECTIVES)}")
         value = self.shift if objective == "shift" else self.gt_metric
         return value if math.isfinite(value) and self.converged else math.inf
 
@@ -236,14 +232,13 @@ class TuningTarget:
         ground_truth: Mapping[int, FloatArray] | None,
         inputs: GraphInputs,
         pairs: ShiftPairs,
-        warm_start: gtsam.Values,
     ) -> None:
         self.session = session
         self.base_params = base_params
         self.ground_truth = dict(ground_truth) if ground_truth else None
         self.inputs = inputs
         self.pairs = pairs
-        self.warm_start = warm_start
+        self._warm_start: gtsam.Values | None = None
         pre_all = first_observation_tag_poses(session)
         self.pre_map = {tag_id: pre_all[tag_id] for tag_id in inputs.tag_rows}
 
@@ -257,9 +252,15 @@ class TuningTarget:
         params = base_params or SlamParams()
         inputs = prepare_graph_inputs(session, params)
         pairs = shift_pairs(session, detection_mask=inputs.screening.used)
-        base = params.with_overrides({"compute_marginals": False})
-        _, _, warm_start = optimize_tag_poses(inputs, base)
-        return cls(session, params, ground_truth, inputs, pairs, warm_start)
+        return cls(session, params, ground_truth, inputs, pairs)
+
+    @property
+    def warm_start(self) -> gtsam.Values:
+        """Where every trial starts LM: the optimum with the base parameters (computed once)."""
+        if self._warm_start is None:
+            base = self.base_params.with_overrides({"compute_marginals": False})
+            _, _, self._warm_start = optimize_tag_poses(self.inputs, base)
+        return self._warm_start
 
     @property
     def has_ground_truth(self) -> bool:
@@ -290,7 +291,8 @@ class TuningTarget:
         )
 
     def baseline(self) -> tuple[float, float, float]:
-        """:meth:`score_map` of the pre-optimized map (each tag's first used observation)."""
+        """:meth:`score_map` of the pre-optimized map: each tag's first observation, for the tags
+        in the graph (as ``evaluate``'s ``gt_metric_pre``)."""
         return self.score_map(self.pre_map)
 
     def run(self, values: Mapping[str, float]) -> Trial:
@@ -386,6 +388,16 @@ def propose_trials(
     return proposals
 
 
+def _number(value: Any, name: str) -> float:
+    """A number, or a string of one ("1e-8", as the CLI and forms give them); not a boolean."""
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise ParameterError(f"{name}: expected a number, got {value!r}")
+    try:
+        return float(value)
+    except ValueError as err:
+        raise ParameterError(f"{name}: {err}") from err
+
+
 def _finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
@@ -462,9 +474,17 @@ def shift_gt_correlation(trials: Sequence[Trial]) -> float:
             if t.converged and math.isfinite(t.shift) and math.isfinite(t.gt_metric)
         ]
     )
-    if len(pairs) < 3:
+    if len(pairs) < 3 or np.any(np.ptp(pairs, axis=0) == 0):
         return math.nan
-    ranks = np.argsort(np.argsort(pairs, axis=0), axis=0).astype(float)
-    if np.any(np.std(ranks, axis=0) == 0) or np.any(np.ptp(pairs, axis=0) == 0):
-        return math.nan
-    return float(np.corrcoef(ranks[:, 0], ranks[:, 1])[0, 1])
+    return float(np.corrcoef(_average_ranks(pairs[:, 0]), _average_ranks(pairs[:, 1]))[0, 1])
+
+
+def _average_ranks(values: FloatArray) -> FloatArray:
+    """Ranks 0…n−1, tied values sharing the mean of their ranks (as Spearman's needs)."""
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(len(values), dtype=float)
+    unique, inverse = np.unique(values, return_inverse=True)
+    sums = np.bincount(inverse, weights=ranks, minlength=len(unique))
+    counts = np.bincount(inverse, minlength=len(unique))
+    return np.asarray(sums[inverse] / counts[inverse], dtype=float)
