@@ -10,10 +10,13 @@ grid the cells are its values; for a sampler, log-spaced bins of the same number
 
 from __future__ import annotations
 
+import functools
 import io
 import itertools
 import math
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from typing import ParamSpec, TypeVar
 
 import matplotlib
 
@@ -25,6 +28,22 @@ from matplotlib.figure import Figure
 
 from app.domain.tuning import SearchSpace, Trial, best_trial, shift_gt_correlation
 
+P = ParamSpec("P")
+R = TypeVar("R")
+#: pyplot's figures and matplotlib's text layout are not thread-safe, and the API renders plots in
+#: its thread pool (a page asking for two plots at once made one fail): one plot at a time.
+_PLOT_LOCK = threading.Lock()
+
+
+def _one_at_a_time(render: Callable[P, R]) -> Callable[P, R]:
+    @functools.wraps(render)
+    def locked(*args: P.args, **kwargs: P.kwargs) -> R:
+        with _PLOT_LOCK:
+            return render(*args, **kwargs)
+
+    return locked
+
+
 OBJECTIVE_LABELS = {"shift": "shift metric", "ground_truth": "ground-truth metric"}
 SHORT_NAMES = {
     "tag_position_var_m2": "tag position var (m²)",
@@ -35,6 +54,7 @@ SHORT_NAMES = {
 }
 
 
+@_one_at_a_time
 def heatmap_png(space: SearchSpace, trials: Sequence[Trial], *, objective: str) -> bytes:
     """Best score per cell for every pair of swept parameters (a single axis: score vs value)."""
     pairs = list(itertools.combinations(range(len(space.axes)), 2))
@@ -113,6 +133,7 @@ def _score_curve(axes, space, trials, objective, label) -> None:  # type: ignore
     axes.set_ylabel(label)
 
 
+@_one_at_a_time
 def shift_vs_gt_png(trials: Sequence[Trial], *, gt_metric_pre: float | None = None) -> bytes:
     """Shift metric against ground-truth metric over the converged trials (the paper's Fig. 3),
     with the Spearman correlation, both metrics' choices marked and, when given, the

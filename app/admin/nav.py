@@ -23,6 +23,7 @@ NAV = (
     NavItem(label="Sessions", url="/admin/sessions", section="sessions"),
     NavItem(label="Jobs", url="/admin/jobs", section="jobs"),
     NavItem(label="Maps", url="/admin/maps", section="maps"),
+    NavItem(label="Sweeps", url="/admin/sweeps", section="sweeps"),
     NavItem(label="Route tester", url="/admin/routes", section="routes"),
     NavItem(label="API keys", url="/admin/keys", section="keys"),
 )

@@ -20,9 +20,10 @@ from app.admin.pages import (
     route_tester,
     sessions,
     static,
+    sweeps,
 )
 
-PAGES = (static, login, overview, sessions, jobs, maps, route_tester, keys)
+PAGES = (static, login, overview, sessions, jobs, maps, sweeps, route_tester, keys)
 
 router = APIRouter(include_in_schema=False)
 for page in PAGES:

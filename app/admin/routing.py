@@ -111,22 +111,22 @@ def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
     if isinstance(exc, CsrfRefused):
         return 403, f"{exc} Go back, reload the page and try again."
     if isinstance(exc, ApiError):
-        return exc.status_code, _sentence(exc.detail)
+        return exc.status_code, sentence(exc.detail)
     if isinstance(exc, NOT_FOUND):
-        return 404, _sentence(str(exc))
+        return 404, sentence(str(exc))
     if isinstance(exc, InvalidTransition):
-        return 409, _sentence(str(exc))
+        return 409, sentence(str(exc))
     if isinstance(exc, ParameterError):
-        return 422, _sentence(str(exc))
+        return 422, sentence(str(exc))
     if isinstance(exc, RequestValidationError):
         parts = []
         for error in exc.errors():
             where = field_path(error.get("loc", ())) or "request"
             message = str(error.get("msg", "invalid"))
             parts.append(f"Invalid {where}: {message[:1].lower()}{message[1:]}")
-        return 422, _sentence("; ".join(parts) or "Invalid request")
+        return 422, sentence("; ".join(parts) or "Invalid request")
     if isinstance(exc, StarletteHTTPException):
-        return exc.status_code, _sentence(str(exc.detail))
+        return exc.status_code, sentence(str(exc.detail))
     if isinstance(exc, OperationalError):
         logger.error("database unavailable during %s %s: %s", request.method, request.url, exc)
         return 503, "The database is unavailable or busy; try again shortly."
@@ -140,7 +140,8 @@ def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
     return 500, "Something went wrong on the server; it has been logged."
 
 
-def _sentence(text: str) -> str:
+def sentence(text: str) -> str:
+    """``text`` as a sentence for a page: capitalized, ending with a full stop."""
     text = text.strip()
     if not text:
         return text

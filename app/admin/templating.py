@@ -3,11 +3,14 @@ and the security headers of every dashboard response.
 
     return render(request, "map.html", section="maps", title="Map 3", map=info)
     return redirect(request, "/admin/jobs/5", flash="Job 5 canceled.")
+    return redirect(request, "/admin/sweeps/4", flash="Rebuild queued as job 9.",
+                    flash_link=("/admin/jobs/9", "Follow job 9"))
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -86,21 +89,53 @@ def render(
     return response
 
 
-def redirect(request: Request, url: str, *, flash: str | None = None) -> RedirectResponse:
-    """303 to ``url`` (after a form), with a message to show there."""
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Flash:
+    """A message shown once, on the page a form redirects to; optionally with a link (a
+    dashboard path) after it."""
+
+    message: str
+    link_url: str | None = None
+    link_text: str | None = None
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def redirect(
+    request: Request,
+    url: str,
+    *,
+    flash: str | None = None,
+    flash_link: tuple[str, str] | None = None,
+) -> RedirectResponse:
+    """303 to ``url`` (after a form), with a message to show there and, after it, a link
+    ``(url, text)``."""
     response = RedirectResponse(url, status_code=303)
     if flash is not None:
-        token = admin_state(request).signer.sign("flash", {"message": flash}, ttl_s=FLASH_TTL_S)
+        payload = {"message": flash}
+        if flash_link is not None:
+            payload["link_url"], payload["link_text"] = flash_link
+        token = admin_state(request).signer.sign("flash", payload, ttl_s=FLASH_TTL_S)
         set_cookie(response, request, FLASH_COOKIE, token, max_age_s=FLASH_TTL_S)
     return response
 
 
-def _take_flash(request: Request) -> str | None:
+def _take_flash(request: Request) -> Flash | None:
     cookie = request.cookies.get(FLASH_COOKIE)
     if cookie is None:
         return None
     payload = admin_state(request).signer.unsign("flash", cookie)
-    return str(payload["message"]) if payload and "message" in payload else None
+    if not payload or "message" not in payload:
+        return None
+    link_url, link_text = payload.get("link_url"), payload.get("link_text")
+    if not (isinstance(link_url, str) and link_url.startswith("/admin/")):
+        link_url = link_text = None
+    return Flash(
+        message=str(payload["message"]),
+        link_url=link_url,
+        link_text=str(link_text) if link_url else None,
+    )
 
 
 def add_security_headers(response: Response) -> None:

@@ -1,6 +1,6 @@
 """The admin dashboard in a real browser (headless Chromium through Playwright) against a real
-server and worker: logging in, live progress, the map plot, rebuild, cancel, keys, CSRF, and an
-automated accessibility check (axe-core) of every page.
+server and worker: logging in, live progress, the map plot, rebuild, cancel, keys, CSRF, a sweep
+started, watched and applied, and an automated accessibility check (axe-core) of every page.
 
 The tests share one server, one worker and one logged-in page (see conftest.py) and run in file
 order: the cancel test needs the worker off, the later ones turn it on.
@@ -8,6 +8,7 @@ order: the cancel test needs the worker off, the later ones turn it on.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import httpx
@@ -21,6 +22,7 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 SESSIONS = Path(__file__).resolve().parents[2] / "data" / "sessions"
 OCCAM = SESSIONS / "occam_room.json"
 ONETAG = SESSIONS / "onetag.json"
+GROUND_TRUTH = SESSIONS.parent / "ground_truth" / "occam_room_tape.json"
 OCCAM_IDEMPOTENCY_KEY = "browser-occam"
 #: How long a build may take to be seen succeeding (the worker imports gtsam first), ms.
 BUILD_TIMEOUT_MS = 120_000
@@ -190,10 +192,75 @@ def test_a_form_posted_without_its_csrf_token_is_refused(page, api):
     assert len(api.list_keys()) == keys_before
 
 
+def test_start_a_sweep_watch_it_finish_and_apply_its_best_parameters(page, api, built_map, worker):
+    worker.on()
+    map_id = built_map["map_id"]
+    before = len(api.map_versions(map_id))
+    page.goto(f"/admin/maps/{map_id}")
+    page.get_by_role("link", name="Sweeps of this map").click()
+    expect(page.get_by_label("Map", exact=True)).to_have_value(str(map_id))
+
+    # a refused form: shown again with the reason, and the field at fault focused
+    for name in ("Tag orientation variance", "Odometry linear variance", "Odometry angular"):
+        page.get_by_role("group", name=re.compile(name)).get_by_role("checkbox").uncheck()
+    page.get_by_role("button", name="Start the sweep").click()
+    expect(page.locator("#start-error")).to_have_text(
+        "The search space is empty: give at least one parameter to sweep."
+    )
+    expect(page.locator("#start-tag_position_var_m2")).to_be_focused()
+    assert not _serious_violations(page)
+
+    # a 2 × 2 grid scored against the tape-measured ground truth (a file)
+    for name, low, high in (
+        ("Tag orientation variance", "1e-4", "1"),
+        ("Odometry linear variance", "1e-5", "0.1"),
+    ):
+        axis = page.get_by_role("group", name=re.compile(name))
+        axis.get_by_role("checkbox").check()
+        axis.get_by_label("Low").fill(low)
+        axis.get_by_label("High").fill(high)
+        axis.get_by_label("Values").fill("2")
+    page.get_by_label("Ground-truth file").set_input_files(GROUND_TRUTH)
+    page.get_by_role("button", name="Start the sweep").click()
+    expect(page.locator(".flash")).to_contain_text("started: 4 trials (grid)")
+    sweep_id = int(page.url.rsplit("/", 1)[1])
+
+    page.evaluate("window.notReloaded = true")
+    expect(page.locator("#sweep-state")).to_have_text("succeeded", timeout=BUILD_TIMEOUT_MS)
+    expect(page.locator("#sweep-trials")).to_have_text("4 of 4")
+    expect(page.locator("#live-announcer")).to_contain_text(f"Sweep {sweep_id}: succeeded.")
+    heatmap = page.locator("#sweep-heatmap")
+    expect(heatmap).to_have_attribute("src", re.compile(r"heatmap\.png\?trials=4$"))
+    expect(heatmap).to_have_attribute("alt", re.compile(r"^Heat maps of the best shift metric"))
+    page.wait_for_function(
+        """() => { const img = document.getElementById('sweep-heatmap');
+                   return !!img && img.complete && img.naturalWidth > 0; }"""
+    )
+    expect(page.locator("#sweep-shift-vs-gt")).to_be_visible()
+    expect(page.locator("#best-trials tbody tr")).to_have_count(4)
+    assert page.evaluate("window.notReloaded") is True
+
+    page.get_by_role("button", name="Apply best parameters").click()
+    expect(page.locator(".flash")).to_contain_text(f"with sweep {sweep_id}'s best parameters")
+    job_link = page.locator(".flash a")
+    expect(job_link).to_have_text(re.compile(r"^Follow job \d+$"))
+    applied = page.locator("#sweep-applied")  # live, no reload
+    expect(applied).to_contain_text(
+        f"version {before + 1} of map {map_id}", timeout=BUILD_TIMEOUT_MS
+    )
+    applied.get_by_role("link", name=f"version {before + 1} of map {map_id}").click()
+    expect(page.get_by_role("heading", name=f"Version {before + 1} (current)")).to_be_visible()
+    best = api.request("GET", f"/v1/sweeps/{sweep_id}").json()["summary"]["best_values"]
+    newest = api.map_versions(map_id)[-1]
+    assert newest["number"] == before + 1
+    for name, value in best.items():
+        assert newest["params"][name] == pytest.approx(value)
+
+
 def _pages(built_map, api) -> dict[str, str]:
     job_id = api.list_jobs()["data"][0]["id"]
     map_id = built_map["map_id"]
-    return {
+    pages = {
         "overview": "/admin",
         "sessions": "/admin/sessions",
         "session": f"/admin/sessions/{built_map['session_id']}",
@@ -204,8 +271,13 @@ def _pages(built_map, api) -> dict[str, str]:
         "routes": "/admin/routes",
         "route": f"/admin/maps/{map_id}/route?from=tag:0&to=tag:5",
         "keys": "/admin/keys",
+        "sweeps": "/admin/sweeps",
         "not found": "/admin/maps/999999",
     }
+    sweeps = api.request("GET", "/v1/sweeps", params={"limit": 1}).json()["data"]
+    if sweeps:  # the sweep test ran
+        pages["sweep"] = f"/admin/sweeps/{sweeps[0]['id']}"
+    return pages
 
 
 def _serious_violations(page) -> list[str]:
@@ -224,6 +296,10 @@ def test_every_page_has_no_serious_accessibility_violation(page, browser, server
         page.goto(path)
         if page.locator(".plot").count():
             expect(page.locator(".plot").first).to_have_attribute("data-rendered", "true")
+        if page.locator("#sweep-heatmap").count():
+            page.wait_for_function(
+                "() => document.getElementById('sweep-heatmap').naturalWidth > 0"
+            )
         found = _serious_violations(page)
         if found:
             failures[name] = found

@@ -716,3 +716,22 @@ def test_run_sweep_refuses_zero_processes() -> None:
     plan = SweepPlan(method="grid", space=SearchSpace((Axis("gravity_var_rad2", 1e-4, 1e-2, 2),)))
     with pytest.raises(ParameterError, match="processes must be ≥ 1"):
         run_sweep(session, plan, processes=0)
+
+
+def test_plots_drawn_from_many_threads_at_once_all_succeed() -> None:
+    """The API renders plots in its thread pool; pyplot is not thread-safe (without the lock
+    about half of 40 parallel renders failed)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    trials = grid_trials(PAPER_SMALL)
+    with_gt = [make_trial(t.values, shift=t.shift, gt_metric=t.shift * 2) for t in trials]
+
+    def render(k: int) -> bytes:
+        if k % 2:
+            return shift_vs_gt_png(with_gt, gt_metric_pre=0.5)
+        return heatmap_png(PAPER_SMALL, trials, objective="shift")
+
+    with ThreadPoolExecutor(8) as pool:
+        images = list(pool.map(render, range(24)))
+    assert all(png.startswith(b"\x89PNG") for png in images)
+    assert len(set(images[::2])) == 1  # the same heat map every time

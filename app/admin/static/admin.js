@@ -1,8 +1,9 @@
 // The admin dashboard's script: live regions, plots, confirmations. Plain JavaScript, no build.
 //
 // - An element with data-live-url="…" is refreshed by fetching that URL (an HTML fragment) every
-//   data-live-interval-ms; jobs that change state (elements with data-job-id and data-job-state)
-//   are announced in #live-announcer, a polite live region, for screen-reader users.
+//   data-live-interval-ms; jobs and sweeps that change state (elements with data-job-id and
+//   data-job-state, or data-sweep-id and data-sweep-state) are announced in #live-announcer, a
+//   polite live region, for screen-reader users.
 // - <script type="application/json" id="map-figure"> holds a map's plot data (see
 //   app/admin/map_figure.py); each .plot element draws one floor of it with plotly.js.
 // - A form with data-confirm="…" asks before it is submitted.
@@ -21,10 +22,14 @@
 
   // ------------------------------------------------------------------ live regions
 
+  // The state of each job and sweep shown in root, by name ("Job 5", "Sweep 2").
   function jobStates(root) {
     const states = new Map();
     root.querySelectorAll("[data-job-id][data-job-state]").forEach((element) => {
-      states.set(element.dataset.jobId, element.dataset.jobState);
+      states.set(`Job ${element.dataset.jobId}`, element.dataset.jobState);
+    });
+    root.querySelectorAll("[data-sweep-id][data-sweep-state]").forEach((element) => {
+      states.set(`Sweep ${element.dataset.sweepId}`, element.dataset.sweepState);
     });
     return states;
   }
@@ -76,9 +81,9 @@
     container.dataset.liveHtml = html;
     const after = jobStates(container);
     const changes = [];
-    after.forEach((state, id) => {
-      if (before.has(id) && before.get(id) !== state) changes.push(`Job ${id}: ${state}.`);
-      if (!before.has(id)) changes.push(`New job ${id}: ${state}.`);
+    after.forEach((state, name) => {
+      if (before.has(name) && before.get(name) !== state) changes.push(`${name}: ${state}.`);
+      if (!before.has(name)) changes.push(`New ${name.toLowerCase()}: ${state}.`);
     });
     if (changes.length) announce(changes.join(" "));
     if (key) {

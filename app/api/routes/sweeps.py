@@ -10,9 +10,11 @@ parameter, a non-positive variance, ``objective: ground_truth`` without ground t
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response
+from sqlalchemy.orm import Session
 
 from app.api.deps import (
     AdminPrincipal,
@@ -30,6 +32,7 @@ from app.domain.errors import InvisibleMapError, ParameterError
 from app.domain.ground_truth import parse_ground_truth_json
 from app.domain.tuning import SearchSpace, best_trial, check_objective
 from app.storage import sweeps
+from app.storage.maps import MapInfo
 from app.storage.sweeps import SweepInfo
 from app.sweep_runner import SweepPlan
 
@@ -45,6 +48,69 @@ PNG: dict[int | str, dict[str, Any]] = {
 }
 NO_GROUND_TRUTH = ("no_ground_truth", "sweep 4 has no ground truth to plot against")
 NO_BEST = ("no_best_trial", "sweep 4 has no converged trial yet: nothing to apply")
+
+
+def checked_plan(
+    *,
+    method: str,
+    trials: int,
+    objective: str,
+    seed: int,
+    space: Mapping[str, Mapping[str, Any]] | None,
+    ground_truth: dict[str, Any] | None,
+) -> SweepPlan:
+    """The sweep a request asks for (``space`` None: the paper grid), checked: ApiError 422
+    naming the field at fault (``space``, which also covers the method and trial count,
+    ``ground_truth`` or ``objective``)."""
+    try:
+        search = SearchSpace.paper_grid() if space is None else SearchSpace.from_dict(space)
+        plan = SweepPlan(method=method, space=search, trials=trials, objective=objective, seed=seed)
+    except ParameterError as err:
+        raise ApiError(422, "invalid_sweep", str(err), field="space") from err
+    if ground_truth is not None:
+        try:
+            parse_ground_truth_json(ground_truth)
+        except InvisibleMapError as err:
+            raise ApiError(422, "invalid_ground_truth", str(err), field="ground_truth") from err
+    try:
+        check_objective(plan.objective, has_ground_truth=ground_truth is not None)
+    except ParameterError as err:
+        raise ApiError(422, "invalid_sweep", str(err), field="objective") from err
+    return plan
+
+
+def heatmap_content(session: Session, info: SweepInfo) -> bytes:
+    """The sweep's heat map, PNG."""
+    from app.sweep_plots import heatmap_png  # matplotlib: imported when a plot is asked for
+
+    trials = sweeps.list_trials(session, info.id)
+    return heatmap_png(SearchSpace.from_dict(info.space), trials, objective=info.objective)
+
+
+def shift_vs_gt_content(session: Session, info: SweepInfo) -> bytes:
+    """The sweep's shift-vs-ground-truth scatter, PNG; ApiError 409 without ground truth."""
+    from app.sweep_plots import shift_vs_gt_png
+
+    if not info.has_ground_truth:
+        raise ApiError(409, NO_GROUND_TRUTH[0], f"sweep {info.id} has no ground truth")
+    gt_metric_pre = (info.baseline or {}).get("gt_metric")
+    trials = sweeps.list_trials(session, info.id)
+    return shift_vs_gt_png(trials, gt_metric_pre=gt_metric_pre)
+
+
+def apply_best(
+    session: Session, info: SweepInfo, *, max_attempts: int
+) -> tuple[MapInfo, int, dict[str, Any]]:
+    """Queue a rebuild of the sweep's map with its base parameters and its best trial's values,
+    and record it on the sweep: (the map, the job id, the parameters). ApiError 409 while no
+    trial has converged."""
+    best = best_trial(sweeps.list_trials(session, info.id), info.objective)
+    if best is None:
+        raise ApiError(409, NO_BEST[0], f"sweep {info.id} has no converged trial yet")
+    overrides = checked_overrides({**info.base_params, **best.values})
+    map_info, job_id = enqueue_rebuild(session, info.map_id, overrides, max_attempts=max_attempts)
+    sweeps.set_applied(session, info.id, job_id)
+    return map_info, job_id, overrides
 
 
 @router.post(
@@ -65,30 +131,14 @@ def start_sweep(
     response: Response,
 ) -> SweepAccepted:
     base_params = checked_overrides(body.params)
-    try:
-        space = (
-            SearchSpace.paper_grid()
-            if body.space is None
-            else SearchSpace.from_dict({k: v.model_dump() for k, v in body.space.items()})
-        )
-        plan = SweepPlan(
-            method=body.method,
-            space=space,
-            trials=body.trials,
-            objective=body.objective,
-            seed=body.seed,
-        )
-    except ParameterError as err:
-        raise ApiError(422, "invalid_sweep", str(err), field="space") from err
-    if body.ground_truth is not None:
-        try:
-            parse_ground_truth_json(body.ground_truth)
-        except InvisibleMapError as err:
-            raise ApiError(422, "invalid_ground_truth", str(err), field="ground_truth") from err
-    try:
-        check_objective(plan.objective, has_ground_truth=body.ground_truth is not None)
-    except ParameterError as err:
-        raise ApiError(422, "invalid_sweep", str(err), field="objective") from err
+    plan = checked_plan(
+        method=body.method,
+        trials=body.trials,
+        objective=body.objective,
+        seed=body.seed,
+        space=None if body.space is None else {k: v.model_dump() for k, v in body.space.items()},
+        ground_truth=body.ground_truth,
+    )
     sweep_id = sweeps.create_sweep(
         session,
         map_id=info.id,
@@ -160,15 +210,8 @@ def get_sweep(
     responses={**PNG, **error_responses(401, 403, 404, 422)},
 )
 def get_heatmap(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> Response:
-    from app.sweep_plots import heatmap_png
-
     info = _sweep(session, sweep_id)
-    png = heatmap_png(
-        SearchSpace.from_dict(info.space),
-        sweeps.list_trials(session, info.id),
-        objective=info.objective,
-    )
-    return Response(content=png, media_type="image/png")
+    return Response(content=heatmap_content(session, info), media_type="image/png")
 
 
 @router.get(
@@ -180,14 +223,8 @@ def get_heatmap(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) 
     responses={**PNG, **error_responses(401, 403, 404, 409, 422, examples={409: NO_GROUND_TRUTH})},
 )
 def get_shift_vs_gt(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> Response:
-    from app.sweep_plots import shift_vs_gt_png
-
     info = _sweep(session, sweep_id)
-    if not info.has_ground_truth:
-        raise ApiError(409, NO_GROUND_TRUTH[0], f"sweep {info.id} has no ground truth")
-    gt_metric_pre = (info.baseline or {}).get("gt_metric")
-    png = shift_vs_gt_png(sweeps.list_trials(session, info.id), gt_metric_pre=gt_metric_pre)
-    return Response(content=png, media_type="image/png")
+    return Response(content=shift_vs_gt_content(session, info), media_type="image/png")
 
 
 @router.post(
@@ -207,14 +244,7 @@ def apply_sweep(
     response: Response,
 ) -> RebuildAccepted:
     info = _sweep(session, sweep_id)
-    best = best_trial(sweeps.list_trials(session, info.id), info.objective)
-    if best is None:
-        raise ApiError(409, NO_BEST[0], f"sweep {info.id} has no converged trial yet")
-    overrides = checked_overrides({**info.base_params, **best.values})
-    map_info, job_id = enqueue_rebuild(
-        session, info.map_id, overrides, max_attempts=settings.max_attempts
-    )
-    sweeps.set_applied(session, info.id, job_id)
+    map_info, job_id, overrides = apply_best(session, info, max_attempts=settings.max_attempts)
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     return RebuildAccepted(
         job_id=job_id,
