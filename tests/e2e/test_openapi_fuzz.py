@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from app.client import Client
-from app.server_process import ServerProcess
+from app.server_process import ServerProcess, WorkerProcess
 
 pytestmark = [pytest.mark.db, pytest.mark.slow]
 
@@ -26,8 +26,13 @@ SEED = 20261122
 def server(tmp_path_factory, data_dir):
     folder = tmp_path_factory.mktemp("fuzz")
     database_url = f"sqlite:///{folder / 'fuzz.sqlite3'}"
-    with ServerProcess(database_url, workers=1, log_path=folder / "serve.log") as running:
-        with Client(running.url, api_key=running.admin_key) as client:
+    with ServerProcess(database_url, workers=0, log_path=folder / "serve.log") as running:
+        # a worker only to build the map the fuzzer reads: the sweeps and rebuilds it starts
+        # would otherwise keep a core busy with trials while it runs
+        with (
+            WorkerProcess(database_url, log_path=folder / "worker.log"),
+            Client(running.url, api_key=running.admin_key) as client,
+        ):
             accepted = client.upload_session(data_dir / "sessions" / "onetag.json")
             client.wait_for_job(accepted["job_id"], timeout_s=120)
         yield running
