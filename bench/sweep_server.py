@@ -7,8 +7,8 @@
 For each worker count: a fresh database, ``invisible-map serve`` (no embedded workers) and
 ``invisible-map worker --processes N``; the real session ``occam_room`` is uploaded over HTTP and
 built, then ``POST /v1/maps/{id}/sweeps`` starts the grid and ``GET /v1/sweeps/{id}`` is polled
-every 0.5 s until it succeeds. Wall time is from the POST to the last trial stored (±0.5 s). Target (issue 4): 2
-worker processes ≥ 1.8× faster than 1.
+every 0.5 s until it succeeds. Wall time is from the POST to the last trial stored (±0.5 s).
+Target (issue 4): 2 worker processes ≥ 1.8× faster than 1.
 """
 
 from __future__ import annotations
