@@ -7,7 +7,7 @@ endpoint (its dependencies included) so that:
     LoginRequired                         303 to /admin/login?next=…
     CsrfRefused                           403 page
     ApiError (shared API helpers)         its status and detail
-    MapNotFound, JobNotFound, SweepNotFound, …   404 page
+    NOT_FOUND_ERRORS (MapNotFound, …)     404 page
     InvalidTransition                     409 page (e.g. cancel a finished job)
     ParameterError                        422 page
     RequestValidationError                422 page (a malformed query or path parameter)
@@ -33,25 +33,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
-from app.api.errors import ApiError, field_path
+from app.api.errors import NOT_FOUND_ERRORS, ApiError, field_path
 from app.domain.errors import ParameterError
-from app.storage.keys import KeyNotFound
-from app.storage.maps import MapNotFound
-from app.storage.navigation import LocalizationNotFound
-from app.storage.queue import InvalidTransition, JobNotFound
-from app.storage.sessions import SessionNotFound
-from app.storage.sweeps import SweepNotFound
+from app.storage.queue import InvalidTransition
 
 logger = logging.getLogger(__name__)
 
-NOT_FOUND = (
-    MapNotFound,
-    JobNotFound,
-    SessionNotFound,
-    KeyNotFound,
-    LocalizationNotFound,
-    SweepNotFound,
-)
 TITLE_OF_STATUS = {
     400: "Bad request",
     403: "Refused",
@@ -112,7 +99,7 @@ def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
         return 403, f"{exc} Go back, reload the page and try again."
     if isinstance(exc, ApiError):
         return exc.status_code, sentence(exc.detail)
-    if isinstance(exc, NOT_FOUND):
+    if isinstance(exc, NOT_FOUND_ERRORS):
         return 404, sentence(str(exc))
     if isinstance(exc, InvalidTransition):
         return 409, sentence(str(exc))

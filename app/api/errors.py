@@ -42,6 +42,16 @@ from app.storage.queue import InvalidTransition, JobNotFound
 from app.storage.sessions import IdempotencyConflict, SessionNotFound
 from app.storage.sweeps import SweepNotFound
 
+#: What the storage layer raises for an id that names nothing: a 404 in the API and the dashboard.
+NOT_FOUND_ERRORS: tuple[type[Exception], ...] = (
+    MapNotFound,
+    JobNotFound,
+    SessionNotFound,
+    KeyNotFound,
+    LocalizationNotFound,
+    SweepNotFound,
+)
+
 logger = logging.getLogger(__name__)
 
 #: The ``code`` of an error body for a bare status (404 route, 405 method, …).
@@ -120,14 +130,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(SessionFormatError, _session_format_error)
     app.add_exception_handler(ParameterError, handle(422, "invalid_parameter"))
-    for missing in (
-        MapNotFound,
-        JobNotFound,
-        SessionNotFound,
-        KeyNotFound,
-        LocalizationNotFound,
-        SweepNotFound,
-    ):
+    for missing in NOT_FOUND_ERRORS:
         app.add_exception_handler(missing, handle(404, "not_found"))
     app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
     app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))
