@@ -587,6 +587,17 @@ class RebuildAccepted(BaseModel):
     params: dict[str, Any] = Field(description="the overrides, as the job will use them")
     job_url: str
 
+    @classmethod
+    def queued(cls, info: MapInfo, job_id: int, params: dict[str, Any]) -> RebuildAccepted:
+        """The answer for the build job ``job_id`` queued for map ``info`` with ``params``."""
+        return cls(
+            job_id=job_id,
+            map_id=info.id,
+            session_id=info.session_id,
+            params=params,
+            job_url=f"/v1/jobs/{job_id}",
+        )
+
 
 class Vector3(BaseModel):
     x: float

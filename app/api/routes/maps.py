@@ -179,14 +179,9 @@ def rebuild_map(
     info, job_id = enqueue_rebuild(
         session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
     )
-    response.headers["Location"] = f"/v1/jobs/{job_id}"
-    return RebuildAccepted(
-        job_id=job_id,
-        map_id=info.id,
-        session_id=info.session_id,
-        params=overrides,
-        job_url=f"/v1/jobs/{job_id}",
-    )
+    accepted = RebuildAccepted.queued(info, job_id, overrides)
+    response.headers["Location"] = accepted.job_url
+    return accepted
 
 
 def enqueue_rebuild(

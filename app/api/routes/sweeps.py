@@ -245,14 +245,9 @@ def apply_sweep(
 ) -> RebuildAccepted:
     info = _sweep(session, sweep_id)
     map_info, job_id, overrides = apply_best(session, info, max_attempts=settings.max_attempts)
-    response.headers["Location"] = f"/v1/jobs/{job_id}"
-    return RebuildAccepted(
-        job_id=job_id,
-        map_id=map_info.id,
-        session_id=map_info.session_id,
-        params=overrides,
-        job_url=f"/v1/jobs/{job_id}",
-    )
+    accepted = RebuildAccepted.queued(map_info, job_id, overrides)
+    response.headers["Location"] = accepted.job_url
+    return accepted
 
 
 @router.post(
