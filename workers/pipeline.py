@@ -54,14 +54,11 @@ from app.storage.db import Database
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
-from app.storage.sessions import AUTO_TUNE_TRIALS, SessionNotFound, raw_upload
+from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP, SessionNotFound, raw_upload
 from app.sweep_runner import SweepPlan
 from workers.lease import JobControl
 
 logger = logging.getLogger(__name__)
-
-#: The job kind that builds a new version of a map from its session's raw upload.
-BUILD_MAP = "build_map"
 
 #: Least time between two progress writes from inside a stage, s (at most ~4 writes/s).
 PROGRESS_INTERVAL_S = 0.25
