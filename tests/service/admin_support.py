@@ -40,3 +40,12 @@ def csrf_token(client: TestClient, path: str = "/admin") -> str:
     match = _CSRF_TOKEN.search(page.text)
     assert match is not None
     return match.group(1)
+
+
+def assert_error_pages(client: TestClient, cases: list[tuple[str, int, str]]) -> None:
+    """Each (path, status, message): a GET answers that status with an HTML page saying it."""
+    for path, status, message in cases:
+        response = client.get(path)
+        assert response.status_code == status, path
+        assert response.headers["content-type"].startswith("text/html"), path
+        assert message in response.text, path

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from admin_support import csrf_token, logged_in
+from admin_support import assert_error_pages, csrf_token, logged_in
 from api_support import ADMIN, ONETAG, SESSIONS_DIR, Api, run_next_job, running_api, session_variant
 
 from app.admin.paging import Page
@@ -351,11 +351,7 @@ BAD_PATHS = [
 
 
 def test_unknown_ids_and_bad_paths_are_pages_not_errors(api: Api) -> None:
-    for path, status, message in BAD_PATHS:
-        response = api.client.get(path)
-        assert response.status_code == status, path
-        assert response.headers["content-type"].startswith("text/html")
-        assert message in response.text, path
+    assert_error_pages(api.client, BAD_PATHS)
 
 
 def test_forms_on_unknown_ids_are_404_pages(api: Api) -> None:

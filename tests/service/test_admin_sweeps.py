@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from admin_support import csrf_token, logged_in
+from admin_support import assert_error_pages, csrf_token, logged_in
 from api_support import ADMIN, OCCAM, ONETAG, Api, run_next_job, running_api
 from fastapi.testclient import TestClient
 from sqlalchemy import select
@@ -154,11 +154,7 @@ UNKNOWN = [
 
 
 def test_unknown_sweeps_are_404_pages(api: Api) -> None:
-    for path, status, message in UNKNOWN:
-        response = api.client.get(path)
-        assert response.status_code == status, path
-        assert response.headers["content-type"].startswith("text/html"), path
-        assert message in response.text, path
+    assert_error_pages(api.client, UNKNOWN)
     for action in ("/admin/sweeps/999/apply", "/admin/sweeps/999/cancel"):
         response = post(api, action)
         assert response.status_code == 404, action
