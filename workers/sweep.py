@@ -33,14 +33,16 @@ def _sweep_id(ctx: JobContext) -> int:
 def load_sweep(ctx: JobContext) -> None:
     """The sweep's session, prepared for trials (from the cache when this worker has it)."""
     sweep_id = _sweep_id(ctx)
-    with ctx.db.read() as tx:
-        try:
+    try:
+        with ctx.db.read() as tx:
             info = sweeps.get_sweep(tx, sweep_id)
-            ground_truth = sweeps.ground_truth_of(tx, sweep_id)
-        except sweeps.SweepNotFound as err:
-            raise PermanentJobError(str(err)) from err
-    key = (ctx.db.url.render_as_string(hide_password=True), sweep_id, info.created_at)
-    target = _targets.get(key)
+        key = (ctx.db.url.render_as_string(hide_password=True), sweep_id, info.created_at)
+        target = _targets.get(key)
+        if target is None:  # the ground truth is read only when the session is prepared
+            with ctx.db.read() as tx:
+                ground_truth = sweeps.ground_truth_of(tx, sweep_id)
+    except sweeps.SweepNotFound as err:
+        raise PermanentJobError(str(err)) from err
     if target is None:
         _, session = load_session_upload(ctx.db, info.session_id)
         target = TuningTarget.prepare(
