@@ -139,8 +139,9 @@ def _safe_url(settings: Settings) -> str:
 
 
 def _first_line(err: BaseException) -> str:
-    text = str(getattr(err, "orig", None) or err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
+    from app.storage.db import first_line  # (imports SQLAlchemy: only when needed)
+
+    return first_line(err)
 
 
 # --------------------------------------------------------------------------- commands

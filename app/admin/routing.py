@@ -11,7 +11,7 @@ endpoint (its dependencies included) so that:
     InvalidTransition                     409 page (e.g. cancel a finished job)
     ParameterError                        422 page
     RequestValidationError                422 page (a malformed query or path parameter)
-    OperationalError                      503 page
+    a database fault (app.storage.db)     503 page saying which (unavailable, full, read-only)
     anything else                         500 page (logged with its traceback)
 
 Pages and forms that can say more (the rebuild form re-shown with its error) catch their errors
@@ -28,13 +28,13 @@ from fastapi import APIRouter, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import RedirectResponse
 from fastapi.routing import APIRoute
-from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
-from app.api.errors import NOT_FOUND_ERRORS, ApiError, field_path
+from app.api.errors import FAULT_ANSWERS, NOT_FOUND_ERRORS, ApiError, field_path
 from app.domain.errors import ParameterError
+from app.storage.db import database_fault
 from app.storage.queue import InvalidTransition
 
 logger = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ TITLE_OF_STATUS = {
     422: "Invalid input",
     429: "Too many attempts",
     500: "Server error",
-    503: "Database unavailable",
+    503: "Service unavailable",
 }
 
 
@@ -114,9 +114,10 @@ def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
         return 422, sentence("; ".join(parts) or "Invalid request")
     if isinstance(exc, StarletteHTTPException):
         return exc.status_code, sentence(str(exc.detail))
-    if isinstance(exc, OperationalError):
-        logger.error("database unavailable during %s %s: %s", request.method, request.url, exc)
-        return 503, "The database is unavailable or busy; try again shortly."
+    fault = database_fault(exc)
+    if fault is not None:
+        logger.error("%s during %s %s: %s", fault.value, request.method, request.url.path, exc)
+        return 503, sentence(FAULT_ANSWERS[fault][0])
     logger.error(
         "unhandled error in %s %s",
         request.method,

@@ -16,7 +16,9 @@ What becomes what::
     LocalizationNotFound                       404 not_found
     InvalidTransition                          409 invalid_transition (names the job's state)
     IdempotencyConflict                        409 idempotency_conflict
-    sqlalchemy OperationalError                503 database_unavailable
+    a database fault (app.storage.db)          503 database_unavailable, storage_full,
+                                               storage_read_only or storage_unavailable, with
+                                               Retry-After; nothing of the request was stored
     starlette HTTPException (404 route, 405)   its status, code from the status
     anything else                              500 internal_error
 """
@@ -30,11 +32,13 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.schemas import ErrorBody
 from app.domain.errors import ParameterError, SessionFormatError
+from app.storage.db import DatabaseFault, database_fault
 from app.storage.keys import KeyNotFound
 from app.storage.maps import MapNotFound
 from app.storage.navigation import LocalizationNotFound
@@ -134,7 +138,8 @@ def install_error_handlers(app: FastAPI) -> None:
         app.add_exception_handler(missing, handle(404, "not_found"))
     app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
     app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))
-    app.add_exception_handler(OperationalError, _database_unavailable)
+    app.add_exception_handler(DBAPIError, _database_fault)
+    app.add_exception_handler(PoolTimeout, _database_fault)
     app.add_exception_handler(Exception, _internal_error)
 
 
@@ -175,20 +180,34 @@ async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
     )
 
 
-async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:
+#: What a client is told of each database fault (503 with Retry-After: seconds).
+FAULT_ANSWERS: dict[DatabaseFault, tuple[str, str]] = {
+    DatabaseFault.UNAVAILABLE: (
+        "the database is unavailable or busy; nothing was changed; try again shortly", "1"),
+    DatabaseFault.STORAGE_FULL: (
+        "the server's storage is full; nothing was stored; try again later", "60"),
+    DatabaseFault.READ_ONLY: (
+        "the server's storage is read-only; nothing was stored; try again later", "60"),
+    DatabaseFault.CANNOT_OPEN: (
+        "the server cannot open its database file (its disk is read-only, unmounted or gone); "
+        "nothing was changed; try again later", "60"),
+}  # fmt: skip
+
+
+async def _database_fault(request: Request, exc: Exception) -> JSONResponse:
+    fault = database_fault(exc)
+    if fault is None:  # a bug (a constraint, a bad statement), not the database's state
+        return await _internal_error(request, exc)
     logger.error(
-        "database unavailable during %s %s: %s",
+        "%s during %s %s: %s",
+        fault.value,
         request.method,
         request.url.path,
-        exc,
-        extra={"action": "database_unavailable"},
+        str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+        extra={"action": fault.value},
     )
-    return error_response(
-        503,
-        "database_unavailable",
-        "the database is unavailable or busy; try again shortly",
-        headers={"Retry-After": "1"},
-    )
+    detail, retry_after_s = FAULT_ANSWERS[fault]
+    return error_response(503, fault.value, detail, headers={"Retry-After": retry_after_s})
 
 
 async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
@@ -236,8 +255,9 @@ _EXAMPLES: dict[int, tuple[str, str, str, str | None]] = {
           "Content-Type must be application/json, got text/plain", "Content-Type"),
     422: ("Invalid input", "invalid_session", "pose_data[3].pose: rotation not orthonormal",
           "pose_data[3].pose"),
-    503: ("Unavailable", "database_unavailable",
-          "the database is unavailable or busy; try again shortly", None),
+    503: ("The database is unavailable, full or read-only (database_unavailable, storage_full, "
+          "storage_read_only, storage_unavailable); nothing was changed", "database_unavailable",
+          "the database is unavailable or busy; nothing was changed; try again shortly", None),
 }  # fmt: skip
 
 

@@ -9,12 +9,15 @@ the file is in WAL mode so readers never wait for a writer. On PostgreSQL both a
 
 from __future__ import annotations
 
+import enum
+import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Engine, create_engine, event, make_url, text
+from sqlalchemy import exc as sqlalchemy_exc
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
@@ -65,6 +68,70 @@ class Database:
         self.engine.dispose()
         if self.read_engine is not self.engine:
             self.read_engine.dispose()
+
+
+class DatabaseFault(enum.StrEnum):
+    """Why the database could not do what was asked, when it is the database's fault and not
+    the request's; the same request may succeed later (a 503 in the API, a wait in the worker)."""
+
+    #: unreachable, restarting, a dropped connection, busy or locked past its timeout
+    UNAVAILABLE = "database_unavailable"
+    #: the disk holding the database is full (SQLITE_FULL; PostgreSQL SQLSTATE 53100)
+    STORAGE_FULL = "storage_full"
+    #: the database refuses writes (a read-only file or file system; a read-only server)
+    READ_ONLY = "storage_read_only"
+    #: the SQLite file cannot be opened (its disk is read-only, unmounted or gone)
+    CANNOT_OPEN = "storage_unavailable"
+
+
+#: PostgreSQL SQLSTATEs that name the fault (other connection and shutdown errors are
+#: OperationalErrors: unavailable).
+_PG_READ_ONLY_SQLSTATES = frozenset({"25006"})
+_PG_FULL_SQLSTATES = frozenset({"53100"})
+
+
+#: SQLite's primary result codes that are faults of the database's state, not of the request.
+_SQLITE_FAULTS = {
+    sqlite3.SQLITE_FULL: DatabaseFault.STORAGE_FULL,
+    sqlite3.SQLITE_READONLY: DatabaseFault.READ_ONLY,
+    sqlite3.SQLITE_CANTOPEN: DatabaseFault.CANNOT_OPEN,
+    sqlite3.SQLITE_BUSY: DatabaseFault.UNAVAILABLE,
+    sqlite3.SQLITE_LOCKED: DatabaseFault.UNAVAILABLE,
+    sqlite3.SQLITE_IOERR: DatabaseFault.UNAVAILABLE,
+    sqlite3.SQLITE_PROTOCOL: DatabaseFault.UNAVAILABLE,
+}
+
+
+def database_fault(err: BaseException) -> DatabaseFault | None:
+    """What kind of database fault ``err`` is, or None if it is not one (a bug, a constraint
+    violation, a bad statement: those are not made better by waiting)."""
+    if isinstance(err, sqlalchemy_exc.DBAPIError):
+        original = err.orig
+        sqlite_code = getattr(original, "sqlite_errorcode", None)
+        if isinstance(sqlite_code, int):
+            # (pysqlite raises OperationalError for syntax errors too: the code tells them apart;
+            # extended result codes carry the primary one in their low byte)
+            return _SQLITE_FAULTS.get(sqlite_code & 0xFF)
+        sqlstate = getattr(original, "sqlstate", None)
+        if sqlstate in _PG_FULL_SQLSTATES:
+            return DatabaseFault.STORAGE_FULL
+        if sqlstate in _PG_READ_ONLY_SQLSTATES:
+            return DatabaseFault.READ_ONLY
+        if isinstance(err, sqlalchemy_exc.OperationalError | sqlalchemy_exc.InterfaceError):
+            return DatabaseFault.UNAVAILABLE
+        if err.connection_invalidated:
+            return DatabaseFault.UNAVAILABLE
+        return None
+    if isinstance(err, sqlalchemy_exc.TimeoutError):  # no pooled connection came free in time
+        return DatabaseFault.UNAVAILABLE
+    return None
+
+
+def first_line(err: BaseException) -> str:
+    """The first line of ``err``'s message (of the driver's own error, if SQLAlchemy wrapped
+    one: its message goes on with the SQL), or its type's name if it has none."""
+    text = str(getattr(err, "orig", None) or err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 def _ensure_sqlite_folder(database: str | None) -> None:
