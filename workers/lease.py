@@ -18,15 +18,20 @@ longer than that, as it is by far with the defaults (30 s and 5 s).
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable
 from types import TracebackType
 
 from app.storage import queue
-from app.storage.db import Database
+from app.storage.db import Database, database_fault, first_line
 from app.storage.queue import Lease, LeaseLost
 
 logger = logging.getLogger(__name__)
+
+#: How much earlier than ``lease_s`` after a renewal the worker counts its lease as gone, s.
+LEASE_MARGIN_S = 1.0
 
 
 class JobControl:
@@ -36,12 +41,16 @@ class JobControl:
     lease_lost: the lease is gone; the job is abandoned and nothing more is written.
     release_requested: the worker is shutting down now; the job goes back to the queue at the next
         stage boundary, its attempt not counted.
+    lease_deadline_s: until when (``time.monotonic()``) the lease holds without another renewal;
+        the runner waits out a database outage only until then (``-inf``: no lease keeper, so it
+        does not wait).
     """
 
     def __init__(self) -> None:
         self.cancel_requested = False
         self.lease_lost = False
         self.release_requested = False
+        self.lease_deadline_s = -math.inf
 
     def __repr__(self) -> str:
         return (
@@ -81,8 +90,14 @@ class LeaseKeeper:
         )
 
     def __enter__(self) -> LeaseKeeper:
+        self._renewed()  # the claim just gave a full lease
         self._thread.start()
         return self
+
+    def _renewed(self) -> None:
+        """The lease was just renewed: it holds ``lease_s`` from now (less a second, as the
+        database's clock started counting a little earlier)."""
+        self._control.lease_deadline_s = time.monotonic() + self._lease_s - LEASE_MARGIN_S
 
     def __exit__(
         self,
@@ -99,15 +114,17 @@ class LeaseKeeper:
             try:
                 if queue.heartbeat(self._db, self._lease, lease_s=self._lease_s):
                     self._control.cancel_requested = True
+                self._renewed()
             except LeaseLost:
                 self._control.lease_lost = True
                 return
-            except Exception:
+            except Exception as err:
                 logger.warning(
-                    "job %d: heartbeat failed; trying again in %g s",
+                    "job %d: heartbeat failed (%s); trying again in %g s",
                     job_id,
+                    first_line(err),
                     self._heartbeat_s,
-                    exc_info=True,
+                    exc_info=database_fault(err) is None,  # a traceback only for the unexpected
                     extra={"action": "heartbeat_failed", "job_id": job_id},
                 )
                 continue

@@ -41,11 +41,11 @@ from types import FrameType
 
 from app.config import Settings
 from app.storage import queue
-from app.storage.db import Database
+from app.storage.db import Database, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
 from workers.lease import JobControl, LeaseKeeper
-from workers.pipeline import PIPELINES, JobReport, Outcome, Stage, run_job
+from workers.pipeline import OUTAGE_MAX_WAIT_S, PIPELINES, JobReport, Outcome, Stage, run_job
 from workers.sweep import SWEEP_STAGES
 
 logger = logging.getLogger("workers")
@@ -191,39 +191,77 @@ class Worker:
 
     def run(self, stop: threading.Event) -> None:
         """Claim and run jobs until ``stop`` is set (or a signal asks to stop): register the
-        worker's row at the start, keep it current, remove it at the end."""
-        queue.register_worker(
-            self.db, worker_id=self.worker_id, hostname=socket.gethostname(), pid=os.getpid()
-        )
+        worker's row at the start, keep it current, remove it at the end. A database that does
+        not answer (at the start or later) is waited for, with one log line per outage."""
         logger.info(
             "worker %s started", self.worker_id, extra={"action": "worker_started", "job_id": None}
         )
+        registered = False
         try:
+            outage_wait_s = 0.0  # > 0 while the database is unavailable
             while not (stop.is_set() or self._stop_requested):
                 try:
+                    if not registered:
+                        queue.register_worker(
+                            self.db,
+                            worker_id=self.worker_id,
+                            hostname=socket.gethostname(),
+                            pid=os.getpid(),
+                        )
+                        registered = True
                     ran = self.run_once()
-                except Exception:
-                    logger.exception(
-                        "worker loop error; going on in %g s",
-                        self.settings.poll_s,
-                        extra={"action": "worker_error", "job_id": None},
+                except Exception as err:
+                    outage_wait_s = self._loop_error(err, outage_wait_s)
+                    stop.wait(outage_wait_s or self.settings.poll_s)
+                    continue
+                if outage_wait_s:
+                    outage_wait_s = 0.0
+                    logger.info(
+                        "the database answers again",
+                        extra={"action": "database_back", "job_id": None},
                     )
-                    ran = False
                 if not ran:
                     if time.monotonic() >= self._next_beat_s:
                         self._beat(state="idle")
                     stop.wait(self.settings.poll_s)
         finally:
             try:
-                queue.unregister_worker(self.db, worker_id=self.worker_id)
-            except Exception:
-                logger.warning("could not remove worker row %s", self.worker_id, exc_info=True)
+                if registered:
+                    queue.unregister_worker(self.db, worker_id=self.worker_id)
+            except Exception as err:
+                logger.warning(
+                    "could not remove worker row %s: %s",
+                    self.worker_id,
+                    first_line(err),
+                    exc_info=database_fault(err) is None,
+                )
             logger.info(
                 "worker %s stopped after %d job(s)",
                 self.worker_id,
                 self.jobs_done,
                 extra={"action": "worker_stopped", "job_id": None},
             )
+
+    def _loop_error(self, err: Exception, outage_wait_s: float) -> float:
+        """Log an error of the loop; returns how long to wait before the next try if it is a
+        database fault (one line when the outage starts, the wait doubling up to
+        :data:`OUTAGE_MAX_WAIT_S`), else 0 (a traceback, and the next try after ``poll_s``)."""
+        fault = database_fault(err)
+        if fault is None:
+            logger.exception(
+                "worker loop error; going on in %g s",
+                self.settings.poll_s,
+                extra={"action": "worker_error", "job_id": None},
+            )
+            return 0.0
+        if not outage_wait_s:
+            logger.warning(
+                "%s (%s): waiting for the database",
+                fault.value,
+                first_line(err),
+                extra={"action": fault.value, "job_id": None},
+            )
+        return min(max(2 * outage_wait_s, self.settings.poll_s), OUTAGE_MAX_WAIT_S)
 
     def _beat(self, *, state: str) -> None:
         self._next_beat_s = time.monotonic() + self.settings.heartbeat_s
@@ -235,8 +273,10 @@ class Worker:
                 current_job_id=self.current_job_id,
                 jobs_done=self.jobs_done,
             )
-        except Exception:
-            logger.warning("worker heartbeat failed", exc_info=True)
+        except Exception as err:
+            logger.warning(
+                "worker heartbeat failed: %s", first_line(err), exc_info=database_fault(err) is None
+            )
 
     # ----------------------------------------------------------------------- shutdown
 

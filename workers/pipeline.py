@@ -17,13 +17,22 @@ lost lease (abandon: write nothing). Errors decide between retrying and failing:
 - :class:`~app.domain.errors.InvisibleMapError` (the core refusing its input: a malformed upload,
   a bad parameter) and :class:`PermanentJobError` (a missing or corrupt stored input) can never
   succeed, so the job fails at once with the error's message;
-- any other ``Exception`` (the database unreachable, out of memory, a bug) is transient: the job
-  is queued again after a back-off that doubles per attempt, until ``max_attempts``.
+- any other ``Exception`` (out of memory, a bug, the database unreachable for longer than the
+  lease) is transient: the job is queued again after a back-off that doubles per attempt, until
+  ``max_attempts``.
+
+A database outage shorter than the lease does not cost the attempt: a stage or a job-state write
+that fails with a database fault (``app.storage.db.database_fault``: unreachable, restarting,
+full, read-only) is tried again, waiting 0.5 s, 1 s, 2 s, 4 s, 4 s … while the lease holds
+(``JobControl.lease_deadline_s``, kept by the heartbeat thread). Stages are idempotent (``store``
+commits all or nothing and is fenced), so trying one again is safe; and once the database is back
+the job carries on where it was, in the same attempt, and runs once.
 """
 
 from __future__ import annotations
 
 import enum
+import functools
 import gzip
 import logging
 import math
@@ -50,7 +59,7 @@ from app.domain.slam import optimize_session
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
 from app.plot import render_map_png
 from app.storage import maps, queue
-from app.storage.db import Database
+from app.storage.db import Database, database_fault, first_line
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
@@ -62,6 +71,10 @@ logger = logging.getLogger(__name__)
 
 #: Least time between two progress writes from inside a stage, s (at most ~4 writes/s).
 PROGRESS_INTERVAL_S = 0.25
+#: First and longest wait before trying a stage or a job-state write again while the database is
+#: unavailable, s (the wait doubles in between).
+OUTAGE_FIRST_WAIT_S = 0.5
+OUTAGE_MAX_WAIT_S = 4.0
 
 T = TypeVar("T")
 
@@ -346,6 +359,32 @@ def is_permanent(err: BaseException) -> bool:
     return isinstance(err, InvisibleMapError | PermanentJobError)
 
 
+def through_outages(control: JobControl, job_id: int, what: str, call: Callable[[], T]) -> T:
+    """``call()``, tried again while it fails with a database fault and the lease holds (see the
+    module docstring); any other error, a lost lease, or a fault outlasting the lease is raised."""
+    wait_s = OUTAGE_FIRST_WAIT_S
+    while True:
+        try:
+            return call()
+        except Exception as err:
+            fault = database_fault(err)
+            if fault is None or time.monotonic() + wait_s >= control.lease_deadline_s:
+                raise
+            if control.lease_lost:
+                raise LeaseLost(job_id) from err
+            logger.warning(
+                "job %d: %s: %s (%s); trying again in %g s, while the lease holds",
+                job_id,
+                what,
+                fault.value,
+                first_line(err),
+                wait_s,
+                extra={"action": "database_fault", "job_id": job_id},
+            )
+            time.sleep(wait_s)
+            wait_s = min(2 * wait_s, OUTAGE_MAX_WAIT_S)
+
+
 def run_job(
     db: Database,
     lease: Lease,
@@ -373,27 +412,33 @@ def run_job(
             duration_s=time.perf_counter() - started_s,
         )
 
+    def retrying(call: Callable[[], T], what: str) -> T:
+        return through_outages(control, lease.job_id, what, call)
+
     done_weight = 0.0
     try:
         for stage in stages:
             if control.lease_lost:
                 raise LeaseLost(lease.job_id)
             if control.release_requested:
-                queue.release(db, lease, log_tail=ctx.log_tail)
+                retrying(lambda: queue.release(db, lease, log_tail=ctx.log_tail), "release")
                 return ended(Outcome.RELEASED)
             ctx.begin_stage(
                 stage.name, start=done_weight / total_weight, weight=stage.weight / total_weight
             )
-            if queue.report_progress(
-                db, lease, progress=ctx.stage_start, stage=stage.name, log_tail=ctx.log_tail
+            if retrying(
+                lambda: queue.report_progress(
+                    db, lease, progress=ctx.stage_start, stage=ctx.stage, log_tail=ctx.log_tail
+                ),
+                "progress",
             ):
                 control.cancel_requested = True
             if control.cancel_requested:
                 # (the API's own "cancel requested" line is overwritten by the worker's tail)
                 ctx.log(f"cancel requested: stopping before {stage.name}")
-                queue.mark_canceled(db, lease, log_tail=ctx.log_tail)
+                retrying(lambda: queue.mark_canceled(db, lease, log_tail=ctx.log_tail), "cancel")
                 return ended(Outcome.CANCELED)
-            stage.run(ctx)
+            retrying(functools.partial(stage.run, ctx), f"stage {stage.name}")
             if ctx.finished:
                 return ended(Outcome.SUCCEEDED)
             done_weight += stage.weight
@@ -405,13 +450,16 @@ def run_job(
         permanent = is_permanent(err)
         ctx.log(f"{'permanent' if permanent else 'transient'} error in {error}")
         try:
-            state = queue.fail(
-                db,
-                lease,
-                error=error,
-                permanent=permanent,
-                backoff_s=retry_backoff_s,
-                log_tail=ctx.log_tail,
+            state = retrying(
+                lambda: queue.fail(
+                    db,
+                    lease,
+                    error=error,
+                    permanent=permanent,
+                    backoff_s=retry_backoff_s,
+                    log_tail=ctx.log_tail,
+                ),
+                "recording the error",
             )
         except LeaseLost:
             return ended(Outcome.LEASE_LOST, error)
