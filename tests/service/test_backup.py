@@ -1,0 +1,660 @@
+"""Backups (``app/storage/backup.py``): a deployment exported to an archive and imported into
+SQLite and PostgreSQL. A restore keeps every id and every upload byte for byte, a merge gives new
+ids, and a broken archive or a refused import writes nothing.
+
+One source deployment (SQLite) is built once per module from real sessions: versions with plots
+and path graphs, keys, an idempotency key, a failed build, a build running at export, a deleted
+map, a finished sweep and a running one. Most tests import its archive.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import shutil
+import zipfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from app.domain.session import decode_json_bytes, parse_session
+from app.domain.tuning import Axis, SearchSpace, Trial
+from app.storage import backup, keys, maps, queue, sessions, sweeps
+from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefused
+from app.storage.db import Database
+from app.storage.migrate import head_revision
+from app.storage.orm import Base, Job, JobState, Role
+from app.sweep_runner import SweepPlan
+from tests.service.api_support import ADMIN, run_next_job, running_api
+from tests.service.helpers import session_bytes
+
+#: The source's sessions by id: (data file, uploader) — "device" is its device key.
+SOURCE_SESSIONS = {
+    1: ("onetag", "device"),  # idempotency key "walk-1"; map 1 has versions 1 and 2
+    2: ("pgt_tester3", keys.ENVIRONMENT_ADMIN),  # its map has the sweeps
+    3: ("occam_room", "device"),
+    4: ("singletag3times", "device"),  # its build failed
+    5: ("singletag3times", keys.ENVIRONMENT_ADMIN),  # its build is running at export
+    6: ("onetag", keys.ENVIRONMENT_ADMIN),  # its map (the newest) is deleted
+}
+BUILT_MAPS = (1, 2, 3)
+#: Columns left out of comparisons: ids of rows nobody refers to.
+UNCOMPARED = {"map_tag": {"id"}, "sweep_trial": {"id"}}
+
+
+@dataclass(frozen=True)
+class Source:
+    """The source deployment and its archives."""
+
+    url: str
+    archive: Path
+    archive_with_keys: Path
+    device_key_id: int
+    device_key: str
+    device_prefix: str
+    #: (map id, version number or None) → the app-map the source served
+    app_maps: dict[tuple[int, int | None], bytes]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def upload(
+    db: Database, name: str, *, uploaded_by: str, idempotency_key: str | None = None
+) -> sessions.UploadResult:
+    raw = session_bytes(name)
+    with db.transaction() as tx:
+        return sessions.create_session(
+            tx,
+            parsed=parse_session(decode_json_bytes(raw)),
+            upload=sessions.StoredUpload.of(raw),
+            uploaded_by=uploaded_by,
+            idempotency_key=idempotency_key,
+        )
+
+
+def add_sweep(db: Database, map_id: int, *, trials_done: int) -> int:
+    """A 3-point grid sweep of ``map_id`` with ``trials_done`` of its trials stored."""
+    space = SearchSpace((Axis("odom_linear_var_m2_per_s", 1e-6, 1e-2, 3),))
+    with db.transaction() as tx:
+        sweep_id = sweeps.create_sweep(
+            tx,
+            map_id=map_id,
+            session_id=maps.get_map(tx, map_id).session_id,
+            plan=SweepPlan(method="grid", space=space),
+            base_params={},
+            ground_truth=None,
+            max_attempts=3,
+        )
+        job_id = tx.scalars(select(Job.id).where(Job.sweep_id == sweep_id)).one()
+        trials = [
+            Trial(values=values, shift=0.1 * k, gt_metric=float("nan"),
+                  tag_rmse_m=float("nan"), iterations=5, duration_s=0.01)
+            for k, values in enumerate(space.grid()[:trials_done])
+        ]  # fmt: skip
+        sweeps.store_trials(
+            tx, sweep_id, first_number=0, trials=trials, job_id=job_id, max_attempts=3
+        )
+    return sweep_id
+
+
+def build_source(db: Database) -> tuple[int, str, str]:
+    """Fill ``db`` as :data:`SOURCE_SESSIONS` says; returns the device key's id, secret, prefix."""
+    with db.transaction() as tx:
+        device, secret = keys.create_key(tx, name="lab iPhone", role=Role.DEVICE)
+        keys.create_key(tx, name="spare", role=Role.ADMIN)
+    subject = {"device": f"key:{device.id}"}
+    for session_id in (1, 2, 3):
+        name, uploader = SOURCE_SESSIONS[session_id]
+        key = "walk-1" if session_id == 1 else None
+        upload(db, name, uploaded_by=subject.get(uploader, uploader), idempotency_key=key)
+    run_next_job(db, plot=True, path_graph=True)
+    run_next_job(db, path_graph=True)
+    run_next_job(db, path_graph=True)
+    with db.transaction() as tx:  # a rebuild with other parameters: version 2 of map 1
+        queue.enqueue(
+            tx, kind="build_map", map_id=1, session_id=1, params={"max_reprojection_px": 6.0}
+        )
+    run_next_job(db, path_graph=True)
+    for session_id in (4, 5, 6):
+        name, uploader = SOURCE_SESSIONS[session_id]
+        upload(db, name, uploaded_by=subject.get(uploader, uploader))
+    failed = queue.claim(db, worker_id="test-worker", lease_s=60)
+    assert failed is not None
+    queue.fail(db, failed, error="refused", permanent=True, backoff_s=0, log_tail="")
+    running = queue.claim(db, worker_id="test-worker", lease_s=600)
+    assert running is not None
+    assert running.map_id == 5
+    with db.transaction() as tx:
+        maps.delete_map(tx, 6)
+    add_sweep(db, 2, trials_done=3)
+    add_sweep(db, 2, trials_done=1)
+    return device.id, secret, device.prefix
+
+
+def app_maps_of(url: str) -> dict[tuple[int, int | None], bytes]:
+    """The app-maps the API serves for the built maps (current version, and map 1's first)."""
+    with running_api(url) as api:
+        return {
+            (map_id, number): app_map(api.client, map_id, number)
+            for map_id, number in [(m, None) for m in BUILT_MAPS] + [(1, 1)]
+        }
+
+
+def app_map(client: TestClient, map_id: int, number: int | None) -> bytes:
+    query = "" if number is None else f"?version={number}"
+    response = client.get(f"/v1/maps/{map_id}/app-map{query}", headers=ADMIN)
+    assert response.status_code == 200, response.text
+    return response.content
+
+
+def dump(db: Database) -> dict[str, list[dict[str, Any]]]:
+    """Every exported table's rows in key order, bytes as their SHA-256."""
+    tables: dict[str, list[dict[str, Any]]] = {}
+    with db.read() as tx:
+        for spec in backup.TABLES:
+            query = select(spec.table).order_by(spec.table.c[spec.key])
+            if spec.only is not None:
+                query = query.where(spec.only())
+            tables[spec.name] = [
+                {
+                    name: hashlib.sha256(value).hexdigest() if isinstance(value, bytes) else value
+                    for name, value in row.items()
+                    if name not in UNCOMPARED.get(spec.name, set())
+                }
+                for row in tx.execute(query).mappings()
+            ]
+    return tables
+
+
+def row_counts(db: Database) -> dict[str, int]:
+    """Rows in every table of the schema."""
+    with db.read() as tx:
+        return {
+            table.name: tx.scalar(select(func.count()).select_from(table)) or 0
+            for table in Base.metadata.sorted_tables
+        }
+
+
+def raw_uploads(db: Database) -> dict[int, tuple[bytes, bytes]]:
+    """session id → (the upload as sent, the stored gzip)."""
+    with db.read() as tx:
+        ids = [info.id for info in sessions.list_sessions(tx, limit=100)[0]]
+        return {
+            i: (sessions.raw_upload(tx, i), sessions.raw_upload_gzip(tx, i)) for i in sorted(ids)
+        }
+
+
+def next_upload_map_id(db: Database) -> int:
+    map_id: int = upload(db, "onetag", uploaded_by=keys.ENVIRONMENT_ADMIN).map_id
+    return map_id
+
+
+@pytest.fixture(scope="module")
+def source(sqlite_template: Path, tmp_path_factory: pytest.TempPathFactory) -> Source:
+    folder = tmp_path_factory.mktemp("backup-source")
+    shutil.copyfile(sqlite_template, folder / "source.sqlite3")
+    url = f"sqlite:///{folder / 'source.sqlite3'}"
+    db = Database(url)
+    key_id, secret, prefix = build_source(db)
+    archive, with_keys = folder / "source.zip", folder / "source-keys.zip"
+    backup.export_archive(db, archive)
+    backup.export_archive(db, with_keys, include_key_hashes=True)
+    db.dispose()
+    return Source(
+        url=url,
+        archive=archive,
+        archive_with_keys=with_keys,
+        device_key_id=key_id,
+        device_key=secret,
+        device_prefix=prefix,
+        app_maps=app_maps_of(url),
+    )
+
+
+@pytest.fixture
+def source_db(source: Source) -> Iterator[Database]:
+    """The source, to read (never to change: other tests share it)."""
+    database = Database(source.url)
+    yield database
+    database.dispose()
+
+
+@pytest.fixture
+def sqlite_copy(sqlite_template: Path, tmp_path: Path) -> Callable[[str], str]:
+    """A fresh migrated SQLite database per call: its URL."""
+
+    def make(name: str) -> str:
+        path = tmp_path / f"{name}.sqlite3"
+        shutil.copyfile(sqlite_template, path)
+        return f"sqlite:///{path}"
+
+    return make
+
+
+# --------------------------------------------------------------------------- round trip
+
+
+def test_round_trip_sqlite_postgresql_sqlite_keeps_everything(
+    source: Source, source_db: Database, postgres_url: str, sqlite_copy: Callable[[str], str],
+    tmp_path: Path,
+) -> None:  # fmt: skip
+    middle, last = Database(postgres_url), Database(sqlite_copy("last"))
+    try:
+        report = backup.import_archive(middle, source.archive_with_keys, include_keys=True)
+        assert not report.merged
+        assert report.map_ids == {m: m for m in (1, 2, 3, 4, 5)}
+        assert report.queued_job_ids == [6]  # map 5's build, running at export
+        again = tmp_path / "from-postgresql.zip"
+        manifest = backup.export_archive(middle, again, include_key_hashes=True)
+        assert manifest.source_backend == "postgresql"
+        backup.import_archive(last, again, include_keys=True)
+
+        first, second, third = dump(source_db), dump(middle), dump(last)
+        assert second == third  # a restored deployment exports and restores losslessly
+        # What the export changes on purpose: the running build is queued again, the running
+        # sweep is canceled, and trials no longer name their (not exported) jobs.
+        requeued = next(job for job in second["job"] if job["id"] == 6)
+        assert (requeued["state"], requeued["attempts"], requeued["lease_owner"]) == (
+            JobState.QUEUED.value, 0, None,
+        )  # fmt: skip
+        assert requeued["log_tail"].endswith("running at export: queued again\n")
+        canceled = next(sweep for sweep in second["sweep"] if sweep["id"] == 2)
+        assert canceled["state"] == "canceled"
+        assert "not finished when the deployment was exported" in canceled["error"]
+        first["job"] = [requeued if job["id"] == 6 else job for job in first["job"]]
+        first["sweep"] = [canceled if sweep["id"] == 2 else sweep for sweep in first["sweep"]]
+        for trial in first["sweep_trial"]:
+            trial["job_id"] = None
+        assert first == second
+
+        originals = raw_uploads(source_db)
+        for database in (middle, last):
+            restored = raw_uploads(database)
+            assert restored == originals  # the stored gzip and the JSON, byte for byte
+            for session_id, (name, _) in SOURCE_SESSIONS.items():
+                assert restored[session_id][0] == session_bytes(name)
+        uploads = {n: m for n, m in manifest.members.items() if n.startswith("uploads/")}
+        original = backup.read_manifest(source.archive_with_keys).members
+        assert uploads == {n: m for n, m in original.items() if n.startswith("uploads/")}
+
+        assert app_maps_of(postgres_url) == source.app_maps
+        assert app_maps_of(last.url.render_as_string(hide_password=False)) == source.app_maps
+    finally:
+        middle.dispose()
+        last.dispose()
+
+
+def test_a_restore_with_keys_lets_the_phone_go_on(source: Source, database_url: str) -> None:
+    """The device key authenticates as before, sees its sessions, and an upload retried with
+    its idempotency key replays the first one (its session, map and build job)."""
+    db = Database(database_url)
+    backup.import_archive(db, source.archive_with_keys, include_keys=True)
+    with db.read() as tx:
+        principal = keys.authenticate(tx, source.device_key)
+        assert principal is not None
+        assert principal.subject == f"key:{source.device_key_id}"
+        mine, _ = sessions.list_sessions(tx, uploaded_by=principal.subject)
+    assert sorted(info.id for info in mine) == [1, 3, 4]
+    replay = upload(db, "onetag", uploaded_by=principal.subject, idempotency_key="walk-1")
+    assert (replay.replayed, replay.session_id, replay.map_id, replay.job_id) == (True, 1, 1, 1)
+    db.dispose()
+
+
+# --------------------------------------------------------------------------- restore
+
+
+def test_a_restore_keeps_ids_and_never_gives_out_a_deleted_one(
+    source: Source, database_url: str
+) -> None:
+    db = Database(database_url)
+    backup.import_archive(db, source.archive)
+    with db.read() as tx:
+        assert [info.id for info in maps.list_maps(tx)[0]] == [5, 4, 3, 2, 1]
+        assert [v.number for v in maps.list_versions(tx, 1)] == [1, 2]
+        assert maps.get_version(tx, 1, 1).job_id == 1
+        assert sweeps.get_sweep(tx, 1).map_id == 2
+    assert next_upload_map_id(db) == 7  # the source's map 6 was deleted: 6 is never used again
+    db.dispose()
+
+
+def test_unfinished_work_goes_on_and_finished_work_stays_finished(
+    source: Source, database_url: str
+) -> None:
+    db = Database(database_url)
+    backup.import_archive(db, source.archive)
+    with db.read() as tx:
+        jobs = {job.id: job for job in queue.list_jobs(tx, limit=100)[0]}
+        failed = maps.get_map(tx, 4)
+        finished, canceled = sweeps.get_sweep(tx, 1), sweeps.get_sweep(tx, 2)
+        trials = sweeps.list_trials(tx, 1)
+    assert {i: (j.kind, j.state) for i, j in jobs.items()} == {
+        1: ("build_map", JobState.SUCCEEDED),
+        2: ("build_map", JobState.SUCCEEDED),
+        3: ("build_map", JobState.SUCCEEDED),
+        4: ("build_map", JobState.SUCCEEDED),
+        5: ("build_map", JobState.FAILED),
+        6: ("build_map", JobState.QUEUED),
+    }  # the sweeps' jobs are not in the archive; map 6's went with it
+    assert jobs[5].error == "refused"
+    assert failed.current is None
+    assert (finished.state, finished.trials_done, len(trials)) == ("succeeded", 3, 3)
+    assert (canceled.state, canceled.trials_done) == ("canceled", 1)
+
+    assert run_next_job(db) == 6  # a worker of the new deployment builds map 5
+    with db.read() as tx:
+        current = maps.get_map(tx, 5).current
+    assert current is not None
+    assert current.job_id == 6
+    db.dispose()
+
+
+def test_without_keys_no_key_is_imported_and_uploaders_are_named_by_prefix(
+    source: Source, database_url: str
+) -> None:
+    db = Database(database_url)
+    report = backup.import_archive(db, source.archive)
+    assert report.counts["api_key"] == 0
+    with db.transaction() as tx:
+        new_key, _ = keys.create_key(tx, name="new phone", role=Role.DEVICE)
+    with db.read() as tx:
+        uploaders = {info.id: info.uploaded_by for info in sessions.list_sessions(tx)[0]}
+        theirs, _ = sessions.list_sessions(tx, uploaded_by=f"key:{new_key.id}")
+    imported = f"imported:im_{source.device_prefix}"
+    assert uploaders == {
+        i: imported if who == "device" else who for i, (_, who) in SOURCE_SESSIONS.items()
+    }
+    assert new_key.id == 3  # above the source's key ids too
+    assert theirs == []
+    db.dispose()
+
+
+def test_a_restore_into_a_database_with_data_is_refused(source: Source, database_url: str) -> None:
+    db = Database(database_url)
+    upload(db, "onetag", uploaded_by=keys.ENVIRONMENT_ADMIN)
+    before = dump(db)
+    with pytest.raises(
+        ImportRefused, match=r"not empty \(1 session rows, 1 map rows, 1 job rows\)"
+    ):
+        backup.import_archive(db, source.archive)
+    assert dump(db) == before
+    db.dispose()
+
+
+def test_keys_asked_of_an_archive_without_them_are_refused(
+    source: Source, database_url: str
+) -> None:
+    db = Database(database_url)
+    with pytest.raises(ImportRefused, match="no API key hashes"):
+        backup.import_archive(db, source.archive, include_keys=True)
+    assert set(row_counts(db).values()) == {0}
+    db.dispose()
+
+
+def test_an_empty_deployment_round_trips(database_url: str, tmp_path: Path) -> None:
+    db = Database(database_url)
+    manifest = backup.export_archive(db, tmp_path / "empty.zip")
+    assert set(manifest.counts.values()) == {0}
+    assert manifest.schema_revision == head_revision()
+    report = backup.import_archive(db, tmp_path / "empty.zip")  # an empty database may restore
+    assert set(report.counts.values()) == {0}
+    db.dispose()
+
+
+# --------------------------------------------------------------------------- merge
+
+
+def test_a_merge_gives_new_ids_and_keeps_the_uploads(
+    source: Source, source_db: Database, database_url: str
+) -> None:
+    db = Database(database_url)
+    with db.transaction() as tx:
+        local_key, _ = keys.create_key(tx, name="local", role=Role.ADMIN)
+    own = upload(db, "pgt_tester3", uploaded_by=f"key:{local_key.id}")
+
+    report = backup.import_archive(db, source.archive_with_keys, include_keys=True, merge=True)
+
+    assert report.merged
+    assert report.map_ids == {1: 2, 2: 3, 3: 4, 4: 5, 5: 6}
+    assert report.session_ids == {1: 2, 2: 3, 3: 4, 4: 5, 5: 6, 6: 7}
+    originals = raw_uploads(source_db)
+    merged = raw_uploads(db)
+    assert {report.session_ids[i]: u for i, u in originals.items()} == {
+        i: u for i, u in merged.items() if i != own.session_id
+    }
+    with db.read() as tx:
+        for old, new in report.map_ids.items():
+            assert maps.get_map(tx, new).session_id == report.session_ids[old]
+        versions = maps.list_versions(tx, report.map_ids[1])
+        assert [v.number for v in versions] == [1, 2]
+        with source_db.read() as source_tx:
+            expected = maps.tag_poses(source_tx, maps.get_version(source_tx, 1, 2).id)
+        assert maps.tag_poses(tx, versions[1].id) == expected
+        principal = keys.authenticate(tx, source.device_key)
+        assert principal is not None
+        mine, _ = sessions.list_sessions(tx, uploaded_by=principal.subject)
+    assert principal.subject != f"key:{local_key.id}"
+    assert sorted(info.id for info in mine) == [report.session_ids[i] for i in (1, 3, 4)]
+
+    before = dump(db)
+    with pytest.raises(ImportRefused, match=r"'walk-1'.*imported before"):
+        backup.import_archive(db, source.archive_with_keys, include_keys=True, merge=True)
+    assert dump(db) == before
+    db.dispose()
+
+
+# --------------------------------------------------------------------------- broken archives
+
+
+def rewrite(
+    archive: Path,
+    out: Path,
+    *,
+    member: Callable[[str, bytes], bytes | None] = lambda _name, data: data,
+    manifest: Callable[[dict[str, Any]], None] = lambda _document: None,
+    refresh_checksums: bool = True,
+    extra: dict[str, bytes] | None = None,
+) -> Path:
+    """A copy of ``archive`` with members changed (or dropped: None) and the manifest changed;
+    the manifest's sizes and checksums follow the members when ``refresh_checksums``."""
+    with zipfile.ZipFile(archive) as source:
+        document = json.loads(source.read(backup.MANIFEST))
+        changed = {
+            name: member(name, source.read(name))
+            for name in source.namelist()
+            if name != backup.MANIFEST
+        }
+    contents = {name: data for name, data in changed.items() if data is not None}
+    contents.update(extra or {})
+    if refresh_checksums:
+        document["members"] = {
+            name: {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+            for name, data in contents.items()
+        }
+    manifest(document)
+    with zipfile.ZipFile(out, "w") as target:
+        for name, data in contents.items():
+            target.writestr(name, data)
+        target.writestr(backup.MANIFEST, json.dumps(document))
+    return out
+
+
+def jsonl_edit(
+    table: str, change: Callable[[dict[str, Any]], None]
+) -> Callable[[str, bytes], bytes]:
+    """A member edit changing every row of ``tables/<table>.jsonl``."""
+
+    def edit(name: str, data: bytes) -> bytes:
+        if name != f"tables/{table}.jsonl":
+            return data
+        rows = [json.loads(line) for line in data.splitlines()]
+        for row in rows:
+            change(row)
+        return b"".join(json.dumps(row).encode() + b"\n" for row in rows)
+
+    return edit
+
+
+def flipped_byte_inside(archive: Path, out: Path, member: str) -> Path:
+    """``archive`` with one byte of ``member``'s stored data changed (its CRC no longer fits)."""
+    data = bytearray(archive.read_bytes())
+    with zipfile.ZipFile(archive) as source:
+        info = source.getinfo(member)
+    header_bytes = 30 + len(info.filename.encode()) + len(info.extra)
+    data[info.header_offset + header_bytes + info.compress_size // 2] ^= 0xFF
+    out.write_bytes(bytes(data))
+    return out
+
+
+def other_upload(name: str, data: bytes) -> bytes:
+    return gzip.compress(session_bytes("pgt_tester3")) if name == "uploads/1.json.gz" else data
+
+
+def set_in(document: dict[str, Any], **values: Any) -> None:
+    document.update(values)
+
+
+BROKEN: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]] = {
+    "missing file": (lambda _a, out: out / "nothing.zip", FileNotFoundError, "nothing.zip"),
+    "not a zip file": (
+        lambda _a, out: _write(out / "x.zip", session_bytes("onetag")),
+        ArchiveInvalid,
+        "not a zip file",
+    ),
+    "truncated": (
+        lambda a, out: _write(out / "x.zip", a.read_bytes()[: a.stat().st_size * 2 // 3]),
+        ArchiveInvalid,
+        "truncated",
+    ),
+    "no manifest": (
+        lambda _a, out: _zip_of(out / "x.zip", {"hello.txt": b"hi"}),
+        ArchiveInvalid,
+        "no manifest.json",
+    ),
+    "not our format": (
+        lambda a, out: rewrite(a, out / "x.zip", manifest=lambda d: set_in(d, format="tarball")),
+        ArchiveInvalid,
+        "not an invisible-map backup",
+    ),
+    "corrupt member (CRC)": (
+        lambda a, out: flipped_byte_inside(a, out / "x.zip", "uploads/3.json.gz"),
+        ArchiveInvalid,
+        "uploads/3.json.gz is corrupt",
+    ),
+    "checksum mismatch": (
+        lambda a, out: rewrite(a, out / "x.zip", member=other_upload, refresh_checksums=False),
+        ArchiveInvalid,
+        "uploads/1.json.gz does not match the manifest (checksum mismatch",
+    ),
+    "upload of another session": (
+        lambda a, out: rewrite(a, out / "x.zip", member=other_upload),
+        ArchiveInvalid,
+        "the upload does not match its session",
+    ),
+    "member missing": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=lambda n, d: None if n.endswith("plot.png") else d,
+            refresh_checksums=False,
+        ),
+        ArchiveInvalid,
+        "versions/1/plot.png is in the manifest but not in the archive",
+    ),
+    "member not in the manifest": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", extra={"uploads/99.json.gz": b"x"}, refresh_checksums=False
+        ),
+        ArchiveInvalid,
+        "uploads/99.json.gz is not in the manifest",
+    ),
+    "row of the wrong type": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("session", lambda r: set_in(r, pose_count="many"))
+        ),
+        ArchiveInvalid,
+        "tables/session.jsonl line 1: pose_count: expected integer, got 'many'",
+    ),
+    "row count differs": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: d["counts"].update(map_tag=999)
+        ),
+        ArchiveInvalid,
+        "tables/map_tag.jsonl has",
+    ),
+    "a reference in the last table": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("sweep_trial", lambda r: set_in(r, sweep_id=99))
+        ),
+        ArchiveInvalid,
+        "sweep_id: sweep 99 is not in the archive",
+    ),
+    "newer format version": (
+        lambda a, out: rewrite(a, out / "x.zip", manifest=lambda d: set_in(d, format_version=2)),
+        ArchiveIncompatible,
+        "format version 2 is newer",
+    ),
+    "older schema": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="255ed7c85f58")
+        ),
+        ArchiveIncompatible,
+        "migrate the source deployment",
+    ),
+    "newer schema": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="0123456789ab")
+        ),
+        ArchiveIncompatible,
+        "newer invisible-map",
+    ),
+}
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _zip_of(path: Path, members: dict[str, bytes]) -> Path:
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return path
+
+
+@pytest.mark.parametrize("case", BROKEN)
+def test_a_broken_archive_is_refused_and_nothing_is_written(
+    case: str, source: Source, database_url: str, tmp_path: Path
+) -> None:
+    make, error, message = BROKEN[case]
+    broken = make(source.archive, tmp_path)
+    db = Database(database_url)
+    with pytest.raises(error) as raised:
+        backup.import_archive(db, broken)
+    assert message in str(raised.value)
+    assert set(row_counts(db).values()) == {0}
+    assert next_upload_map_id(db) == 1  # no id sequence moved either
+    db.dispose()
+
+
+def test_a_schema_mismatch_names_the_side_to_migrate() -> None:
+    backup.check_schema_revision(head_revision() or "", head_revision())
+    with pytest.raises(ArchiveIncompatible, match="migrate this database first"):
+        backup.check_schema_revision(head_revision() or "", "255ed7c85f58")
+
+
+def test_a_failed_export_leaves_no_file(source_db: Database, tmp_path: Path) -> None:
+    def interrupt(done: int, _total: int) -> None:
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        backup.export_archive(source_db, tmp_path / "out.zip", on_progress=interrupt)
+    assert list(tmp_path.iterdir()) == []
