@@ -9,6 +9,8 @@
     invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
                         [--two-floors] [--noise NAME=VALUE …] [--seed N]
     invisible-map serve | worker | migrate | keys …   (the server: see app/server_cli.py)
+    invisible-map export OUT.zip [--include-keys] [--force]
+    invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/backup_cli.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
@@ -25,6 +27,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from app.backup_cli import add_backup_commands
 from app.cli_params import add_param_option as _add_param_option
 from app.cli_params import slam_params as _params
 from app.domain.errors import InvisibleMapError
@@ -120,6 +123,7 @@ def _parser() -> argparse.ArgumentParser:
     demo.set_defaults(handler=_demo)
     add_sweep_commands(commands)
     add_server_commands(commands)
+    add_backup_commands(commands)
     return parser
 
 
