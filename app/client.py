@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import gzip
 import time
+import uuid
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
@@ -111,8 +112,16 @@ class Client:
         *,
         idempotency_key: str | None = None,
         compress: bool = False,
+        retries: int = 0,
+        retry_wait_s: float = 1.0,
     ) -> dict[str, Any]:
-        """Upload a mapping session (a file path or the JSON bytes); returns the 202 body."""
+        """Upload a mapping session (a file path or the JSON bytes); returns the 202 body.
+
+        With ``retries`` > 0, an upload whose answer never came (the connection refused, dropped
+        or timed out) or was a 503 is sent again, up to ``retries`` more times ``retry_wait_s``
+        apart, with the same ``Idempotency-Key`` (a new random one if none is given): the server
+        stores it once, and a retry of an upload that was stored answers with the first result.
+        """
         body = session if isinstance(session, bytes) else Path(session).read_bytes()
         headers = {"Content-Type": "application/json"}
         if body[:2] == b"\x1f\x8b":
@@ -120,10 +129,25 @@ class Client:
         elif compress:
             body = gzip.compress(body)
             headers["Content-Encoding"] = "gzip"
+        if idempotency_key is None and retries > 0:
+            idempotency_key = f"upload-{uuid.uuid4()}"
         if idempotency_key is not None:
             headers["Idempotency-Key"] = idempotency_key
-        result: dict[str, Any] = self._json("POST", "/v1/sessions", content=body, headers=headers)
-        return result
+        for attempt in range(retries + 1):
+            last = attempt == retries
+            try:
+                result: dict[str, Any] = self._json(
+                    "POST", "/v1/sessions", content=body, headers=headers
+                )
+                return result
+            except httpx.TransportError:
+                if last:
+                    raise
+            except ApiError as err:
+                if last or err.status_code != 503:
+                    raise
+            time.sleep(retry_wait_s)
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def list_sessions(self, *, limit: int = 50, offset: int = 0) -> dict[str, Any]:
         result: dict[str, Any] = self._json(

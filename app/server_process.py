@@ -60,17 +60,24 @@ class _Process:
         assert self.process is not None, "not started"
         return self.process.pid
 
+    def log_tail(self, lines: int = 20) -> str:
+        """The last ``lines`` lines of the log file ("" without one)."""
+        if self.log_path is None or not self.log_path.exists():
+            return ""
+        return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+
     def kill(self, sig: int = signal.SIGKILL) -> None:
         """Send ``sig`` to the whole process group (the command and any worker children)."""
         if self.process is not None and self.process.poll() is None:
             os.killpg(self.process.pid, sig)
 
     def stop(self, timeout_s: float = 30.0) -> int | None:
-        """SIGTERM, wait, then SIGKILL; returns the exit status."""
+        """SIGTERM to the command (as a service manager sends it: the command passes it on to
+        its worker processes), wait, then SIGKILL to the whole group; returns the exit status."""
         if self.process is None:
             return None
         if self.process.poll() is None:
-            self.kill(signal.SIGTERM)
+            self.process.send_signal(signal.SIGTERM)
             try:
                 self.process.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
@@ -88,7 +95,8 @@ def _environment(database_url: str, extra: dict[str, str] | None) -> dict[str, s
 
 
 class ServerProcess(_Process):
-    """``invisible-map serve`` on a free port; waits until ``/readyz`` answers 200."""
+    """``invisible-map serve`` on ``port`` (default: a free one); waits until ``/readyz``
+    answers 200."""
 
     def __init__(
         self,
@@ -99,8 +107,9 @@ class ServerProcess(_Process):
         env: dict[str, str] | None = None,
         log_path: Path | None = None,
         migrate: bool = True,
+        port: int | None = None,
     ) -> None:
-        self.port = free_port()
+        self.port = port or free_port()
         self.admin_key = admin_key or "im_test_admin_" + secrets.token_urlsafe(16)
         args = ["serve", "--port", str(self.port), "--workers", str(workers)]
         if not migrate:
@@ -120,7 +129,7 @@ class ServerProcess(_Process):
             if self.process.poll() is not None:
                 raise RuntimeError(
                     f"the server exited with status {self.process.returncode} before it was ready"
-                    + (f"; see {self.log_path}" if self.log_path else "")
+                    + (f"; the end of {self.log_path}:\n{self.log_tail()}" if self.log_path else "")
                 )
             try:
                 if httpx.get(self.url + "/readyz", timeout=1.0).status_code == 200:
