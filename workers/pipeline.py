@@ -182,8 +182,13 @@ class JobContext:
                 self.control.cancel_requested = True
         except LeaseLost:
             self.control.lease_lost = True
-        except Exception:
-            logger.warning("job %d: progress write failed", self.lease.job_id, exc_info=True)
+        except Exception as err:
+            logger.warning(
+                "job %d: progress write failed: %s",
+                self.lease.job_id,
+                first_line(err),
+                exc_info=database_fault(err) is None,  # a traceback only for the unexpected
+            )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
