@@ -3,6 +3,7 @@
 Variables (defaults in brackets): ``DATABASE_URL`` [a SQLite file in the data directory],
 ``INVISIBLE_MAP_DATA_DIR`` [./var], ``INVISIBLE_MAP_ADMIN_KEY`` [unset: accepted as an admin key
 when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
+``INVISIBLE_MAP_API_THREADS`` [400: threads for the API's requests; see ``api_threads``],
 ``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
 [256 MiB: the body after gunzip], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
 [5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
@@ -38,6 +39,14 @@ class Settings(BaseSettings):
     data_dir: Path = Path("var")
     admin_key: str | None = None
     workers: int = Field(default=1, ge=0, le=64)
+    #: Threads for the API's ``def`` routes and dependencies (anyio's limiter; its default is
+    #: 40). A request keeps its database connection from its dependencies until its answer is
+    #: validated, on another thread (FastAPI does so for ``def`` routes). Once the requests in
+    #: progress reach threads + pool connections (15 on SQLite, 30 on PostgreSQL), every thread
+    #: can be waiting for a connection held by a request that waits for a thread: the API stands
+    #: still for the pool's 30 s timeout, then answers 503. Threads start only when needed, so a
+    #: large number costs nothing until that many requests come at once.
+    api_threads: int = Field(default=400, ge=1, le=4096)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
     lease_s: float = Field(default=30.0, gt=0)

@@ -15,6 +15,7 @@ happen inside the handlers so that the offline commands stay quick to start.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import secrets
 import signal
 import sys
@@ -24,6 +25,8 @@ from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    import uvicorn
+
     from app.config import Settings
     from app.storage.db import Database
 
@@ -195,7 +198,9 @@ def _serve(args: argparse.Namespace) -> int:
     if in_main_thread:
         previous = signal.signal(signal.SIGTERM, lambda *_: setattr(server, "should_exit", True))
     try:
-        server.run()
+        # uvicorn's Server.run, with the thread pool sized first (it belongs to the event loop).
+        with asyncio.Runner(loop_factory=server.config.get_loop_factory()) as runner:
+            runner.run(_serve_with_threads(server, settings.api_threads))
     except SystemExit:  # uvicorn's sys.exit(3) when it cannot start (the port is taken, …)
         if server.started:
             raise
@@ -206,6 +211,14 @@ def _serve(args: argparse.Namespace) -> int:
     if not server.started:
         raise ServerCommandError(f"the server could not start at {url} (see the log above)")
     return 0
+
+
+async def _serve_with_threads(server: uvicorn.Server, threads: int) -> None:
+    """Serve with ``threads`` threads for the routes (``Settings.api_threads``)."""
+    from anyio import to_thread
+
+    to_thread.current_default_thread_limiter().total_tokens = threads
+    await server.serve()
 
 
 def _worker(args: argparse.Namespace) -> int:

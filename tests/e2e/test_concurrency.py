@@ -1,0 +1,64 @@
+"""Many requests at once on one API process (``invisible-map serve``), as issue 7's load test
+sends them: every one is answered, none waits for the database pool's 30 s timeout.
+
+A request keeps its database connection from its dependencies until its response is built, and
+FastAPI validates a ``def`` route's answer on a thread of the pool. With anyio's default 40
+threads, 150 requests at once left every thread waiting for a connection while every connection
+was held by a request waiting for a thread: the API stood still for 30 s, then answered 503s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+
+import httpx
+import pytest
+
+from app.server_process import ServerProcess
+
+pytestmark = [pytest.mark.db, pytest.mark.slow]
+
+#: Requests sent at once: more than anyio's 40 threads plus the largest pool (30, PostgreSQL).
+CLIENTS = 150
+ROUNDS = 3
+#: Shorter than the pool's 30 s timeout, so that a stall fails the test instead of a 503.
+TIMEOUT_S = 20.0
+
+
+async def _at_once(url: str, key: str) -> Counter[int | str]:
+    """CLIENTS clients, each sending ROUNDS requests; every client starts at the same moment."""
+    outcomes: Counter[int | str] = Counter()
+    start = asyncio.Event()
+    limits = httpx.Limits(max_connections=CLIENTS, max_keepalive_connections=CLIENTS)
+    headers = {"Authorization": f"Bearer {key}"}
+    async with httpx.AsyncClient(
+        base_url=url, headers=headers, limits=limits, timeout=TIMEOUT_S
+    ) as http:
+
+        async def client() -> None:
+            await start.wait()
+            for _ in range(ROUNDS):
+                try:
+                    response = await http.get("/v1/sessions")  # a read session, a response model
+                except httpx.TransportError as err:
+                    outcomes[type(err).__name__] += 1
+                else:
+                    outcomes[response.status_code] += 1
+
+        tasks = [asyncio.create_task(client()) for _ in range(CLIENTS)]
+        await asyncio.sleep(0.1)
+        start.set()
+        await asyncio.gather(*tasks)
+    return outcomes
+
+
+def test_many_requests_at_once_are_all_answered(database_url, tmp_path):
+    with ServerProcess(
+        database_url,
+        workers=0,
+        env={"INVISIBLE_MAP_DATA_DIR": str(tmp_path)},
+        log_path=tmp_path / "api.log",
+    ) as server:
+        outcomes = asyncio.run(_at_once(server.url, server.admin_key))
+    assert outcomes == Counter({200: CLIENTS * ROUNDS})
