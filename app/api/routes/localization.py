@@ -20,7 +20,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Body, Request, Response
 
-from app.api.deps import CurrentPrincipal, ReadSessionDep, WriteSessionDep, valid_id
+from app.api.deps import CurrentPrincipal, DbDep, ReadSessionDep, valid_id
 from app.api.errors import ApiError, error_responses
 from app.api.navigation_schemas import (
     LocalizationEstimate,
@@ -84,21 +84,21 @@ def _map_tags(request: Request, db: Database, version_id: int) -> dict[int, Floa
     responses=error_responses(401, 404, 409, 422),
 )
 def start(
-    map_id: int,
-    principal: CurrentPrincipal,
-    session: WriteSessionDep,
-    response: Response,
+    map_id: int, principal: CurrentPrincipal, db: DbDep, response: Response
 ) -> LocalizationPublic:
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    current = chosen_version(session, info, None)  # 409 map_not_ready without a version
-    created = navigation.create_localization(
-        session,
-        map_id=info.id,
-        map_version_id=current.id,
-        created_by=principal.subject,
-        status="not_localized",
-        state={"localizer": LocalizerState.initial().to_json(), "last_result": None},
-    )
+    # Committed here, in the route's own thread (not by a dependency after the answer is
+    # validated on another thread): SQLite's write lock is never held while waiting for a thread.
+    with db.transaction() as session:
+        info = maps.get_map(session, valid_id(map_id, "map"))
+        current = chosen_version(session, info, None)  # 409 map_not_ready without a version
+        created = navigation.create_localization(
+            session,
+            map_id=info.id,
+            map_version_id=current.id,
+            created_by=principal.subject,
+            status="not_localized",
+            state={"localizer": LocalizerState.initial().to_json(), "last_result": None},
+        )
     response.headers["Location"] = f"/v1/localizations/{created.id}"
     return _public(created)
 
