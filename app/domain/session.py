@@ -34,6 +34,12 @@ IntArray = npt.NDArray[np.int64]
 
 #: Largest id accepted: integers a JSON number can hold exactly (2^53).
 MAX_ID = 2**53
+#: Farthest a pose (of the phone, or of a tag from the camera) may be from its frame's origin, m:
+#: a walk through a building stays within kilometres; beyond this the arithmetic of a map would
+#: lose its precision (or overflow), so the upload is refused instead.
+MAX_TRANSLATION_M = 1e5
+#: Largest focal length, principal point or corner coordinate accepted, px.
+MAX_PIXELS = 1e5
 
 #: The app misspelt this key in at least one real upload; both spellings are read.
 LOCATION_KEYS = ("location_data", "location_ data")
@@ -315,7 +321,10 @@ def parse_detection_fields(
         raise SessionFormatError(
             f"{where}.camera_intrinsics", "focal lengths fx, fy must be positive"
         )
-    corners = _vector(detection, "tag_corners_pixel_coordinates", where, 8).reshape(4, 2)
+    _within_pixels(intrinsics, f"{where}.camera_intrinsics")
+    corners = _vector(detection, "tag_corners_pixel_coordinates", where, 8)
+    _within_pixels(corners, f"{where}.tag_corners_pixel_coordinates")
+    corners = corners.reshape(4, 2)
     timestamp = _number(detection, "timestamp", where) if "timestamp" in detection else math.nan
     return {
         "tag_id": tag_id,
@@ -472,7 +481,20 @@ def _rigid(matrix: FloatArray, where: str) -> FloatArray:
     defect = rigidity_defect(matrix)
     if defect is not None:
         raise SessionFormatError(where, defect)
+    distance_m = float(np.max(np.abs(matrix[:3, 3])))
+    if distance_m > MAX_TRANSLATION_M:
+        raise SessionFormatError(
+            where, f"translation {distance_m:.3g} m is beyond {MAX_TRANSLATION_M:.0f} m"
+        )
     return orthonormalized(matrix)
+
+
+def _within_pixels(values: FloatArray, where: str) -> None:
+    worst = int(np.argmax(np.abs(values)))
+    if abs(values[worst]) > MAX_PIXELS:
+        raise SessionFormatError(
+            f"{where}[{worst}]", f"{values[worst]:.3g} px is beyond {MAX_PIXELS:.0f} px"
+        )
 
 
 def first_observation_tag_poses(session: Session) -> dict[int, FloatArray]:

@@ -679,6 +679,28 @@ def test_infinity_in_tag_pose():
     assert_format_error(document, "tag_data[0][0].tag_pose[7]", "non-finite")
 
 
+def test_a_pose_beyond_100_km_is_refused():
+    document = make_upload()
+    document["pose_data"][2]["pose"][14] = -2e5  # column-major: z translation
+    assert_format_error(document, "pose_data[2].pose", "translation", "beyond 100000 m")
+
+
+def test_a_tag_beyond_100_km_of_the_camera_is_refused():
+    document = make_upload()
+    document["tag_data"][0][0]["tag_pose"][3] = 1e300  # row-major: x translation
+    assert_format_error(document, "tag_data[0][0].tag_pose", "beyond 100000 m")
+
+
+@pytest.mark.parametrize(
+    ("key", "index"), [("camera_intrinsics", 0), ("camera_intrinsics", 3),
+                       ("tag_corners_pixel_coordinates", 5)],
+)  # fmt: skip
+def test_pixels_beyond_100000_are_refused(key, index):
+    document = make_upload()
+    document["tag_data"][0][0][key][index] = -1e200 if index else 1e200
+    assert_format_error(document, f"tag_data[0][0].{key}[{index}]", "beyond 100000 px")
+
+
 def test_string_in_matrix():
     document = make_upload()
     document["pose_data"][1]["pose"][5] = "0.5"
