@@ -4,19 +4,23 @@ both)."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import stat
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import pytest
 from admin_support import csrf_token, log_in, logged_in
-from api_support import ADMIN, ADMIN_KEY, Api, running_api
+from api_support import ADMIN, ADMIN_KEY, Api, bearer, running_api
+from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from app.admin.auth import LOGIN_ATTEMPTS, LOGIN_COOKIE
+from app.admin.router import router as admin_router
 from app.admin.signing import SECRET_FILE_NAME, Signer
 from app.admin.templating import SECURITY_HEADERS
 from app.main import create_app
@@ -135,6 +139,45 @@ def test_a_device_key_cannot_log_in(api: Api) -> None:
     assert response.status_code == 403
     assert "a device key cannot log in" in response.text
     assert LOGIN_COOKIE not in response.cookies
+
+
+def dashboard_routes() -> list[tuple[str, str]]:
+    """Every (method, path) of the dashboard but its static files, login and logout, with path
+    parameters filled in with 1."""
+    found: list[tuple[str, str]] = []
+
+    def walk(router: Any, prefix: str) -> None:
+        for route in router.routes:
+            if hasattr(route, "original_router"):  # an included router (FastAPI ≥ 0.16x)
+                walk(route.original_router, prefix + (route.include_context.prefix or ""))
+            elif isinstance(route, APIRoute):
+                for method in route.methods:
+                    found.append((method, prefix + route.path))
+
+    walk(admin_router, "")
+    paths = [
+        (method, re.sub(r"\{[a-z_]+(:path)?\}", "1", path))
+        for method, path in found
+        if not path.startswith(("/admin/static", "/admin/login", "/admin/logout"))
+    ]
+    assert len(paths) >= 30
+    return sorted(paths)
+
+
+def test_a_device_key_reaches_no_dashboard_page_or_form(api: Api) -> None:
+    """Whichever way a device key is offered — as a bearer token, or as the login cookie — every
+    page and form of the dashboard answers with the way to the login page, and nothing changes."""
+    _, device = api.create_key(Role.DEVICE)
+    before = api.client.get("/v1/keys", headers=ADMIN).json()
+
+    as_bearer = TestClient(api.app, headers=bearer(device))
+    as_cookie = TestClient(api.app, cookies={LOGIN_COOKIE: device})
+    for method, path in dashboard_routes():
+        for client in (as_bearer, as_cookie):
+            response = client.request(method, path, follow_redirects=False)
+            assert response.status_code == 303, (method, path)
+            assert response.headers["location"].startswith("/admin/login"), (method, path)
+    assert api.client.get("/v1/keys", headers=ADMIN).json() == before
 
 
 def test_an_expired_key_cannot_log_in(api: Api) -> None:

@@ -288,6 +288,37 @@ ADMIN_ONLY = [
 ]
 
 
+#: Every endpoint a device key may use (the phone's: upload, read maps, navigate, localize).
+DEVICE_ALLOWED = [
+    ("GET", "/v1/info"),
+    ("POST", "/v1/sessions"),
+    ("GET", "/v1/sessions"),
+    ("GET", "/v1/sessions/1"),
+    ("GET", "/v1/sessions/1/raw"),
+    ("GET", "/v1/jobs/1"),
+    ("GET", "/v1/maps"),
+    ("GET", "/v1/maps/1"),
+    ("GET", "/v1/maps/1/versions"),
+    ("GET", "/v1/maps/1/versions/1"),
+    ("GET", "/v1/maps/1/app-map"),
+    ("GET", "/v1/maps/1/plot.png"),
+    ("GET", "/v1/maps/1/geojson"),
+    ("GET", "/v1/maps/1/pois"),
+    ("POST", "/v1/maps/1/routes"),
+    ("POST", "/v1/maps/1/localizations"),
+    ("GET", "/v1/localizations/1"),
+    ("POST", "/v1/localizations/1/updates"),
+]
+
+
+def test_every_v1_endpoint_is_either_for_devices_or_for_admins(api: Api) -> None:
+    """A new endpoint must be put on one list or the other, so that nobody adds an admin
+    endpoint and forgets to keep device keys out of it."""
+    routes = [(m, p.replace("{localization_id}", "1")) for m, p in v1_routes(api)]
+    assert sorted(routes) == sorted(ADMIN_ONLY + DEVICE_ALLOWED)
+    assert not set(ADMIN_ONLY) & set(DEVICE_ALLOWED)
+
+
 def test_a_device_key_on_each_admin_endpoint_is_403(api: Api, upload: dict[str, Any]) -> None:
     device = api.device()
     assert upload["map_id"] == upload["job_id"] == 1
