@@ -5,7 +5,8 @@ Variables (defaults in brackets): ``DATABASE_URL`` [a SQLite file in the data di
 when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
 ``INVISIBLE_MAP_API_THREADS`` [400: threads for the API's requests; see ``api_threads``],
 ``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
-[256 MiB: the body after gunzip], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
+[256 MiB: the body after gunzip], ``INVISIBLE_MAP_MAX_REQUEST_BYTES`` [4 MiB: any other request's
+body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
 [5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
 ``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
 doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
@@ -49,6 +50,8 @@ class Settings(BaseSettings):
     api_threads: int = Field(default=400, ge=1, le=4096)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
+    #: any other request's body (routes, localization updates, keys, sweeps, dashboard forms)
+    max_request_bytes: int = Field(default=4 * 2**20, gt=0)
     lease_s: float = Field(default=30.0, gt=0)
     heartbeat_s: float = Field(default=5.0, gt=0)
     poll_s: float = Field(default=0.25, gt=0)

@@ -17,6 +17,7 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI
 
 from app.admin.router import router as admin_router
+from app.api.body_limit import BodyLimit
 from app.api.deps import KeyUsage, current_principal
 from app.api.errors import install_error_handlers
 from app.api.routes import (
@@ -43,6 +44,9 @@ Every `/v1` endpoint needs `Authorization: Bearer <key>`. A *device* key uploads
 its own sessions and their jobs, and reads every map; an *admin* key may do everything, including
 managing jobs, maps and keys. Errors have one shape: `{"detail", "code", "field"}`.
 """
+
+#: Uploads have their own limits (``max_upload_bytes``, ``max_session_bytes``: app.api.upload).
+UPLOAD_PATH = "/v1/sessions"
 
 OPENAPI_TAGS = [
     {"name": "sessions", "description": "Mapping sessions as the phone uploads them."},
@@ -82,6 +86,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.key_usage = KeyUsage()
     app.state.version_cache = VersionCache()
     install_error_handlers(app)
+    app.add_middleware(
+        BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]
+    )
     app.include_router(system.router)
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
     for module in (sessions, jobs, maps, sweeps, navigation, localization, keys):

@@ -156,6 +156,59 @@ def test_cors_is_not_enabled(api: Api) -> None:
     assert "access-control-allow-origin" not in response.headers
 
 
+# --------------------------------------------------------------------------- body limits
+
+
+@pytest.fixture
+def small_limit_api(database_url: str) -> Iterator[Api]:
+    with running_api(database_url, max_request_bytes=1000) as running:
+        yield running
+
+
+def test_a_body_over_the_request_limit_is_413_before_it_is_read(small_limit_api: Api) -> None:
+    big = b'{"from": {"tag": 0}, "to": {"tag": 1}, "pad": "' + b"x" * 2000 + b'"}'
+    response = small_limit_api.client.post(
+        "/v1/maps/1/routes", content=big, headers={**ADMIN, "Content-Type": "application/json"}
+    )
+
+    assert response.status_code == 413
+    assert response.json() == {
+        "detail": f"the request body ({len(big)} bytes) is larger than the limit of 1000 bytes "
+        "for this endpoint",
+        "code": "payload_too_large",
+        "field": None,
+    }
+
+
+def test_a_chunked_body_over_the_request_limit_is_413(small_limit_api: Api) -> None:
+    def chunks() -> Iterator[bytes]:
+        yield b'{"name": "'
+        for _ in range(10):
+            yield b"k" * 200
+        yield b'", "role": "device"}'
+
+    response = small_limit_api.client.post(
+        "/v1/keys", content=chunks(), headers={**ADMIN, "Content-Type": "application/json"}
+    )
+
+    assert response.status_code == 413
+    assert response.json()["code"] == "payload_too_large"
+    assert small_limit_api.client.get("/v1/keys", headers=ADMIN).json()["count"] == 0
+
+
+def test_a_body_under_the_limit_and_an_upload_over_it_are_let_through(
+    small_limit_api: Api,
+) -> None:
+    key = small_limit_api.client.post(
+        "/v1/keys", json={"name": "phone", "role": "device"}, headers=ADMIN
+    )
+    upload = small_limit_api.upload(ONETAG)  # 1000+ bytes: uploads have their own limits
+
+    assert key.status_code == 201
+    assert len(ONETAG.read_bytes()) > 1000
+    assert upload.status_code == 202
+
+
 # --------------------------------------------------------------------------- OpenAPI
 
 
