@@ -176,6 +176,7 @@ def test_stage_and_progress_are_written_at_each_stage(db: Database) -> None:
 def test_corrupt_stored_uploads_fail_permanently_and_the_next_job_succeeds(db: Database) -> None:
     corruptions = {
         b"this is not gzip at all": ["corrupt", "not valid gzip"],
+        gzip.compress(session_bytes("occam_room"))[:5000]: ["corrupt", "not valid gzip"],  # cut
         gzip.compress(b"{not json"): ["stored upload of session", "not valid JSON"],
         gzip.compress(json.dumps({"map_id": "x"}).encode()): ["pose_data"],
     }
