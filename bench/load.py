@@ -65,11 +65,11 @@ import tempfile
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import numpy as np
@@ -87,6 +87,7 @@ SESSIONS = REPO / "data" / "sessions"
 UPLOAD_SESSIONS = sorted(SESSIONS.glob("*.json"))
 DEFAULT_POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 IDENTITY_16 = [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0]
+T = TypeVar("T")
 
 #: The navigation maps: session → points of interest (name, the pose where the phone stood).
 NAVIGATION_MAPS: dict[str, list[tuple[str, int]]] = {
@@ -179,7 +180,7 @@ class Plan:
 
     base_url: str
     run_id: str
-    start_at: float  # time.time() at which the window opens
+    start_at: float  # time.time() at which the window opens (set by ``generate``)
     duration_s: float
     pace_s: float
     wait_for_map: bool
@@ -356,6 +357,8 @@ class Load:
         async with phone_clients(self.plan) as clients:
             await asyncio.sleep(max(0.0, self.plan.start_at - time.time()))
             late_s = max(0.0, time.time() - self.plan.start_at)  # a process that started late
+            if late_s > 0.5:
+                print(f"a generator process opened its window {late_s:.1f} s late", file=sys.stderr)
             self.deadline = time.perf_counter() + self.plan.duration_s - late_s
             opened, cpu_before = time.perf_counter(), time.process_time()
             async with asyncio.TaskGroup() as group:
@@ -663,6 +666,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         maps = build_navigation_maps(server.url, admin, run_id)
         phones = make_phones(admin, args.uploaders, args.navigators, len(maps))
         processes = max(1, min(args.generator_processes, len(phones)))
+        dealt = random.Random(run_id).sample(phones, len(phones))  # every kind in each process
         print(
             f"{deployment.backend}: {len(phones)} phones ready; {args.duration_s:g} s of load "
             f"from {processes} generator process(es)…",
@@ -673,19 +677,19 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
             Plan(
                 base_url=server.url,
                 run_id=run_id,
-                start_at=0.0,  # set once the generators are up
+                start_at=0.0,
                 duration_s=args.duration_s,
                 pace_s=args.pace_s,
                 wait_for_map=not args.no_wait,
                 timeout_s=args.timeout_s,
-                phones=phones[k::processes],
+                phones=dealt[k::processes],
                 maps=maps,
             )
             for k in range(processes)
         ]
-        cpu_before = process_cpu_s(deployment.process_groups)
-        ticks_before = machine_ticks()
-        results = generate(plans)
+        results, (cpu_before, ticks_before) = generate(
+            plans, lambda: (process_cpu_s(deployment.process_groups), machine_ticks())
+        )
         ticks_after = machine_ticks()
         cpu_after = process_cpu_s(deployment.process_groups)
         queue_at_close = sum(
@@ -725,18 +729,20 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
 
 #: Seconds between starting the generator processes and opening the window (they import the
 #: project first).
-GENERATOR_START_S = 8.0
+GENERATOR_START_S = 3.0
 
 
-def generate(plans: list[Plan]) -> list[GeneratorResult]:
-    """Run the plans, each in its own process (or in this one if there is one plan)."""
-    if len(plans) == 1:
-        return [run_generator(dataclasses.replace(plans[0], start_at=time.time() + 0.5))]
+def generate(plans: list[Plan], at_open: Callable[[], T]) -> tuple[list[GeneratorResult], T]:
+    """Run each plan in a process of its own; also ``at_open()``'s value when the window opens
+    (the CPU counters)."""
     context = multiprocessing.get_context("spawn")
     with context.Pool(len(plans)) as pool:
         start_at = time.time() + GENERATOR_START_S
         timed = [dataclasses.replace(plan, start_at=start_at) for plan in plans]
-        return pool.map(run_generator, timed, chunksize=1)
+        running = pool.map_async(run_generator, timed, chunksize=1)
+        time.sleep(max(0.0, start_at - time.time()))
+        opened = at_open()
+        return running.get(), opened
 
 
 # --------------------------------------------------------------------------- the report
