@@ -73,6 +73,7 @@ from typing import Any, TypeVar
 
 import httpx
 import numpy as np
+from sqlalchemy import Engine, create_engine, make_url, text
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -418,6 +419,8 @@ class Deployment:
     #: Process groups of the commands started (the API's, and the workers' if separate).
     process_groups: list[int]
     log_paths: list[Path]
+    #: The database's size on disk now, bytes.
+    size_bytes: Callable[[], int]
 
 
 @contextmanager
@@ -433,6 +436,7 @@ def sqlite_deployment(folder: Path) -> Iterator[Deployment]:
             server=server,
             process_groups=[server.pid],
             log_paths=[log],
+            size_bytes=lambda: sum(f.stat().st_size for f in folder.glob("load.sqlite3*")),
         )
 
 
@@ -440,8 +444,6 @@ def sqlite_deployment(folder: Path) -> Iterator[Deployment]:
 def postgres_deployment(folder: Path, admin_url: str) -> Iterator[Deployment]:
     """Scale-out: ``serve --workers 0`` and ``worker --processes 2`` on a new database, dropped
     at the end."""
-    from sqlalchemy import create_engine, make_url, text
-
     name = f"im_load_{uuid.uuid4().hex[:8]}"
     admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
     with admin.connect() as connection:
@@ -461,11 +463,19 @@ def postgres_deployment(folder: Path, admin_url: str) -> Iterator[Deployment]:
                 server=server,
                 process_groups=[server.pid, workers.pid],
                 log_paths=[api_log, worker_log],
+                size_bytes=lambda: database_size_bytes(admin, name),
             )
     finally:
         with admin.connect() as connection:
             connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
         admin.dispose()
+
+
+def database_size_bytes(admin: Engine, name: str) -> int:
+    with admin.connect() as connection:
+        return int(
+            connection.execute(text("SELECT pg_database_size(:n)"), {"n": name}).scalar_one()
+        )
 
 
 CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
@@ -631,6 +641,7 @@ class Outcome:
     workers_cpu_s: float
     machine_busy: float
     log_problems: Counter[str]
+    database_bytes: int
 
     @property
     def failed(self) -> bool:
@@ -699,6 +710,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         accepted = [a for result in results for a in result.accepted]
         lost = lost_sessions(admin, accepted)
         stored = admin.list_sessions(limit=1)["count"] - len(maps)
+        size_bytes = deployment.size_bytes()
 
     tallies = {endpoint: Tally() for endpoint in ENDPOINTS}
     for result in results:
@@ -724,6 +736,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         workers_cpu_s=sum(spent.values()) - api_cpu_s,
         machine_busy=busy,
         log_problems=log_problems(deployment.log_paths),
+        database_bytes=size_bytes,
     )
 
 
@@ -821,6 +834,7 @@ def totals_table(outcome: Outcome, args: argparse.Namespace) -> str:
             "generator event-loop lag p50 / p99 / max",
             f"{np.percentile(lags, 50):.0f} / {np.percentile(lags, 99):.0f} / {lags.max():.0f} ms",
         ],
+        ["database size at the end", f"{outcome.database_bytes / 2**20:.0f} MiB"],
         ["problem lines in the server's logs", str(sum(outcome.log_problems.values()))],
     ]
     return render_markdown_table(rows)
