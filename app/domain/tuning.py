@@ -114,7 +114,11 @@ class Axis:
         """The grid values, low to high (``num`` = 1: the geometric mean of the range)."""
         if self.num == 1:
             return np.array([math.sqrt(self.low * self.high)])
-        return np.logspace(math.log10(self.low), math.log10(self.high), self.num)
+        values = np.logspace(math.log10(self.low), math.log10(self.high), self.num)
+        # 10 ** log10(x) is not always x (numpy 2.4: 1e-05 → 9.999999999999999e-06): the ends
+        # are the values asked for, exactly.
+        values[0], values[-1] = self.low, self.high
+        return values
 
     def to_dict(self) -> dict[str, Any]:
         return {"low": self.low, "high": self.high, "num": self.num}
