@@ -151,11 +151,15 @@ class Worker:
                     control=control,
                     retry_backoff_s=self.settings.retry_backoff_s,
                 )
-        except Exception:
-            # Recording the outcome failed (the database went away): the lease will expire and
-            # the reaper requeue the job.
-            logger.exception(
-                "job %d: could not record its outcome", lease.job_id, extra={"action": "job_error"}
+        except Exception as err:
+            # Recording the outcome failed (the database went away for longer than the lease):
+            # the lease will expire and the reaper requeue the job.
+            logger.error(
+                "job %d: could not record its outcome: %s",
+                lease.job_id,
+                first_line(err),
+                exc_info=database_fault(err) is None,  # a traceback only for the unexpected
+                extra={"action": "job_error"},
             )
             report = JobReport(outcome=Outcome.LEASE_LOST)
         finally:
