@@ -12,13 +12,13 @@ RUN useradd --create-home --uid 10001 invisible-map \
     && mkdir -p /var/lib/invisible-map \
     && chown invisible-map /var/lib/invisible-map
 
-COPY pyproject.toml README.md alembic.ini ./
+COPY pyproject.toml README.md alembic.ini constraints.txt ./
 COPY app ./app
 COPY workers ./workers
 COPY migrations ./migrations
 COPY data ./data
 # Editable, so that migrations/ and data/ are found beside the code.
-RUN pip install --no-cache-dir -e .
+RUN pip install --no-cache-dir -e . -c constraints.txt
 
 USER invisible-map
 EXPOSE 8000
