@@ -116,7 +116,8 @@ def optimize_session(
     build_ms = (time.perf_counter() - started) * 1e3
 
     started = time.perf_counter()
-    values, iterations, initial_error, final_error = _levenberg_marquardt(
+    initial_error = float(problem.graph.error(inputs.initial))
+    values, iterations, final_error = _levenberg_marquardt(
         problem.graph, inputs.initial, params, on_iteration
     )
     optimize_ms = (time.perf_counter() - started) * 1e3
@@ -254,14 +255,88 @@ def optimize_tag_poses(
     inputs: GraphInputs, params: SlamParams, *, initial: gtsam.Values | None = None
 ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
     """The optimized ``world_T_tag`` of every tag in the graph, the number of LM iterations and
-    the solution (no residuals, no marginals): what a sweep trial needs. ``params``' noise fields
-    are used; its rejection thresholds were applied when ``inputs`` were prepared. ``initial``
-    (default: raw odometry and first observations) is where LM starts."""
-    problem = _build_problem(inputs, params)
-    start = inputs.initial if initial is None else initial
-    values, iterations, _, _ = _levenberg_marquardt(problem.graph, start, params, None)
-    poses = {tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(inputs.tag_rows)}
-    return poses, iterations, values
+    the solution (no residuals, no marginals). ``params``' noise fields are used; its rejection
+    thresholds were applied when ``inputs`` were prepared. ``initial`` (default: raw odometry and
+    first observations) is where LM starts. For many settings of one session, keep a
+    :class:`TrialGraph` instead: it rebuilds only what a setting changes."""
+    return TrialGraph(inputs).optimize(params, initial=initial)
+
+
+#: The ``SlamParams`` fields each kind of factor is built from (besides ``GraphInputs``).
+ODOMETRY_NOISE_FIELDS = ("odom_linear_var_m2_per_s", "odom_angular_var_rad2_per_s")
+GRAVITY_NOISE_FIELDS = ("gravity_var_rad2",)
+TAG_NOISE_FIELDS = (
+    "tag_position_var_m2",
+    "tag_depth_var_ratio",
+    "tag_orientation_var_rad2",
+    "huber_k",
+)
+
+
+class TrialGraph:
+    """One session's factor graph for many noise settings (a sweep's trials).
+
+    The graph of a setting is the one :func:`optimize_session` builds, factor for factor and in
+    the same order, so LM takes the same steps on it. What no setting changes is done once: the
+    gauge prior, and the COLAMD ordering (the graph's structure is the same for every setting).
+    Each kind of factor (odometry, gravity, tags) is rebuilt only when one of the parameters it
+    is built from (``*_NOISE_FIELDS``) differs from the previous setting's; on the paper grid,
+    where the odometry angular variance varies fastest, that leaves the ~N odometry factors.
+    """
+
+    def __init__(self, inputs: GraphInputs) -> None:
+        self.inputs = inputs
+        self._prior = _factor_graph([_gauge_prior(inputs)])
+        self._kinds: dict[str, tuple[tuple[float, ...], gtsam.NonlinearFactorGraph]] = {}
+        self._ordering: gtsam.Ordering | None = None
+
+    def graph(self, params: SlamParams) -> gtsam.NonlinearFactorGraph:
+        """The factor graph with ``params``' noise models."""
+        inputs = self.inputs
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(self._prior)
+        graph.push_back(
+            self._kind("odometry", ODOMETRY_NOISE_FIELDS, params, _odometry_factors, inputs)
+        )
+        graph.push_back(
+            self._kind("gravity", GRAVITY_NOISE_FIELDS, params, _gravity_factors, inputs)
+        )
+        graph.push_back(
+            self._kind("tags", TAG_NOISE_FIELDS, params, lambda i, p: _tag_factors(i, p)[0], inputs)
+        )
+        return graph
+
+    def optimize(
+        self, params: SlamParams, *, initial: gtsam.Values | None = None
+    ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
+        """As :func:`optimize_tag_poses`."""
+        graph = self.graph(params)
+        if self._ordering is None:
+            self._ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+        start = self.inputs.initial if initial is None else initial
+        values, iterations, _ = _levenberg_marquardt(
+            graph, start, params, None, ordering=self._ordering
+        )
+        poses = {
+            tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(self.inputs.tag_rows)
+        }
+        return poses, iterations, values
+
+    def _kind(
+        self,
+        kind: str,
+        fields: tuple[str, ...],
+        params: SlamParams,
+        build: Callable[[GraphInputs, SlamParams], list[Any]],
+        inputs: GraphInputs,
+    ) -> gtsam.NonlinearFactorGraph:
+        key = tuple(float(getattr(params, name)) for name in fields)
+        cached = self._kinds.get(kind)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        factors = _factor_graph(build(inputs, params))
+        self._kinds[kind] = (key, factors)
+        return factors
 
 
 class _Problem:
@@ -274,54 +349,77 @@ class _Problem:
         self.tag_factors: list[gtsam.BetweenFactorPose3] = []
         self.tag_covariances: list[FloatArray] = []
 
-    def add(self, factor: gtsam.NonlinearFactor, of_kind: list[Any]) -> None:
-        of_kind.append(factor)
-        self.graph.add(factor)
-
 
 def _build_problem(inputs: GraphInputs, params: SlamParams) -> _Problem:
     problem = _Problem()
+    problem.odometry_factors = _odometry_factors(inputs, params)
+    problem.gravity_factors = _gravity_factors(inputs, params)
+    problem.tag_factors, problem.tag_covariances = _tag_factors(inputs, params)
+    problem.graph.add(_gauge_prior(inputs))
+    for kind in (problem.odometry_factors, problem.gravity_factors, problem.tag_factors):
+        for factor in kind:
+            problem.graph.add(factor)
+    return problem
 
-    # 2a. gauge prior
+
+def _factor_graph(factors: list[Any]) -> gtsam.NonlinearFactorGraph:
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in factors:
+        graph.add(factor)
+    return graph
+
+
+def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
+    """2a. The gauge prior on the first pose."""
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
         pose_sigmas(rot_rad=GAUGE_PRIOR_SIGMA_RAD, trans_m=GAUGE_PRIOR_SIGMA_M)
     )
-    problem.graph.add(gtsam.PriorFactorPose3(X(0), inputs.gauge_pose, prior_noise))
+    return gtsam.PriorFactorPose3(X(0), inputs.gauge_pose, prior_noise)
 
-    # 2b. odometry, noise growing with the time between poses
+
+def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.BetweenFactorPose3]:
+    """2b. Odometry, noise growing with the time between poses (one noise model per distinct
+    step duration)."""
     noise_by_dt: dict[float, gtsam.noiseModel.Base] = {}
+    factors = []
     for i, phone_T_next in enumerate(inputs.phone_T_next):
         key_dt = float(inputs.odometry_dt_s[i])
         noise = noise_by_dt.get(key_dt)
         if noise is None:
             noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(key_dt, params))
             noise_by_dt[key_dt] = noise
-        problem.add(
-            gtsam.BetweenFactorPose3(X(i), X(i + 1), phone_T_next, noise), problem.odometry_factors
-        )
+        factors.append(gtsam.BetweenFactorPose3(X(i), X(i + 1), phone_T_next, noise))
+    return factors
 
-    # 2c. gravity: the measured up direction in the phone frame, held to the map's up
+
+def _gravity_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.AttitudeFactorPose3]:
+    """2c. Gravity: the measured up direction in the phone frame, held to the map's up."""
     gravity_noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(params.gravity_var_rad2))
     world_up = gtsam.Unit3(WORLD_UP)
-    for i, phone_up in enumerate(inputs.phone_up):
-        problem.add(
-            gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, phone_up),
-            problem.gravity_factors,
-        )
+    return [
+        gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, phone_up)
+        for i, phone_up in enumerate(inputs.phone_up)
+    ]
 
-    # 2d. tags
+
+def _tag_factors(
+    inputs: GraphInputs, params: SlamParams
+) -> tuple[list[gtsam.BetweenFactorPose3], list[FloatArray]]:
+    """2d. Tags, under a Huber kernel; and each factor's covariance (tag frame)."""
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
+    factors, covariances = [], []
     for k, tag_id in enumerate(inputs.tag_ids):
         covariance = tag_covariance_in_tag_frame(inputs.camera_T_tag[k], params)
-        noise = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(covariance)
         if huber is not None:
             noise = gtsam.noiseModel.Robust.Create(huber, noise)
-        factor = gtsam.BetweenFactorPose3(
-            X(inputs.tag_pose_indices[k]), L(tag_id), inputs.phone_T_tag[k], noise
+        factors.append(
+            gtsam.BetweenFactorPose3(
+                X(inputs.tag_pose_indices[k]), L(tag_id), inputs.phone_T_tag[k], noise
+            )
         )
-        problem.add(factor, problem.tag_factors)
-        problem.tag_covariances.append(covariance)
-    return problem
+        covariances.append(covariance)
+    return factors, covariances
 
 
 # --------------------------------------------------------------------------- solving
@@ -332,21 +430,26 @@ def _levenberg_marquardt(
     initial: gtsam.Values,
     params: SlamParams,
     on_iteration: IterationCallback | None,
-) -> tuple[gtsam.Values, int, float, float]:
+    *,
+    ordering: gtsam.Ordering | None = None,
+) -> tuple[gtsam.Values, int, float]:
+    """The solution, the iterations and the final error. ``ordering``: COLAMD's of ``graph``
+    when it is known already (the default computes it)."""
     lm_params = gtsam.LevenbergMarquardtParams()
     lm_params.setMaxIterations(params.max_iterations)
     lm_params.setRelativeErrorTol(params.relative_error_tol)
     lm_params.setAbsoluteErrorTol(0.0)
-    lm_params.setOrdering(gtsam.Ordering.ColamdNonlinearFactorGraph(graph))
+    lm_params.setOrdering(
+        gtsam.Ordering.ColamdNonlinearFactorGraph(graph) if ordering is None else ordering
+    )
     lm_params.setLinearSolverType(LINEAR_SOLVER)
     if on_iteration is not None:
         lm_params.iterationHook = lambda iteration, _before, after: on_iteration(
             int(iteration), float(after)
         )
-    initial_error = float(graph.error(initial))
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm_params)
     values = optimizer.optimize()
-    return values, int(optimizer.iterations()), initial_error, float(optimizer.error())
+    return values, int(optimizer.iterations()), float(optimizer.error())
 
 
 def _tag_marginals(
@@ -399,6 +502,7 @@ def _residuals(inputs: GraphInputs, problem: _Problem, values: gtsam.Values) -> 
 
 __all__ = [
     "GraphInputs",
+    "TrialGraph",
     "linearize_and_solve_ms",
     "odometry_sigmas",
     "optimize_session",

@@ -53,7 +53,7 @@ from app.domain.metrics import (
 )
 from app.domain.params import SlamParams
 from app.domain.session import Session, first_observation_tag_poses
-from app.domain.slam import GraphInputs, optimize_tag_poses, prepare_graph_inputs
+from app.domain.slam import GraphInputs, TrialGraph, prepare_graph_inputs
 
 if TYPE_CHECKING:
     import gtsam
@@ -242,6 +242,7 @@ class TuningTarget:
         self.ground_truth = dict(ground_truth) if ground_truth else None
         self.inputs = inputs
         self.pairs = pairs
+        self.graph = TrialGraph(inputs)
         self._warm_start: gtsam.Values | None = None
         pre_all = first_observation_tag_poses(session)
         self.pre_map = {tag_id: pre_all[tag_id] for tag_id in inputs.tag_rows}
@@ -263,7 +264,7 @@ class TuningTarget:
         """Where every trial starts LM: the optimum with the base parameters (computed once)."""
         if self._warm_start is None:
             base = self.base_params.with_overrides({"compute_marginals": False})
-            _, _, self._warm_start = optimize_tag_poses(self.inputs, base)
+            _, _, self._warm_start = self.graph.optimize(base)
         return self._warm_start
 
     @property
@@ -305,9 +306,7 @@ class TuningTarget:
         values = {name: float(value) for name, value in values.items()}
         params = self.trial_params(values)
         try:
-            map_T_tag, iterations, _ = optimize_tag_poses(
-                self.inputs, params, initial=self.warm_start
-            )
+            map_T_tag, iterations, _ = self.graph.optimize(params, initial=self.warm_start)
         except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
             return Trial(
                 values=values,

@@ -244,3 +244,44 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
         np.testing.assert_allclose(
             result.tag_covariance[k], reference.marginalCovariance(L(int(tag_id))), atol=1e-10
         )
+
+
+#: SlamParams' noise fields (its docstring's "Noise" group): everything a factor's noise is made of.
+NOISE_FIELDS = {
+    "tag_position_var_m2",
+    "tag_depth_var_ratio",
+    "tag_orientation_var_rad2",
+    "odom_linear_var_m2_per_s",
+    "odom_angular_var_rad2_per_s",
+    "gravity_var_rad2",
+    "huber_k",
+}
+
+
+def test_a_trial_graph_is_the_builds_graph_for_every_noise_setting():
+    """TrialGraph keeps each kind of factor until one of its fields changes: after any sequence
+    of settings, its graph must be the one the build makes (same factors in the same order, the
+    same error at any values)."""
+    from app.domain import slam
+
+    assert (
+        set(slam.ODOMETRY_NOISE_FIELDS + slam.GRAVITY_NOISE_FIELDS + slam.TAG_NOISE_FIELDS)
+        == NOISE_FIELDS
+    )
+    session = load_session(DATA / "sessions" / "desnat_straight_once.json")  # 16 step durations
+    inputs = slam.prepare_graph_inputs(session)
+    trial_graph = slam.TrialGraph(inputs)
+    default = SlamParams()
+    settings = [default]
+    for name in sorted(NOISE_FIELDS):
+        changed = 2.0 if name == "huber_k" else 10.0 * getattr(default, name)
+        settings += [default.with_overrides({name: changed}), default]
+    settings.append(default.with_overrides({"huber_k": 0.0}))
+    for params in settings:
+        built = slam._build_problem(inputs, params).graph
+        graph = trial_graph.graph(params)
+        assert graph.size() == built.size()
+        assert [list(graph.at(i).keys()) for i in range(graph.size())] == [
+            list(built.at(i).keys()) for i in range(built.size())
+        ]
+        assert graph.error(inputs.initial) == pytest.approx(built.error(inputs.initial), rel=1e-12)
