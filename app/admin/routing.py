@@ -27,12 +27,12 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import RedirectResponse
-from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
 from app.api.errors import FAULT_ANSWERS, NOT_FOUND_ERRORS, ApiError, field_path
+from app.api.route_class import SessionEndingRoute
 from app.domain.errors import ParameterError
 from app.storage.db import database_fault
 from app.storage.queue import InvalidTransition
@@ -51,8 +51,9 @@ TITLE_OF_STATUS = {
 }
 
 
-class AdminRoute(APIRoute):
-    """An :class:`APIRoute` whose errors are dashboard pages (see the module docstring)."""
+class AdminRoute(SessionEndingRoute):
+    """An :class:`APIRoute` whose errors are dashboard pages (see the module docstring), and
+    whose transaction ends as its function returns (``app.api.route_class``)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()

@@ -166,23 +166,28 @@ AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
 # --------------------------------------------------------------------------- validators
 
 
-def valid_map(map_id: int, session: ReadSessionDep) -> MapInfo:
+# The validators read in short transactions of their own, not the request's: a connection held
+# by a dependency would be held while the request waits for a thread for the route
+# (app.api.route_class says why that must not happen).
+
+
+def valid_map(map_id: int, db: DbDep) -> MapInfo:
     """The map ``map_id`` (with its current version), or 404."""
     if not 1 <= map_id <= MAX_ID:
         raise not_found(f"map {map_id}")
-    return maps.get_map(session, map_id)
+    with db.read() as session:
+        return maps.get_map(session, map_id)
 
 
 MapDep = Annotated[MapInfo, Depends(valid_map)]
 
 
-def valid_session(
-    session_id: int, session: ReadSessionDep, principal: CurrentPrincipal
-) -> SessionInfo:
+def valid_session(session_id: int, db: DbDep, principal: CurrentPrincipal) -> SessionInfo:
     """The session ``session_id`` if the caller may see it (admin, or its uploader), or 404."""
     if not 1 <= session_id <= MAX_ID:
         raise not_found(f"session {session_id}")
-    info = sessions.get_session(session, session_id)
+    with db.read() as session:
+        info = sessions.get_session(session, session_id)
     if not principal.is_admin and info.uploaded_by != principal.subject:
         raise not_found(f"session {session_id}")
     return info
@@ -191,14 +196,14 @@ def valid_session(
 SessionDep = Annotated[SessionInfo, Depends(valid_session)]
 
 
-def valid_job(job_id: int, session: ReadSessionDep, principal: CurrentPrincipal) -> JobInfo:
+def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
     """The job ``job_id`` if the caller may see it (admin, or the uploader of its session)."""
     if not 1 <= job_id <= MAX_ID:
         raise not_found(f"job {job_id}")
-    job = queue.get_job(session, job_id)
-    if not principal.is_admin and (
-        job.session_id is None or sessions.uploader_of(session, job.session_id) != principal.subject
-    ):
+    with db.read() as session:
+        job = queue.get_job(session, job_id)
+        uploader = None if job.session_id is None else sessions.uploader_of(session, job.session_id)
+    if not principal.is_admin and (job.session_id is None or uploader != principal.subject):
         raise not_found(f"job {job_id}")
     return job
 

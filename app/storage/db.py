@@ -21,6 +21,8 @@ from sqlalchemy import exc as sqlalchemy_exc
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+#: ``Session.info`` key of the sessions :meth:`Database.transaction` made (they may write).
+WRITES = "invisible_map_writes"
 
 
 class Database:
@@ -48,8 +50,10 @@ class Database:
 
     @contextmanager
     def transaction(self) -> Iterator[Session]:
-        """One read-write transaction: commits if the block ends normally, else rolls back."""
+        """One read-write transaction: commits if the block ends normally, else rolls back.
+        (:func:`end_transaction` may commit it earlier.)"""
         with self._sessions.begin() as session:
+            session.info[WRITES] = True
             yield session
 
     @contextmanager
@@ -125,6 +129,18 @@ def database_fault(err: BaseException) -> DatabaseFault | None:
     if isinstance(err, sqlalchemy_exc.TimeoutError):  # no pooled connection came free in time
         return DatabaseFault.UNAVAILABLE
     return None
+
+
+def end_transaction(session: Session) -> None:
+    """End ``session``'s transaction now and give its connection back to the pool: commit it if
+    it came from :meth:`Database.transaction`, roll it back if from :meth:`Database.read`. The
+    ``with`` block that made the session then has nothing left to do."""
+    if not session.in_transaction():
+        return
+    if session.info.get(WRITES):
+        session.commit()
+    else:
+        session.rollback()
 
 
 def first_line(err: BaseException) -> str:

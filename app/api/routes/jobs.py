@@ -15,11 +15,12 @@ from fastapi import APIRouter, Query
 
 from app.api.deps import AdminPrincipal, JobDep, ReadSessionDep, WriteSessionDep, valid_id
 from app.api.errors import error_responses
+from app.api.route_class import SessionEndingRoute
 from app.api.schemas import JobPublic, JobsPublic
 from app.storage import queue
 from app.storage.orm import JobState
 
-router = APIRouter(prefix="/jobs", tags=["jobs"])
+router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=SessionEndingRoute)
 
 Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
 Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]

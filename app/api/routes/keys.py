@@ -10,10 +10,11 @@ from sqlalchemy.orm import Session
 
 from app.api.deps import AdminPrincipal, ReadSessionDep, WriteSessionDep, valid_id
 from app.api.errors import ApiError, error_responses
+from app.api.route_class import SessionEndingRoute
 from app.api.schemas import KeyCreate, KeyCreated, KeyPublic, KeysPublic
 from app.storage import keys
 
-router = APIRouter(prefix="/keys", tags=["keys"])
+router = APIRouter(prefix="/keys", tags=["keys"], route_class=SessionEndingRoute)
 
 
 @router.post(

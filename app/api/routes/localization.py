@@ -27,6 +27,7 @@ from app.api.navigation_schemas import (
     LocalizationPublic,
     LocalizationUpdate,
 )
+from app.api.route_class import SessionEndingRoute
 from app.api.routes.maps import chosen_version
 from app.api.version_cache import VersionCache
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
@@ -41,7 +42,7 @@ from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.navigation import LocalizationConflict, LocalizationInfo
 
-router = APIRouter(tags=["localization"])
+router = APIRouter(tags=["localization"], route_class=SessionEndingRoute)
 
 
 def _public(info: LocalizationInfo) -> LocalizationPublic:

@@ -32,6 +32,7 @@ from app.api.deps import (
 )
 from app.api.errors import ApiError, error_responses
 from app.api.http import if_none_match_hits, strong_etag
+from app.api.route_class import SessionEndingRoute
 from app.api.schemas import (
     AppMap,
     MapPublic,
@@ -52,7 +53,7 @@ from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
 from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP
 
-router = APIRouter(prefix="/maps", tags=["maps"])
+router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute)
 
 Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
 Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]

@@ -18,6 +18,7 @@ from app.api.deps import MapDep, ReadSessionDep
 from app.api.errors import ApiError, error_responses
 from app.api.http import strong_etag
 from app.api.navigation_schemas import PoiPublic, PoisPublic, RoutePublic, RouteRequest
+from app.api.route_class import SessionEndingRoute
 from app.api.routes.maps import chosen_version
 from app.api.version_cache import VersionCache
 from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
@@ -34,7 +35,7 @@ from app.domain.routing import (
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
 
-router = APIRouter(prefix="/maps", tags=["navigation"])
+router = APIRouter(prefix="/maps", tags=["navigation"], route_class=SessionEndingRoute)
 
 
 def current_path_graph(

@@ -27,6 +27,7 @@ from app.api.deps import (
 )
 from app.api.errors import error_responses
 from app.api.http import accepts_gzip
+from app.api.route_class import SessionEndingRoute
 from app.api.schemas import SessionCreated, SessionPublic, SessionsPublic
 from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
@@ -37,7 +38,7 @@ from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
 
-router = APIRouter(prefix="/sessions", tags=["sessions"])
+router = APIRouter(prefix="/sessions", tags=["sessions"], route_class=SessionEndingRoute)
 
 IdempotencyKey = Annotated[
     str | None,

@@ -25,6 +25,7 @@ from app.api.deps import (
     valid_id,
 )
 from app.api.errors import ApiError, error_responses
+from app.api.route_class import SessionEndingRoute
 from app.api.routes.maps import checked_overrides, enqueue_rebuild
 from app.api.schemas import RebuildAccepted
 from app.api.sweep_schemas import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
@@ -36,7 +37,7 @@ from app.storage.maps import MapInfo
 from app.storage.sweeps import SweepInfo
 from app.sweep_runner import SweepPlan
 
-router = APIRouter(tags=["sweeps"])
+router = APIRouter(tags=["sweeps"], route_class=SessionEndingRoute)
 
 PNG: dict[int | str, dict[str, Any]] = {
     200: {

@@ -11,11 +11,12 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from app.api.deps import CurrentPrincipal, DbDep, ReadSessionDep, SettingsDep
 from app.api.errors import ApiError, error_responses
+from app.api.route_class import SessionEndingRoute
 from app.api.schemas import Health, Info, Ready, WorkerPublic
 from app.storage import migrate, queue
 from app.storage.orm import JobState
 
-router = APIRouter(tags=["system"])
+router = APIRouter(tags=["system"], route_class=SessionEndingRoute)
 
 
 @lru_cache
