@@ -69,6 +69,7 @@ def test_no_server_errors_and_responses_match_the_schema(server, role, tmp_path)
     assert "Tested: 36" in result.stdout, summary
     counts = re.search(r"(\d+) generated, (\d+) passed(?P<rest>[^\n]*)", result.stdout)
     assert counts is not None, summary
+    print(f"schemathesis, {role} key: {counts[0]}")  # for the README's Reliability figures
     assert int(counts[1]) > 500
     assert counts[1] == counts[2], summary
     assert "failed" not in counts["rest"], summary
