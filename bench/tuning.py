@@ -4,10 +4,15 @@ and the shift metric against ground truth on simulations. One command, prints fo
     .venv/bin/python -m bench.tuning                 # the full benchmark (about 7 minutes)
     .venv/bin/python -m bench.tuning --quick         # two sessions, smaller grids (about 1 minute)
     .venv/bin/python -m bench.tuning --json out.json # also write the raw numbers
+    .venv/bin/python -m bench.tuning --timing        # (a) and (a2) only (about 3 minutes)
 
 (a) Wall time of the paper grid (10 × 10 × 10 over 1e-8..1, 1000 trials) per real session with
     ground truth, on 2 processes, and on 1 process for the first session (the speed-up); the
     workers' CPU time shows how much of the 2 cores the sweep actually got on a shared machine.
+(a2) Where a trial's time goes, per session: CPU time per trial (``time.process_time`` in this
+    one process, so other programs on the machine inflate it far less than the wall time) of its
+    parts — the factor graph for its setting, Levenberg–Marquardt, scoring — and LM's iterations,
+    over every ``COMPONENT_ROW_STRIDE``-th row of the grid, in grid order.
 (b) The paper's Table 2 from those grids: the ground-truth metric of the pre-optimized map, of the
     trial the shift metric chooses and of the best trial by ground truth (the % change against
     pre-optimized), the same three tag RMSEs, and the Spearman correlation of shift and GT metric
@@ -79,6 +84,8 @@ SIM_NOISE = {
     "tag_rotation_noise_rad": 0.03,
 }
 SIM_DEPTH_RATIO = 3.0
+#: (a2) times the trials of every this-many-th row of the grid (rows along the last axis).
+COMPONENT_ROW_STRIDE = 4
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -205,6 +212,80 @@ def real_sessions(plan: Plan) -> tuple[list[dict[str, Any]], list[dict[str, Any]
             }
         )
     return timing_rows, table2_rows
+
+
+def trial_components(plan: Plan) -> list[dict[str, Any]]:
+    """(a2): per-trial CPU of each part of a trial, ms, and LM's iterations, per session."""
+    space = paper_space(plan.grid_values)
+    rows = []
+    for name, gt_file in plan.sessions:
+        session = load_session(SESSIONS / f"{name}.json")
+        target = TuningTarget.prepare(
+            session, SlamParams(), load_ground_truth(GROUND_TRUTH / gt_file)
+        )
+        start = target.warm_start
+        last = space.axes[-1].num
+        grid = space.grid()
+        values = [v for k, v in enumerate(grid) if (k // last) % COMPONENT_ROW_STRIDE == 0]
+        log(f"trial parts {name}: {len(values)} trials in this process …")
+        graph_s = lm_s = score_s = 0.0
+        iterations = 0
+        for trial_values in values:
+            params = target.trial_params(trial_values)
+            started = time.process_time()
+            target.graph.graph(params)
+            built = time.process_time()
+            map_T_tag, trial_iterations, _ = target.graph.optimize(params, initial=start)
+            optimized = time.process_time()
+            target.score_map(map_T_tag)
+            scored = time.process_time()
+            graph_s += built - started
+            lm_s += optimized - built  # its graph comes from the cache the line above filled
+            score_s += scored - optimized
+            iterations += trial_iterations
+        count = len(values)
+        rows.append(
+            {
+                "session": name,
+                "trials": count,
+                "graph_ms": graph_s / count * 1e3,
+                "lm_ms": lm_s / count * 1e3,
+                "score_ms": score_s / count * 1e3,
+                "total_ms": (graph_s + lm_s + score_s) / count * 1e3,
+                "mean_iterations": iterations / count,
+                "lm_ms_per_iteration": lm_s / max(iterations, 1) * 1e3,
+            }
+        )
+    return rows
+
+
+def components_table(rows: list[dict[str, Any]]) -> str:
+    lines = [
+        [
+            "session",
+            "trials",
+            "graph ms",
+            "LM ms",
+            "scoring ms",
+            "total ms",
+            "LM iterations",
+            "LM ms/iteration",
+        ]
+    ]
+    for row in rows:
+        lines.append(
+            [
+                row["session"],
+                str(row["trials"]),
+                f"{row['graph_ms']:.2f}",
+                f"{row['lm_ms']:.1f}",
+                f"{row['score_ms']:.2f}",
+                f"{row['total_ms']:.1f}",
+                f"{row['mean_iterations']:.2f}",
+                f"{row['lm_ms_per_iteration']:.2f}",
+            ]
+        )
+    return render_markdown_table(lines, justify="right")
 
 
 def timing_table(rows: list[dict[str, Any]]) -> str:
@@ -453,28 +534,36 @@ def main() -> int:
         "--quick", action="store_true", help="two sessions, 5³ grids, 40 sampler trials"
     )
     parser.add_argument("--json", type=Path, help="also write the raw numbers here")
+    parser.add_argument("--timing", action="store_true", help="only (a) and (a2)")
     args = parser.parse_args()
     plan = QUICK if args.quick else FULL
     started = time.perf_counter()
     load_before = os.getloadavg()
 
     timing_rows, table2_rows = real_sessions(plan)
-    grid_best = {row["session"]: row["best_shift"] for row in table2_rows}
-    sampler_rows = sampler_runs(plan, grid_best)
-    simulation_rows = simulation_runs(plan)
+    component_rows = trial_components(plan)
+    sampler_rows: list[dict[str, Any]] = []
+    simulation_rows: list[dict[str, Any]] = []
+    if not args.timing:
+        grid_best = {row["session"]: row["best_shift"] for row in table2_rows}
+        sampler_rows = sampler_runs(plan, grid_best)
+        simulation_rows = simulation_runs(plan)
 
     grid_size = plan.grid_values**3
     print(f"(a) Grid of {grid_size} trials (paper range 1e-8..1), wall time\n")
     print(timing_table(timing_rows))
-    print(f"\n(b) Table 2: ground-truth metric and tag RMSE over the {grid_size}-trial grid\n")
-    print(table2(table2_rows))
-    print(f"\n(c) Optuna TPE, {plan.sampler_trials} trials, shift metric, against the grid\n")
-    print(sampler_table(sampler_rows, grid_size))
-    print(
-        f"\n(d) Simulation ({plan.sim_poses} poses), {plan.sim_values}³ grid ±2 decades around the "
-        "generating variances; offsets orientation / linear / angular\n"
-    )
-    print(simulation_table(simulation_rows))
+    print("\n(a2) Where a trial's time goes: CPU per trial in one process\n")
+    print(components_table(component_rows))
+    if not args.timing:
+        print(f"\n(b) Table 2: ground-truth metric and tag RMSE over the {grid_size}-trial grid\n")
+        print(table2(table2_rows))
+        print(f"\n(c) Optuna TPE, {plan.sampler_trials} trials, shift metric, against the grid\n")
+        print(sampler_table(sampler_rows, grid_size))
+        print(
+            f"\n(d) Simulation ({plan.sim_poses} poses), {plan.sim_values}³ grid ±2 decades "
+            "around the generating variances; offsets orientation / linear / angular\n"
+        )
+        print(simulation_table(simulation_rows))
     total_s = time.perf_counter() - started
     load_after = os.getloadavg()
     print(
@@ -495,6 +584,7 @@ def main() -> int:
                 "processes": plan.processes,
             },
             "grid_timing": timing_rows,
+            "trial_components": component_rows,
             "table2": table2_rows,
             "sampler": sampler_rows,
             "simulation": simulation_rows,
