@@ -8,10 +8,8 @@
 
 A *trial* is one optimization of the session with some of the noise variances replaced, scored by
 the shift metric (always) and the ground-truth metric and tag RMSE (when ground truth is given).
-The session is screened and its graph measurements prepared once (``slam.GraphInputs``), and its
-factor graph kept for every setting (``slam.TrialGraph``: each kind of factor built once per
-distinct value of its parameters, the COLAMD ordering computed once); a trial runs
-Levenberg–Marquardt on the build's graph without marginals, and scores the tags.
+The session is screened and its graph measurements prepared once (``slam.GraphInputs``); a trial
+rebuilds only the noise models, runs Levenberg–Marquardt without marginals, and scores the tags.
 
 Why three axes by default: scaling every variance by the same factor leaves the least-squares
 optimum unchanged (only the Huber threshold, in σ units, notices), so one of the four noise
