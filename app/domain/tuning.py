@@ -9,7 +9,8 @@
 A *trial* is one optimization of the session with some of the noise variances replaced, scored by
 the shift metric (always) and the ground-truth metric and tag RMSE (when ground truth is given).
 The session is screened and its graph measurements prepared once (``slam.GraphInputs``); a trial
-rebuilds only the noise models, runs Levenberg–Marquardt without marginals, and scores the tags.
+rebuilds only the factors whose noise its setting changes (``slam.TrialGraph``, which also computes
+the COLAMD ordering once), runs Levenberg–Marquardt without marginals, and scores the tags.
 
 Why three axes by default: scaling every variance by the same factor leaves the least-squares
 optimum unchanged (only the Huber threshold, in σ units, notices), so one of the four noise
