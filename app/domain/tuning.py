@@ -5,6 +5,8 @@
     trial = target.run({"odom_linear_var_m2_per_s": 1e-3, …})            # one optimization
     trial.shift, trial.gt_metric, trial.tag_rmse_m
     propose_trials(space, done=[(values, score), …], count=8, seed=0)    # Optuna TPE, ask-only
+    build = target.build(trial.values)        # the map `apply` makes with them, scored the same
+    result = sweep_result(target, trials, "shift")   # the summary, its choices scored by builds
 
 A *trial* is one optimization of the session with some of the noise variances replaced, scored by
 the shift metric (always) and the ground-truth metric and tag RMSE (when ground truth is given).
@@ -25,6 +27,13 @@ Every trial starts Levenberg–Marquardt from the same point, the optimum with t
 (computed once): that halves the iterations (mean 6 instead of 13 on floor_2_straight) without
 making a trial depend on which trials ran before it. A trial that hits ``TRIAL_MAX_ITERATIONS`` is
 recorded but marked unconverged, and never chosen as the best.
+
+A trial is the build's map only to LM's tolerance: it stops when an iteration lowers the error by
+less than 0.1%, and where the error is flat along some direction a run from the base optimum and a
+run from raw odometry (what a build does) stop far apart. So a trial's scores *choose* a setting,
+and :func:`sweep_result` reports the chosen settings by their builds (``TuningTarget.build``:
+``optimize_session`` with the same parameters, scored by the same code): two optimizations per
+sweep, and the numbers are those of the map a user gets.
 
 The sampler keeps no state of its own: the history of finished trials (in our database) is replayed
 into an in-memory Optuna study, which is then asked for the next trials. So any worker can propose
@@ -54,7 +63,7 @@ from app.domain.metrics import (
 )
 from app.domain.params import SlamParams
 from app.domain.session import Session, first_observation_tag_poses
-from app.domain.slam import GraphInputs, TrialGraph, prepare_graph_inputs
+from app.domain.slam import GraphInputs, TrialGraph, optimize_session, prepare_graph_inputs
 
 if TYPE_CHECKING:
     import gtsam
@@ -274,9 +283,7 @@ class TuningTarget:
 
     def trial_params(self, values: Mapping[str, float]) -> SlamParams:
         """The base parameters with ``values`` swapped in, as a trial optimizes with them."""
-        unknown = set(values) - set(TUNABLE_PARAMS)
-        if unknown:
-            raise ParameterError(f"cannot sweep {sorted(unknown)}; tunable: {TUNABLE_PARAMS}")
+        _check_tunable(values)
         return self.base_params.with_overrides(
             {
                 **values,
@@ -327,6 +334,85 @@ class TuningTarget:
             iterations=iterations,
             duration_s=time.perf_counter() - started,
         )
+
+    def build_params(self, values: Mapping[str, float]) -> SlamParams:
+        """The base parameters with ``values`` swapped in, as a build uses them (``apply``'s
+        rebuild, ``process --param``): LM from raw odometry with the base iteration cap. Without
+        marginals, which do not move the map."""
+        _check_tunable(values)
+        return self.base_params.with_overrides({**values, "compute_marginals": False})
+
+    def build(self, values: Mapping[str, float]) -> BuildScores:
+        """Build the map with ``values`` (:func:`slam.optimize_session`, from raw odometry, as
+        ``apply`` does) and score it as a trial is scored (:meth:`score_map`); never raises on a
+        solver failure. Its tags are those of the trials: ``values`` change no rejection
+        threshold, so the build screens the session as :meth:`prepare` did."""
+        started = time.perf_counter()
+        values = {name: float(value) for name, value in values.items()}
+        params = self.build_params(values)
+        try:
+            result = optimize_session(self.session, params)
+        except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
+            return BuildScores(
+                values=values,
+                shift=math.nan,
+                gt_metric=math.nan,
+                tag_rmse_m=math.nan,
+                iterations=0,
+                max_iterations=params.max_iterations,
+                duration_s=time.perf_counter() - started,
+                error=f"optimization failed: {err}",
+            )
+        shift, gt_metric, rmse_m = self.score_map(result.tag_poses())
+        return BuildScores(
+            values=values,
+            shift=shift,
+            gt_metric=gt_metric,
+            tag_rmse_m=rmse_m,
+            iterations=result.stats.iterations,
+            max_iterations=params.max_iterations,
+            duration_s=time.perf_counter() - started,
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BuildScores:
+    """The map a build with ``values`` makes (:meth:`TuningTarget.build`), scored as a trial is.
+    Metrics are NaN where undefined; ``error`` says why the build produced no map."""
+
+    values: dict[str, float]
+    shift: float
+    gt_metric: float
+    tag_rmse_m: float
+    iterations: int
+    #: The build's LM iteration cap (the base parameters'): a build that reaches it still makes
+    #: the map ``apply`` stores, so it is reported, marked unconverged.
+    max_iterations: int
+    duration_s: float
+    error: str | None = None
+
+    @property
+    def converged(self) -> bool:
+        return self.error is None and self.iterations < self.max_iterations
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN becomes None)."""
+        return {
+            "values": self.values,
+            "shift": _finite_or_none(self.shift),
+            "gt_metric": _finite_or_none(self.gt_metric),
+            "tag_rmse_m": _finite_or_none(self.tag_rmse_m),
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "duration_s": self.duration_s,
+            "error": self.error,
+        }
+
+
+def _check_tunable(values: Mapping[str, float]) -> None:
+    unknown = set(values) - set(TUNABLE_PARAMS)
+    if unknown:
+        raise ParameterError(f"cannot sweep {sorted(unknown)}; tunable: {TUNABLE_PARAMS}")
 
 
 def check_objective(objective: str, *, has_ground_truth: bool) -> None:
@@ -413,12 +499,13 @@ def _clip(value: float, space: SearchSpace, name: str) -> float:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SweepSummary:
-    """What a sweep found (the ``sweep --json`` object, and the API's ``summary``).
+    """What a sweep's trials found (the API's ``summary``); every figure is a *trial*'s. What a
+    sweep reports as its result scores the chosen settings by builds: :class:`SweepResult`.
 
     best_values: the best trial's values by ``objective``; best_shift its shift metric.
     gt_metric_pre: the pre-optimized map's ground-truth metric (same tags as the optimized maps);
     gt_metric_at_best_shift: the ground-truth metric of the trial the shift metric chose;
-    gt_metric_best: the lowest ground-truth metric of any trial (the ground-truth-chosen result).
+    gt_metric_best: the lowest ground-truth metric of any trial (the ground-truth-chosen trial).
     """
 
     runs: int
@@ -466,6 +553,76 @@ def summarize(
         tag_rmse_at_best_gt_m=by_gt.tag_rmse_m if by_gt else nan,
         shift_gt_spearman=shift_gt_correlation(trials),
     )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SweepResult:
+    """What a sweep reports as its result (the ``sweep --json`` object): the settings the trials
+    chose, scored by the maps builds with them make (:meth:`TuningTarget.build`), which are the
+    maps a user gets; the trials' own figures are kept beside them.
+
+    summary: the trials' :class:`SweepSummary` (which settings were chosen, and their trial
+    scores); shift_chosen: the build of the setting the shift metric chose; gt_chosen: the build
+    of the setting the ground-truth metric chose (None without ground truth or a converged trial).
+    """
+
+    summary: SweepSummary
+    shift_chosen: BuildScores | None
+    gt_chosen: BuildScores | None
+
+    @property
+    def best(self) -> BuildScores | None:
+        """The build of the setting the objective chose (``summary.best_values``)."""
+        return self.shift_chosen if self.summary.objective == "shift" else self.gt_chosen
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN becomes None). The summary's names carry the builds' figures:
+        ``best_shift`` (the build of ``best_values``), ``gt_metric_at_best_shift`` and
+        ``tag_rmse_at_best_shift_m`` (the build of the shift-chosen setting), ``gt_metric_best``
+        and ``tag_rmse_at_best_gt_m`` (the build of the ground-truth-chosen setting; not
+        necessarily the lowest of any build, only the build of the best trial). The same figures
+        of the trials are under ``trial_…``; ``builds`` holds both builds in full; the baseline
+        (``…_pre``), ``best_gt_values`` and ``shift_gt_spearman`` (over the trials) are the
+        summary's."""
+        summary = self.summary
+
+        def build_value(build: BuildScores | None, name: str) -> float:
+            return math.nan if build is None else float(getattr(build, name))
+
+        out = summary.to_dict()
+        out.update(
+            best_shift=build_value(self.best, "shift"),
+            gt_metric_at_best_shift=build_value(self.shift_chosen, "gt_metric"),
+            gt_metric_best=build_value(self.gt_chosen, "gt_metric"),
+            tag_rmse_at_best_shift_m=build_value(self.shift_chosen, "tag_rmse_m"),
+            tag_rmse_at_best_gt_m=build_value(self.gt_chosen, "tag_rmse_m"),
+            trial_best_shift=summary.best_shift,
+            trial_gt_metric_at_best_shift=summary.gt_metric_at_best_shift,
+            trial_gt_metric_best=summary.gt_metric_best,
+            trial_tag_rmse_at_best_shift_m=summary.tag_rmse_at_best_shift_m,
+            trial_tag_rmse_at_best_gt_m=summary.tag_rmse_at_best_gt_m,
+        )
+        out = {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in out.items()}
+        out["builds"] = {
+            "shift_chosen": None if self.shift_chosen is None else self.shift_chosen.to_dict(),
+            "gt_chosen": None if self.gt_chosen is None else self.gt_chosen.to_dict(),
+        }
+        return out
+
+
+def sweep_result(target: TuningTarget, trials: Sequence[Trial], objective: str) -> SweepResult:
+    """:func:`summarize` ``trials``, then build the settings the shift metric and (with ground
+    truth) the ground-truth metric chose, and score the builds: one or two optimizations from raw
+    odometry (one when both metrics chose the same setting)."""
+    summary = summarize(trials, objective, target.baseline())
+    by_shift = best_trial(trials, "shift")
+    by_gt = best_trial(trials, "ground_truth")
+    shift_chosen = target.build(by_shift.values) if by_shift else None
+    gt_chosen: BuildScores | None = None
+    if by_gt is not None:
+        same = by_shift is not None and by_gt.values == by_shift.values
+        gt_chosen = shift_chosen if same else target.build(by_gt.values)
+    return SweepResult(summary=summary, shift_chosen=shift_chosen, gt_chosen=gt_chosen)
 
 
 def shift_gt_correlation(trials: Sequence[Trial]) -> float:

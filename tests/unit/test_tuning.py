@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from app.domain import tuning
 from app.domain.errors import ParameterError
+from app.domain.evaluation import evaluate_map
 from app.domain.ground_truth import load_ground_truth
 from app.domain.params import SlamParams
 from app.domain.session import Session, load_session, parse_session
@@ -28,6 +30,7 @@ from app.domain.tuning import (
     PAPER_GRID_AXES,
     TRIAL_MAX_ITERATIONS,
     Axis,
+    BuildScores,
     SearchSpace,
     Trial,
     TuningTarget,
@@ -35,6 +38,7 @@ from app.domain.tuning import (
     propose_trials,
     shift_gt_correlation,
     summarize,
+    sweep_result,
 )
 from app.sweep_plots import heatmap_png, shift_vs_gt_png
 from app.sweep_runner import SweepPlan
@@ -680,6 +684,162 @@ def test_a_real_session_trial_scores_all_three_metrics() -> None:
     assert 0 < trial.shift < shift_pre
     with pytest.raises(ParameterError, match="cannot sweep"):
         target.run({"huber_k": 1.0})
+
+
+# --------------------------------------------------------------------------- builds
+
+
+#: floor_2_straight's shift-chosen setting on the paper grid: its trial (warm-started from the
+#: base optimum) stops far from where the build (from raw odometry) stops, GT 0.0428 against 0.0471.
+_GRID = SearchSpace.paper_grid().axes[0].values()
+FLAT_SETTING = {ORIENTATION: float(_GRID[2]), LINEAR: float(_GRID[2]), ANGULAR: float(_GRID[0])}
+
+
+@pytest.fixture(scope="module")
+def floor_2() -> TuningTarget:
+    session = load_session(DATA_DIR / "sessions" / "floor_2_straight.json")
+    truth = load_ground_truth(DATA_DIR / "ground_truth" / "rtabmap_mac_1_2.txt")
+    return TuningTarget.prepare(session, SlamParams(), truth)
+
+
+@pytest.fixture(scope="module")
+def occam() -> TuningTarget:
+    session = load_session(DATA_DIR / "sessions" / "occam_room.json")
+    truth = load_ground_truth(DATA_DIR / "ground_truth" / "occam_room_tape.json")
+    return TuningTarget.prepare(session, SlamParams(), truth)
+
+
+def scores(build: BuildScores) -> tuple[object, ...]:
+    """Everything of a build but its duration."""
+    return (build.values, build.shift, build.gt_metric, build.tag_rmse_m, build.iterations)
+
+
+@pytest.mark.parametrize("values", [FLAT_SETTING, {}], ids=["flat", "defaults"])
+def test_a_build_is_the_map_optimize_session_makes_scored_as_evaluate_scores_it(
+    floor_2: TuningTarget, values: dict[str, float]
+) -> None:
+    """Independently: the map ``apply`` makes (``optimize_session`` with the base parameters and
+    the values, marginals and all) and the metrics ``invisible-map evaluate`` reports of it."""
+    result = optimize_session(floor_2.session, SlamParams().with_overrides(values))
+    evaluation = evaluate_map(floor_2.session, result, floor_2.ground_truth)
+
+    build = floor_2.build(values)
+
+    assert build.values == values
+    assert build.shift == evaluation.shift_opt
+    assert build.gt_metric == evaluation.gt_metric_opt
+    assert build.tag_rmse_m == evaluation.tag_rmse_opt_m
+    assert build.iterations == result.stats.iterations
+    assert build.converged
+    assert build.error is None
+    assert math.isfinite(build.gt_metric)
+    # Same inputs, same numbers: a second build is the first, bit for bit.
+    assert scores(floor_2.build(values)) == scores(build)
+
+
+def test_build_params_are_the_base_parameters_with_the_values() -> None:
+    base = SlamParams(huber_k=0.0, max_iterations=40)
+    target = TuningTarget.prepare(load_session(DATA_DIR / "sessions" / "onetag.json"), base)
+    params = target.build_params({LINEAR: 1e-2})
+    assert params == base.with_overrides({LINEAR: 1e-2, "compute_marginals": False})
+    assert params.max_iterations == 40  # not the trials' cap
+    with pytest.raises(ParameterError, match="cannot sweep"):
+        target.build({"huber_k": 1.0})
+
+
+def test_a_build_that_fails_is_reported_not_raised(monkeypatch, occam: TuningTarget) -> None:
+    def fail(*_args, **_kwargs):
+        raise RuntimeError("Indeterminant linear system")
+
+    monkeypatch.setattr(tuning, "optimize_session", fail)
+    build = occam.build({LINEAR: 1.0})
+    assert build.error == "optimization failed: Indeterminant linear system"
+    assert not build.converged
+    assert math.isnan(build.gt_metric)
+    assert build.to_dict()["gt_metric"] is None
+
+
+def chosen_trials() -> list[Trial]:
+    """Made-up trial scores, far from any build's, so a figure shows where it came from."""
+    return [
+        make_trial({LINEAR: 1e-2, ANGULAR: 1e-4}, shift=0.1, gt_metric=0.3, tag_rmse_m=3.0),
+        make_trial({LINEAR: 1e-4, ANGULAR: 1e-6}, shift=0.2, gt_metric=0.05, tag_rmse_m=5.0),
+        make_trial({LINEAR: 1.0, ANGULAR: 1.0}, shift=0.01, iterations=TRIAL_MAX_ITERATIONS),
+    ]
+
+
+def test_a_sweep_result_reports_builds_of_the_chosen_settings(occam: TuningTarget) -> None:
+    trials = chosen_trials()
+    shift_build = occam.build(trials[0].values)
+    gt_build = occam.build(trials[1].values)
+
+    result = sweep_result(occam, trials, "shift")
+
+    assert result.summary == summarize(trials, "shift", occam.baseline())
+    assert result.shift_chosen is not None
+    assert result.gt_chosen is not None
+    assert scores(result.shift_chosen) == scores(shift_build)
+    assert scores(result.gt_chosen) == scores(gt_build)
+    assert result.best is result.shift_chosen
+    report = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert report["best_values"] == trials[0].values
+    assert report["best_gt_values"] == trials[1].values
+    # The result: the builds.
+    assert report["best_shift"] == shift_build.shift
+    assert report["gt_metric_at_best_shift"] == shift_build.gt_metric
+    assert report["tag_rmse_at_best_shift_m"] == shift_build.tag_rmse_m
+    assert report["gt_metric_best"] == gt_build.gt_metric
+    assert report["tag_rmse_at_best_gt_m"] == gt_build.tag_rmse_m
+    assert report["builds"]["shift_chosen"]["gt_metric"] == shift_build.gt_metric
+    assert report["builds"]["gt_chosen"]["values"] == trials[1].values
+    # Beside it: the trials'.
+    assert report["trial_best_shift"] == 0.1
+    assert report["trial_gt_metric_at_best_shift"] == 0.3
+    assert report["trial_tag_rmse_at_best_shift_m"] == 3.0
+    assert report["trial_gt_metric_best"] == 0.05
+    assert report["trial_tag_rmse_at_best_gt_m"] == 5.0
+    # And the baseline as before.
+    shift_pre, gt_pre, rmse_pre = occam.baseline()
+    assert (report["shift_pre"], report["gt_metric_pre"], report["tag_rmse_pre_m"]) == (
+        shift_pre,
+        gt_pre,
+        rmse_pre,
+    )
+
+    by_gt = sweep_result(occam, trials, "ground_truth").to_dict()
+    assert by_gt["best_values"] == trials[1].values
+    assert by_gt["best_shift"] == gt_build.shift  # the build of the setting the objective chose
+    assert by_gt["trial_best_shift"] == 0.2
+
+
+def test_a_sweep_result_builds_a_setting_both_metrics_chose_once(occam: TuningTarget) -> None:
+    trials = [
+        make_trial({LINEAR: 1e-2}, shift=0.1, gt_metric=0.05),
+        make_trial({LINEAR: 1e-4}, shift=0.2, gt_metric=0.3),
+    ]
+    result = sweep_result(occam, trials, "shift")
+    assert result.gt_chosen is result.shift_chosen
+    report = result.to_dict()
+    assert report["gt_metric_best"] == report["gt_metric_at_best_shift"]
+
+
+def test_a_sweep_result_without_ground_truth_or_trials_has_nulls(occam: TuningTarget) -> None:
+    no_truth = TuningTarget.prepare(occam.session, occam.base_params)
+    result = sweep_result(no_truth, [make_trial({LINEAR: 1e-2}, shift=0.1)], "shift")
+    assert result.gt_chosen is None
+    report = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert result.shift_chosen is not None
+    assert report["best_shift"] == result.shift_chosen.shift
+    assert report["trial_best_shift"] == 0.1
+    assert report["gt_metric_at_best_shift"] is None
+    assert report["gt_metric_best"] is None
+    assert report["builds"]["gt_chosen"] is None
+
+    nothing = json.loads(json.dumps(sweep_result(occam, [], "shift").to_dict(), allow_nan=False))
+    assert nothing["best_values"] is None
+    assert nothing["best_shift"] is None
+    assert nothing["trial_best_shift"] is None
+    assert nothing["builds"] == {"shift_chosen": None, "gt_chosen": None}
 
 
 def test_spearman_gives_tied_values_their_mean_rank_whatever_the_order() -> None:

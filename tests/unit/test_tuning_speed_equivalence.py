@@ -14,6 +14,9 @@ of the paper grid (every variance at 1e-8 or 1) and at the defaults:
   angular variance 1 rad²/s (σ 1 rad per √s) and a stiff tag orientation or odometry linear
   variance: the error is so flat along the heading between tag sightings that two LM runs from
   different starts stop 16–245 mm apart, a build from raw odometry and a trial alike.
+
+That is why a sweep reports the settings it chose by their builds (``TuningTarget.build``): the
+last test checks, at the same points, that those are the build's scores exactly.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.domain.evaluation import evaluate_map
 from app.domain.ground_truth import load_ground_truth
 from app.domain.params import SlamParams
 from app.domain.session import load_session
@@ -87,3 +91,25 @@ def test_a_trial_converges_to_the_build_with_its_parameters(
     build_scores = target.score_map(build_map)
     trial_scores = (trial.shift, trial.gt_metric, trial.tag_rmse_m)
     assert trial_scores == pytest.approx(build_scores, rel=SCORE_RTOL)
+
+
+@pytest.mark.parametrize(
+    "values",
+    [*CORNERS, DEFAULTS],
+    ids=lambda v: "/".join(f"{x:.0e}" for x in v.values()),
+)
+def test_a_build_rescore_is_the_build_exactly(
+    target: TuningTarget, values: dict[str, float]
+) -> None:
+    """Flat corners included: what a sweep reports is the map ``apply`` would make."""
+    build = optimize_session(target.session, target.base_params.with_overrides(values))
+    evaluation = evaluate_map(target.session, build, target.ground_truth)
+
+    rescored = target.build(values)
+
+    assert (rescored.shift, rescored.gt_metric, rescored.tag_rmse_m) == (
+        evaluation.shift_opt,
+        evaluation.gt_metric_opt,
+        evaluation.tag_rmse_opt_m,
+    )
+    assert rescored.iterations == build.stats.iterations
