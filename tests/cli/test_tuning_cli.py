@@ -15,8 +15,11 @@ from typing import Any
 import pytest
 
 from app import cli
+from app.domain.evaluation import evaluate_map
 from app.domain.ground_truth import load_ground_truth
+from app.domain.params import SlamParams
 from app.domain.session import load_session, parse_session
+from app.domain.slam import optimize_session
 from app.domain.tuning import PAPER_GRID_AXES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -43,6 +46,14 @@ SUMMARY_KEYS = {
     "gt_metric_at_best_shift",
     "gt_metric_best",
     "wall_s",
+}
+#: The same figures as the trials scored them (the summary's names carry the builds').
+TRIAL_KEYS = {
+    "trial_best_shift",
+    "trial_gt_metric_at_best_shift",
+    "trial_gt_metric_best",
+    "trial_tag_rmse_at_best_shift_m",
+    "trial_tag_rmse_at_best_gt_m",
 }
 
 
@@ -120,8 +131,46 @@ def test_sweep_runs_out_holds_every_trial(grid_report) -> None:
     assert len(points) == 4
     best = grid_report["report"]
     shifts = [r["shift"] for r in runs if r["converged"]]
-    assert min(shifts) == pytest.approx(best["best_shift"], rel=1e-12)
-    assert min(r["gt_metric"] for r in runs) == pytest.approx(best["gt_metric_best"], rel=1e-12)
+    assert min(shifts) == best["trial_best_shift"]
+    assert min(r["gt_metric"] for r in runs) == best["trial_gt_metric_best"]
+    by_shift = min((r for r in runs if r["converged"]), key=lambda r: r["shift"])
+    assert by_shift["values"] == best["best_params"]
+    assert by_shift["gt_metric"] == best["trial_gt_metric_at_best_shift"]
+    assert by_shift["tag_rmse_m"] == best["trial_tag_rmse_at_best_shift_m"]
+
+
+def test_sweep_json_reports_builds_of_the_chosen_settings(grid_report) -> None:
+    """The result is the map `apply` would make: ``optimize_session`` with the base parameters
+    and the chosen values, scored as ``evaluate`` scores it; the trials' figures are beside it."""
+    report = grid_report["report"]
+    assert report.keys() >= TRIAL_KEYS
+    session = load_session(OCCAM)
+    truth = load_ground_truth(OCCAM_GT)
+
+    def evaluated(values):
+        result = optimize_session(session, SlamParams().with_overrides(values))
+        return evaluate_map(session, result, truth)
+
+    at_shift = evaluated(report["best_params"])
+    assert report["best_shift"] == at_shift.shift_opt
+    assert report["gt_metric_at_best_shift"] == at_shift.gt_metric_opt
+    assert report["tag_rmse_at_best_shift_m"] == at_shift.tag_rmse_opt_m
+    at_gt = evaluated(report["best_gt_values"])
+    assert report["gt_metric_best"] == at_gt.gt_metric_opt
+    assert report["tag_rmse_at_best_gt_m"] == at_gt.tag_rmse_opt_m
+
+    builds = report["builds"]
+    assert builds["shift_chosen"]["values"] == report["best_params"]
+    assert builds["shift_chosen"]["gt_metric"] == report["gt_metric_at_best_shift"]
+    assert builds["shift_chosen"]["iterations"] == at_shift.iterations
+    assert builds["gt_chosen"]["values"] == report["best_gt_values"]
+    assert builds["gt_chosen"]["gt_metric"] == report["gt_metric_best"]
+    for name in TRIAL_KEYS:
+        assert report[name] > 0
+    # On occam_room the map is pinned down: trial and build agree to LM's tolerance.
+    assert report["trial_gt_metric_at_best_shift"] == pytest.approx(
+        report["gt_metric_at_best_shift"], rel=1e-2
+    )
 
 
 def test_sweep_with_the_sampler_runs_the_trials_asked(capsys) -> None:
@@ -133,7 +182,10 @@ def test_sweep_with_the_sampler_runs_the_trials_asked(capsys) -> None:
         assert 1e-8 <= value <= 1.0
     assert report["gt_metric_pre"] is None  # no --gt
     assert report["gt_metric_best"] is None
-    assert report["best_shift"] > 0
+    assert report["trial_gt_metric_best"] is None
+    assert report["builds"]["gt_chosen"] is None
+    assert report["builds"]["shift_chosen"]["values"] == report["best_params"]
+    assert report["best_shift"] == report["builds"]["shift_chosen"]["shift"] > 0
 
 
 def test_sweep_by_ground_truth_chooses_the_lowest_ground_truth_metric(capsys) -> None:
@@ -151,6 +203,7 @@ def test_sweep_by_ground_truth_chooses_the_lowest_ground_truth_metric(capsys) ->
     )
     assert report["objective"] == "ground_truth"
     assert report["best_params"] == report["best_gt_values"]
+    assert report["best_shift"] == report["builds"]["gt_chosen"]["shift"]
 
 
 def test_sweep_plot_dir_writes_both_pngs(tmp_path, capsys) -> None:
@@ -173,7 +226,8 @@ def test_sweep_plot_dir_writes_both_pngs(tmp_path, capsys) -> None:
         path = plots / name
         assert path.read_bytes()[:8] == PNG_MAGIC
         assert f"wrote {path}" in out
-    assert "occam_room: 4 trials (grid)" in out
+    assert "occam_room: 4 trials (grid) and the chosen builds" in out
+    assert "scores of the builds with the chosen settings" in out
     assert "ground-truth metric: pre 0.055" in out
 
 
