@@ -201,6 +201,13 @@ def _print_summary(report: dict[str, Any]) -> None:
             f"({fmt(report['trial_gt_metric_best'])})"
         )
         print(f"Spearman ρ shift vs GT over the trials: {fmt(report['shift_gt_spearman'])}")
+    labels = {"shift_chosen": "shift-chosen", "gt_chosen": "ground-truth-chosen"}
+    for choice, build in report["builds"].items():
+        if build is not None and build["error"] is None and not build["converged"]:
+            print(
+                f"note: the {labels[choice]} build stopped at its iteration cap "
+                f"({build['iterations']}); a rebuild with that setting stores this unconverged map"
+            )
 
 
 def _space(text: str) -> SearchSpace:

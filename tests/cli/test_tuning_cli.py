@@ -231,6 +231,29 @@ def test_sweep_plot_dir_writes_both_pngs(tmp_path, capsys) -> None:
     assert "ground-truth metric: pre 0.055" in out
 
 
+def test_sweep_text_says_when_a_chosen_build_is_unconverged(capsys) -> None:
+    """floor_2_straight at (1, 1e-8, 1): the trial converges from the base optimum, but a build
+    from raw odometry needs 284 iterations; at the cap of 100 its GT metric is 0.068, not 0.039."""
+    space = {
+        name: {"low": value, "high": value, "num": 1}
+        for name, value in zip(PAPER_GRID_AXES, (1.0, 1e-8, 1.0), strict=True)
+    }
+    code, out, err = run(
+        capsys,
+        "sweep",
+        SESSIONS_DIR / "floor_2_straight.json",
+        "--gt",
+        GROUND_TRUTH_DIR / "rtabmap_mac_1_2.txt",
+        "--space",
+        json.dumps(space),
+        "--processes",
+        1,
+    )
+    assert code == 0, err
+    assert "note: the shift-chosen build stopped at its iteration cap (100)" in out
+    assert "note: the ground-truth-chosen build stopped at its iteration cap (100)" in out
+
+
 def test_sweep_plot_dir_without_ground_truth_writes_the_heatmap_only(tmp_path, capsys) -> None:
     space = {LINEAR: {"low": 1e-4, "high": 1e-2, "num": 2}}
     code, _, err = run(
