@@ -171,6 +171,15 @@ def unreachable() -> Iterator[Database]:
     database.dispose()
 
 
+def store_during_outage(calls: int, unreachable: Database) -> tuple[list[Stage], list[str]]:
+    """The build-map stages, whose ``store`` meets a database that does not answer in its first
+    ``calls`` runs (it runs against ``unreachable``); and the list of what each run met."""
+    store = next(stage for stage in pipeline.BUILD_MAP_STAGES if stage.name == "store")
+    flaky_store, met = outage_for(calls, unreachable, store)
+    stages = [flaky_store if s.name == "store" else s for s in pipeline.BUILD_MAP_STAGES]
+    return stages, met
+
+
 def outage_for(calls: int, unreachable: Database, run: Stage) -> tuple[Stage, list[str]]:
     """``run`` as a stage whose first ``calls`` runs meet a database that does not answer (the
     stage runs against ``unreachable``); returns the stage and a list of what each run met."""
@@ -196,11 +205,7 @@ def test_an_outage_shorter_than_the_lease_is_waited_out_in_the_same_attempt(
 ) -> None:
     monkeypatch.setattr(pipeline, "OUTAGE_FIRST_WAIT_S", 0.05)
     inserted = insert_session(db, session_bytes("onetag"))
-    store = next(stage for stage in pipeline.BUILD_MAP_STAGES if stage.name == "store")
-    flaky_store, met = outage_for(3, unreachable, store)
-    stages = [
-        flaky_store if stage.name == "store" else stage for stage in pipeline.BUILD_MAP_STAGES
-    ]
+    stages, met = store_during_outage(3, unreachable)
 
     with caplog.at_level(logging.WARNING, logger="workers.pipeline"):
         assert worker_with(db, stages).run_once()
@@ -219,11 +224,7 @@ def test_an_outage_longer_than_the_lease_ends_the_attempt_and_stores_nothing(
 ) -> None:
     monkeypatch.setattr(pipeline, "OUTAGE_FIRST_WAIT_S", 0.05)
     inserted = insert_session(db, session_bytes("onetag"))
-    store = next(stage for stage in pipeline.BUILD_MAP_STAGES if stage.name == "store")
-    flaky_store, met = outage_for(10_000, unreachable, store)
-    stages = [
-        flaky_store if stage.name == "store" else stage for stage in pipeline.BUILD_MAP_STAGES
-    ]
+    stages, met = store_during_outage(10_000, unreachable)
     # lease 1.5 s less the 1 s margin: the store is given up after about 0.5 s of waiting
     worker = worker_with(db, stages, lease_s=1.5, heartbeat_s=0.2)
 

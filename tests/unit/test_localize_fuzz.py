@@ -8,9 +8,7 @@ non-finite pose.
 
 from __future__ import annotations
 
-import copy
 import json
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -26,6 +24,7 @@ from app.domain.localize import (
 )
 from app.domain.session import parse_session
 from app.domain.simulate import SimulationConfig, simulate_session
+from tests.unit.test_session import json_values, node_paths, replaced
 
 # A short simulated walk: its tags are the map, and its updates of 10 poses are real documents.
 _SIM = simulate_session(SimulationConfig(num_poses=400, seed=3))
@@ -51,40 +50,7 @@ STATE, NEXT = _localized_state()
 NEXT_DOCUMENT = DOCUMENTS[NEXT]
 STATE_JSON = json.dumps(STATE.to_json(), sort_keys=True)
 
-json_scalars = st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=6)
-json_values = st.recursive(
-    json_scalars,
-    lambda children: (
-        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4)
-    ),
-    max_leaves=12,
-)
-
-
-def value_paths(node: Any, prefix: tuple[Any, ...] = ()) -> Iterator[tuple[Any, ...]]:
-    """Every path to a value inside ``node`` (dict keys and list indices)."""
-    items: Any
-    if isinstance(node, dict):
-        items = node.items()
-    elif isinstance(node, list):
-        items = enumerate(node)
-    else:
-        return
-    for key, child in items:
-        yield (*prefix, key)
-        yield from value_paths(child, (*prefix, key))
-
-
-PATHS = sorted(value_paths(NEXT_DOCUMENT), key=repr)
-
-
-def replaced(document: Any, path: tuple[Any, ...], value: Any) -> Any:
-    changed = copy.deepcopy(document)
-    node = changed
-    for key in path[:-1]:
-        node = node[key]
-    node[path[-1]] = value
-    return changed
+PATHS = sorted(node_paths(NEXT_DOCUMENT), key=repr)
 
 
 def accepts_or_refuses_cleanly(document: Any) -> None:
