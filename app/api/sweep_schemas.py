@@ -170,7 +170,10 @@ class TrialPublic(BaseModel):
 
 
 class SummaryPublic(BaseModel):
-    """The best so far; metrics are null where undefined (no ground truth, no trial yet)."""
+    """The best so far, as its trials scored it; metrics are null where undefined (no ground
+    truth, no trial yet). A trial is warm-started from the base optimum, and at some settings the
+    map that ``apply`` builds from raw odometry scores differently (README, "What a trial
+    measures"); ``invisible-map sweep`` reports builds of the chosen settings."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [_SWEEP_EXAMPLE["summary"]]})
 
