@@ -198,8 +198,9 @@ class SearchSpace:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Trial:
-    """One scored optimization. Metrics are NaN where undefined (no ground truth, too few tags);
-    ``error`` says why a trial produced no map (its metrics are then NaN)."""
+    """One scored optimization: a sweep's trial, or the build of a chosen setting
+    (:meth:`TuningTarget.build`). Metrics are NaN where undefined (no ground truth, too few tags);
+    ``error`` says why it produced no map (its metrics are then NaN)."""
 
     values: dict[str, float]
     shift: float
@@ -208,10 +209,13 @@ class Trial:
     iterations: int
     duration_s: float
     error: str | None = None
+    #: LM's iteration cap: a trial's, or a build's (the base parameters'). A build that reaches
+    #: it still makes the map ``apply`` stores, so it is reported, marked unconverged.
+    max_iterations: int = TRIAL_MAX_ITERATIONS
 
     @property
     def converged(self) -> bool:
-        return self.error is None and self.iterations < TRIAL_MAX_ITERATIONS
+        return self.error is None and self.iterations < self.max_iterations
 
     def score(self, objective: str) -> float:
         """The value minimized; +inf when undefined or unconverged, so such a trial is never
@@ -342,7 +346,7 @@ class TuningTarget:
         _check_tunable(values)
         return self.base_params.with_overrides({**values, "compute_marginals": False})
 
-    def build(self, values: Mapping[str, float]) -> BuildScores:
+    def build(self, values: Mapping[str, float]) -> Trial:
         """Build the map with ``values`` (:func:`slam.optimize_session`, from raw odometry, as
         ``apply`` does) and score it as a trial is scored (:meth:`score_map`); never raises on a
         solver failure. Its tags are those of the trials: ``values`` change no rejection
@@ -353,7 +357,7 @@ class TuningTarget:
         try:
             result = optimize_session(self.session, params)
         except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
-            return BuildScores(
+            return Trial(
                 values=values,
                 shift=math.nan,
                 gt_metric=math.nan,
@@ -364,7 +368,7 @@ class TuningTarget:
                 error=f"optimization failed: {err}",
             )
         shift, gt_metric, rmse_m = self.score_map(result.tag_poses())
-        return BuildScores(
+        return Trial(
             values=values,
             shift=shift,
             gt_metric=gt_metric,
@@ -373,40 +377,6 @@ class TuningTarget:
             max_iterations=params.max_iterations,
             duration_s=time.perf_counter() - started,
         )
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class BuildScores:
-    """The map a build with ``values`` makes (:meth:`TuningTarget.build`), scored as a trial is.
-    Metrics are NaN where undefined; ``error`` says why the build produced no map."""
-
-    values: dict[str, float]
-    shift: float
-    gt_metric: float
-    tag_rmse_m: float
-    iterations: int
-    #: The build's LM iteration cap (the base parameters'): a build that reaches it still makes
-    #: the map ``apply`` stores, so it is reported, marked unconverged.
-    max_iterations: int
-    duration_s: float
-    error: str | None = None
-
-    @property
-    def converged(self) -> bool:
-        return self.error is None and self.iterations < self.max_iterations
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (NaN becomes None)."""
-        return {
-            "values": self.values,
-            "shift": _finite_or_none(self.shift),
-            "gt_metric": _finite_or_none(self.gt_metric),
-            "tag_rmse_m": _finite_or_none(self.tag_rmse_m),
-            "iterations": self.iterations,
-            "converged": self.converged,
-            "duration_s": self.duration_s,
-            "error": self.error,
-        }
 
 
 def _check_tunable(values: Mapping[str, float]) -> None:
@@ -567,11 +537,11 @@ class SweepResult:
     """
 
     summary: SweepSummary
-    shift_chosen: BuildScores | None
-    gt_chosen: BuildScores | None
+    shift_chosen: Trial | None
+    gt_chosen: Trial | None
 
     @property
-    def best(self) -> BuildScores | None:
+    def best(self) -> Trial | None:
         """The build of the setting the objective chose (``summary.best_values``)."""
         return self.shift_chosen if self.summary.objective == "shift" else self.gt_chosen
 
@@ -586,7 +556,7 @@ class SweepResult:
         summary's."""
         summary = self.summary
 
-        def build_value(build: BuildScores | None, name: str) -> float:
+        def build_value(build: Trial | None, name: str) -> float:
             return math.nan if build is None else float(getattr(build, name))
 
         out = summary.to_dict()
@@ -618,7 +588,7 @@ def sweep_result(target: TuningTarget, trials: Sequence[Trial], objective: str) 
     by_shift = best_trial(trials, "shift")
     by_gt = best_trial(trials, "ground_truth")
     shift_chosen = target.build(by_shift.values) if by_shift else None
-    gt_chosen: BuildScores | None = None
+    gt_chosen: Trial | None = None
     if by_gt is not None:
         same = by_shift is not None and by_gt.values == by_shift.values
         gt_chosen = shift_chosen if same else target.build(by_gt.values)

@@ -30,7 +30,6 @@ from app.domain.tuning import (
     PAPER_GRID_AXES,
     TRIAL_MAX_ITERATIONS,
     Axis,
-    BuildScores,
     SearchSpace,
     Trial,
     TuningTarget,
@@ -709,7 +708,7 @@ def occam() -> TuningTarget:
     return TuningTarget.prepare(session, SlamParams(), truth)
 
 
-def scores(build: BuildScores) -> tuple[object, ...]:
+def scores(build: Trial) -> tuple[object, ...]:
     """Everything of a build but its duration."""
     return (build.values, build.shift, build.gt_metric, build.tag_rmse_m, build.iterations)
 
