@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_support import assert_one_line_error
 
 from app import cli
 from app.domain.session import decode_json_bytes, parse_session
@@ -26,22 +27,11 @@ from tests.service.api_support import run_next_job
 from tests.service.helpers import session_bytes
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-ERROR_PREFIX = "invisible-map: error:"
 
 RunMain = Callable[..., tuple[int, str, str]]
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-@pytest.fixture
-def env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
-    """No Invisible Map setting from the outer environment; a private data directory."""
-    for name in list(os.environ):
-        if name == "DATABASE_URL" or name.startswith("INVISIBLE_MAP_"):
-            monkeypatch.delenv(name)
-    monkeypatch.setenv("INVISIBLE_MAP_DATA_DIR", str(tmp_path / "var"))
-    return monkeypatch
 
 
 @pytest.fixture
@@ -98,16 +88,6 @@ def empty_archive(sqlite_url: Callable[[str], str], tmp_path: Path) -> Path:
     backup.export_archive(db, tmp_path / "empty.zip")
     db.dispose()
     return tmp_path / "empty.zip"
-
-
-def assert_one_line_error(status: int, stderr: str, *parts: str) -> None:
-    assert status == 1, stderr
-    assert "Traceback" not in stderr
-    lines = stderr.splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith(ERROR_PREFIX), lines[0]
-    for part in parts:
-        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
 
 
 def uploads_of(url: str) -> dict[int, bytes]:

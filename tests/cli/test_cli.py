@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_support import assert_one_line_error
 
 from app import cli
 from app.domain.params import SlamParams
@@ -28,7 +29,6 @@ DATA_DIR = REPO_ROOT / "data"
 SESSIONS_DIR = DATA_DIR / "sessions"
 GROUND_TRUTH_DIR = DATA_DIR / "ground_truth"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-ERROR_PREFIX = "invisible-map: error:"
 
 DEMO_SESSIONS = [
     "occam_room",
@@ -84,17 +84,6 @@ def console_script() -> str | None:
     if beside_python.is_file():
         return str(beside_python)
     return shutil.which("invisible-map")
-
-
-def assert_one_line_error(returncode: int, stderr: str, *parts: str) -> str:
-    assert returncode == 1, stderr
-    assert "Traceback" not in stderr
-    lines = stderr.splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith(ERROR_PREFIX)
-    for part in parts:
-        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
-    return lines[0]
 
 
 def onetag_document() -> dict[str, Any]:

@@ -23,6 +23,7 @@ from typing import IO, Any
 
 import httpx
 import pytest
+from cli_support import ERROR_PREFIX, assert_one_line_error
 
 from app import cli
 from app.server_process import ServerProcess, free_port
@@ -34,7 +35,6 @@ from tests.service.helpers import get_job, insert_session, wait_for
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
-ERROR_PREFIX = "invisible-map: error:"
 ADMIN_KEY = "im_test_admin_0123456789abcdef"
 #: The demo sessions ``serve --demo`` uploads (data/sessions).
 DEMO_SESSION_COUNT = 7
@@ -73,27 +73,6 @@ def run_cli(env: dict[str, str], *args: Any) -> subprocess.CompletedProcess[str]
         timeout=60,
         check=False,
     )
-
-
-def assert_one_line_error(returncode: int, stderr: str, *parts: str) -> str:
-    assert returncode == 1, stderr
-    assert "Traceback" not in stderr
-    lines = stderr.splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith(ERROR_PREFIX), lines[0]
-    for part in parts:
-        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
-    return lines[0]
-
-
-@pytest.fixture
-def env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
-    """No Invisible Map setting from the outer environment; a private data directory."""
-    for name in list(os.environ):
-        if name == "DATABASE_URL" or name.startswith("INVISIBLE_MAP_"):
-            monkeypatch.delenv(name)
-    monkeypatch.setenv("INVISIBLE_MAP_DATA_DIR", str(tmp_path / "var"))
-    return monkeypatch
 
 
 RunMain = Callable[..., tuple[int, str, str]]

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_support import assert_one_line_error
 
 from app import cli
 from app.domain.evaluation import evaluate_map
@@ -28,7 +29,6 @@ GROUND_TRUTH_DIR = REPO_ROOT / "data" / "ground_truth"
 OCCAM = SESSIONS_DIR / "occam_room.json"
 OCCAM_GT = GROUND_TRUTH_DIR / "occam_room_tape.json"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-ERROR_PREFIX = "invisible-map: error:"
 
 LINEAR = "odom_linear_var_m2_per_s"
 ANGULAR = "odom_angular_var_rad2_per_s"
@@ -61,16 +61,6 @@ def run(capsys: pytest.CaptureFixture[str], *args: Any) -> tuple[int, str, str]:
     code = cli.main([str(a) for a in args])
     captured = capsys.readouterr()
     return code, captured.out, captured.err
-
-
-def assert_one_line_error(code: int, stderr: str, *parts: str) -> None:
-    assert code == 1, stderr
-    assert "Traceback" not in stderr
-    lines = stderr.splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith(ERROR_PREFIX), lines[0]
-    for part in parts:
-        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
 
 
 def sweep_json(capsys, *args: Any) -> dict[str, Any]:
