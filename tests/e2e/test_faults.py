@@ -34,6 +34,7 @@ from tests.e2e.fault_support import (
     private_postgres,
     unavailable,
 )
+from tests.service.helpers import wait_for
 
 pytestmark = [pytest.mark.slow]
 
@@ -63,16 +64,6 @@ def jobs_of(url: str) -> dict[int, tuple[str, int]]:
         return {job_id: (state, attempts) for job_id, state, attempts in rows}
     finally:
         database.dispose()
-
-
-def wait_until(condition: Callable[[], Any], *, timeout_s: float, what: str) -> float:
-    """Poll ``condition`` until it is truthy; returns how long that took, s."""
-    started = time.monotonic()
-    while not condition():
-        if time.monotonic() - started > timeout_s:
-            raise TimeoutError(f"{what}: not within {timeout_s:g} s")
-        time.sleep(0.2)
-    return time.monotonic() - started
 
 
 def no_tracebacks(*logs: Path) -> None:
@@ -111,7 +102,7 @@ def test_postgres_stopped_for_10_s_under_load_loses_nothing_and_runs_nothing_twi
                 client.upload_session(paths[k % len(paths)], idempotency_key=f"before-{k}")
                 for k in range(12)
             ]
-            wait_until(
+            wait_for(
                 lambda: client.list_jobs(state="running")["count"] > 0,
                 timeout_s=60,
                 what="a job running",
@@ -133,9 +124,9 @@ def test_postgres_stopped_for_10_s_under_load_loses_nothing_and_runs_nothing_twi
                     refused_uploads += what == "POST /v1/sessions" and answer[0] == 503
                 time.sleep(0.5)
             postgres.start()
-            recovery_s = wait_until(
-                lambda: status_of(client.info)[0] == 200, timeout_s=60, what="the API back"
-            )
+            restarted_s = time.monotonic()
+            wait_for(lambda: status_of(client.info)[0] == 200, timeout_s=60, what="the API back")
+            recovery_s = time.monotonic() - restarted_s
             accepted += [
                 client.upload_session(path, idempotency_key=f"after-{k}")
                 for k, path in enumerate(paths)
@@ -275,7 +266,7 @@ def test_a_full_disk_gives_clear_503s_and_leaves_no_corrupt_state(
             ServerProcess(url, workers=1, env=env, log_path=log) as server,
             Client(server.url, api_key=server.admin_key, timeout_s=60) as client,
         ):
-            wait_until(lambda: client.info()["workers"], timeout_s=60, what="the worker up")
+            wait_for(lambda: client.info()["workers"], timeout_s=60, what="the worker up")
             accepted: list[tuple[bytes, dict[str, Any]]] = []
             refusal: ApiError | None = None
             for k in range(100):
@@ -289,7 +280,7 @@ def test_a_full_disk_gives_clear_503s_and_leaves_no_corrupt_state(
             full_free_bytes = disk.free_bytes()
             map_answer = status_of(lambda: client.get_map(accepted[0][1]["map_id"]))
             # the disk stays full until the worker (jobs are still queued) has met it too
-            wait_until(
+            wait_for(
                 lambda: re.search(r"worker-\d.*storage_full", log.read_text()),
                 timeout_s=60,
                 what="the worker meeting the full disk",
