@@ -202,8 +202,10 @@ def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
         raise not_found(f"job {job_id}")
     with db.read() as session:
         job = queue.get_job(session, job_id)
+        if principal.is_admin:
+            return job
         uploader = None if job.session_id is None else sessions.uploader_of(session, job.session_id)
-    if not principal.is_admin and (job.session_id is None or uploader != principal.subject):
+    if uploader is None or uploader != principal.subject:
         raise not_found(f"job {job_id}")
     return job
 
