@@ -41,12 +41,10 @@ class Settings(BaseSettings):
     admin_key: str | None = None
     workers: int = Field(default=1, ge=0, le=64)
     #: Threads for the API's ``def`` routes and dependencies (anyio's limiter; its default is
-    #: 40). A request keeps its database connection from its dependencies until its answer is
-    #: validated, on another thread (FastAPI does so for ``def`` routes). Once the requests in
-    #: progress reach threads + pool connections (15 on SQLite, 30 on PostgreSQL), every thread
-    #: can be waiting for a connection held by a request that waits for a thread: the API stands
-    #: still for the pool's 30 s timeout, then answers 503. Threads start only when needed, so a
-    #: large number costs nothing until that many requests come at once.
+    #: 40): how many requests may be inside a route at once (the rest wait their turn). A
+    #: request holds a database connection only while one of its threads runs
+    #: (``app.api.route_class``), so no number of threads can starve the pool. Threads start only
+    #: when needed, so a large number costs nothing until that many requests come at once.
     api_threads: int = Field(default=400, ge=1, le=4096)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
