@@ -25,8 +25,9 @@ from collections.abc import Callable
 from types import TracebackType
 
 from app.storage import queue
-from app.storage.db import Database, database_fault, first_line
+from app.storage.db import Database
 from app.storage.queue import Lease, LeaseLost
+from workers.failures import log_failure
 
 logger = logging.getLogger(__name__)
 
@@ -119,12 +120,10 @@ class LeaseKeeper:
                 self._control.lease_lost = True
                 return
             except Exception as err:
-                logger.warning(
-                    "job %d: heartbeat failed (%s); trying again in %g s",
-                    job_id,
-                    first_line(err),
-                    self._heartbeat_s,
-                    exc_info=database_fault(err) is None,  # a traceback only for the unexpected
+                log_failure(
+                    logger,
+                    f"job {job_id}: heartbeat failed; trying again in {self._heartbeat_s:g} s",
+                    err,
                     extra={"action": "heartbeat_failed", "job_id": job_id},
                 )
                 continue

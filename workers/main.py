@@ -44,6 +44,7 @@ from app.storage import queue
 from app.storage.db import Database, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
+from workers.failures import log_failure
 from workers.lease import JobControl, LeaseKeeper
 from workers.pipeline import OUTAGE_MAX_WAIT_S, PIPELINES, JobReport, Outcome, Stage, run_job
 from workers.sweep import SWEEP_STAGES
@@ -154,11 +155,11 @@ class Worker:
         except Exception as err:
             # Recording the outcome failed (the database went away for longer than the lease):
             # the lease will expire and the reaper requeue the job.
-            logger.error(
-                "job %d: could not record its outcome: %s",
-                lease.job_id,
-                first_line(err),
-                exc_info=database_fault(err) is None,  # a traceback only for the unexpected
+            log_failure(
+                logger,
+                f"job {lease.job_id}: could not record its outcome",
+                err,
+                level=logging.ERROR,
                 extra={"action": "job_error"},
             )
             report = JobReport(outcome=Outcome.LEASE_LOST)
@@ -233,12 +234,7 @@ class Worker:
                 if registered:
                     queue.unregister_worker(self.db, worker_id=self.worker_id)
             except Exception as err:
-                logger.warning(
-                    "could not remove worker row %s: %s",
-                    self.worker_id,
-                    first_line(err),
-                    exc_info=database_fault(err) is None,
-                )
+                log_failure(logger, f"could not remove worker row {self.worker_id}", err)
             logger.info(
                 "worker %s stopped after %d job(s)",
                 self.worker_id,
@@ -278,9 +274,7 @@ class Worker:
                 jobs_done=self.jobs_done,
             )
         except Exception as err:
-            logger.warning(
-                "worker heartbeat failed: %s", first_line(err), exc_info=database_fault(err) is None
-            )
+            log_failure(logger, "worker heartbeat failed", err)
 
     # ----------------------------------------------------------------------- shutdown
 

@@ -65,6 +65,7 @@ from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
 from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP, SessionNotFound, raw_upload
 from app.sweep_runner import SweepPlan
+from workers.failures import log_failure
 from workers.lease import JobControl
 
 logger = logging.getLogger(__name__)
@@ -183,12 +184,7 @@ class JobContext:
         except LeaseLost:
             self.control.lease_lost = True
         except Exception as err:
-            logger.warning(
-                "job %d: progress write failed: %s",
-                self.lease.job_id,
-                first_line(err),
-                exc_info=database_fault(err) is None,  # a traceback only for the unexpected
-            )
+            log_failure(logger, f"job {self.lease.job_id}: progress write failed", err)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
