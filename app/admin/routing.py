@@ -34,7 +34,7 @@ from app.admin.templating import add_security_headers, render
 from app.api.errors import FAULT_ANSWERS, NOT_FOUND_ERRORS, ApiError, field_path
 from app.api.route_class import SessionEndingRoute
 from app.domain.errors import ParameterError
-from app.storage.db import database_fault
+from app.storage.db import database_fault, first_line
 from app.storage.queue import InvalidTransition
 
 logger = logging.getLogger(__name__)
@@ -117,7 +117,9 @@ def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
         return exc.status_code, sentence(str(exc.detail))
     fault = database_fault(exc)
     if fault is not None:
-        logger.error("%s during %s %s: %s", fault.value, request.method, request.url.path, exc)
+        logger.error(
+            "%s during %s %s: %s", fault.value, request.method, request.url.path, first_line(exc)
+        )
         return 503, sentence(FAULT_ANSWERS[fault][0])
     logger.error(
         "unhandled error in %s %s",

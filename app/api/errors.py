@@ -38,7 +38,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.schemas import ErrorBody
 from app.domain.errors import ParameterError, SessionFormatError
-from app.storage.db import DatabaseFault, database_fault
+from app.storage.db import DatabaseFault, database_fault, first_line
 from app.storage.keys import KeyNotFound
 from app.storage.maps import MapNotFound
 from app.storage.navigation import LocalizationNotFound
@@ -203,7 +203,7 @@ async def _database_fault(request: Request, exc: Exception) -> JSONResponse:
         fault.value,
         request.method,
         request.url.path,
-        str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+        first_line(exc),
         extra={"action": fault.value},
     )
     detail, retry_after_s = FAULT_ANSWERS[fault]
