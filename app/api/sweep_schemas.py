@@ -170,10 +170,9 @@ class TrialPublic(BaseModel):
 
 
 class SummaryPublic(BaseModel):
-    """The best so far, as its trials scored it; metrics are null where undefined (no ground
-    truth, no trial yet). A trial is warm-started from the base optimum, and at some settings the
-    map that ``apply`` builds from raw odometry scores differently (README, "What a trial
-    measures"); ``invisible-map sweep`` reports builds of the chosen settings."""
+    """The best so far; metrics are null where undefined (no ground truth, no trial yet). A
+    chosen trial has converged, so its figures are those of the map ``apply`` builds with its
+    setting, exactly (README, "What a trial measures")."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [_SWEEP_EXAMPLE["summary"]]})
 

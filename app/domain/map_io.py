@@ -42,6 +42,7 @@ def map_to_json(result: MapResult) -> dict[str, Any]:
         "params": result.params.to_dict(),
         "stats": {
             "iterations": result.stats.iterations,
+            "start_iterations": result.stats.start_iterations,
             "initial_error": result.stats.initial_error,
             "final_error": result.stats.final_error,
             "build_ms": result.stats.build_ms,
@@ -147,6 +148,7 @@ def map_from_json(document: Any) -> MapResult:
             ),
             stats=OptimizationStats(
                 iterations=int(stats["iterations"]),
+                start_iterations=int(stats.get("start_iterations", 0)),
                 initial_error=float(stats["initial_error"]),
                 final_error=float(stats["final_error"]),
                 build_ms=float(stats["build_ms"]),

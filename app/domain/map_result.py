@@ -66,9 +66,14 @@ class FactorResiduals:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class OptimizationStats:
-    """How the optimization went. Errors are gtsam's graph error (½ Σ chi², robust-weighted)."""
+    """How the optimization went. Errors are gtsam's graph error (½ Σ chi², robust-weighted).
+
+    iterations: LM's iterations with the map's parameters; start_iterations: those of the first
+    stage, with the default noise variances (0 when the map's variances are the defaults).
+    """
 
     iterations: int
+    start_iterations: int = 0
     initial_error: float
     final_error: float
     build_ms: float

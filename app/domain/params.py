@@ -22,6 +22,17 @@ from app.domain.errors import ParameterError
 #: The app's printed AprilTags: side of the black square, m.
 DEFAULT_TAG_SIZE_M = 0.173
 
+#: The noise variances: the paper's four and gravity's. A sweep tunes these, and a map whose
+#: variances differ from the defaults is optimized from the defaults' optimum
+#: (``slam.optimize_session``).
+NOISE_VARIANCE_FIELDS = (
+    "tag_position_var_m2",
+    "tag_orientation_var_rad2",
+    "odom_linear_var_m2_per_s",
+    "odom_angular_var_rad2_per_s",
+    "gravity_var_rad2",
+)
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SlamParams:
@@ -104,6 +115,19 @@ class SlamParams:
         for tag_id, size_m in self.tag_sizes_m.items():
             if not 0 < size_m < math.inf:
                 raise ParameterError(f"tag_sizes_m[{tag_id}] must be finite and > 0, got {size_m}")
+
+    def with_default_variances(self) -> SlamParams:
+        """A copy with every noise variance (:data:`NOISE_VARIANCE_FIELDS`) at its default."""
+        defaults = SlamParams()
+        return dataclasses.replace(
+            self, **{name: getattr(defaults, name) for name in NOISE_VARIANCE_FIELDS}
+        )
+
+    @property
+    def has_default_variances(self) -> bool:
+        """Whether every noise variance is at its default (the other fields may differ)."""
+        defaults = SlamParams()
+        return all(getattr(self, n) == getattr(defaults, n) for n in NOISE_VARIANCE_FIELDS)
 
     def tag_size_for(self, tag_id: int) -> float:
         """Side of tag ``tag_id``, m."""

@@ -5,8 +5,8 @@
     trial = target.run({"odom_linear_var_m2_per_s": 1e-3, …})            # one optimization
     trial.shift, trial.gt_metric, trial.tag_rmse_m
     propose_trials(space, done=[(values, score), …], count=8, seed=0)    # Optuna TPE, ask-only
-    build = target.build(trial.values)        # the map `apply` makes with them, scored the same
-    result = sweep_result(target, trials, "shift")   # the summary, its choices scored by builds
+    build = target.build(trial.values)        # the map `apply` makes with them: the trial's
+    result = sweep_result(target, trials, "shift")   # the summary, its choices built again
 
 A *trial* is one optimization of the session with some of the noise variances replaced, scored by
 the shift metric (always) and the ground-truth metric and tag RMSE (when ground truth is given).
@@ -23,17 +23,14 @@ three over 10 values from 1e-8 to 1 — the physically meaningful part of the pa
 stiff that LM needs 50–100 iterations to reach maps that score badly anyway. Any of the five
 variances (gravity included) may be an axis of a custom space.
 
-Every trial starts Levenberg–Marquardt from the same point, the optimum with the base parameters
-(computed once): that halves the iterations (mean 6 instead of 13 on floor_2_straight) without
-making a trial depend on which trials ran before it. A trial that hits ``TRIAL_MAX_ITERATIONS`` is
-recorded but marked unconverged, and never chosen as the best.
-
-A trial is the build's map only to LM's tolerance: it stops when an iteration lowers the error by
-less than 0.1%, and where the error is flat along some direction a run from the base optimum and a
-run from raw odometry (what a build does) stop far apart. So a trial's scores *choose* a setting,
-and :func:`sweep_result` reports the chosen settings by their builds (``TuningTarget.build``:
-``optimize_session`` with the same parameters, scored by the same code): two optimizations per
-sweep, and the numbers are those of the map a user gets.
+Every trial starts Levenberg–Marquardt from the same point, the optimum with the default noise
+variances (computed once), which is where a build with any other setting starts its second stage
+(``slam.optimize_session``). So a converged trial is the map ``apply`` makes with its setting, bit
+for bit, and it does not depend on which trials ran before it. Starting there also halves the
+iterations (mean 6 instead of 13 on floor_2_straight). A trial that hits
+``TRIAL_MAX_ITERATIONS`` is recorded but marked unconverged, and never chosen as the best.
+:func:`sweep_result` builds the chosen settings once more with ``optimize_session`` and checks
+that their scores are the trials'.
 
 The sampler keeps no state of its own: the history of finished trials (in our database) is replayed
 into an in-memory Optuna study, which is then asked for the next trials. So any worker can propose
@@ -61,7 +58,7 @@ from app.domain.metrics import (
     shift_pairs,
     tag_rmse_m,
 )
-from app.domain.params import SlamParams
+from app.domain.params import NOISE_VARIANCE_FIELDS, SlamParams
 from app.domain.session import Session, first_observation_tag_poses
 from app.domain.slam import GraphInputs, TrialGraph, optimize_session, prepare_graph_inputs
 
@@ -69,13 +66,7 @@ if TYPE_CHECKING:
     import gtsam
 
 #: The hyperparameters a sweep may vary: the paper's four noise variances, and gravity's.
-TUNABLE_PARAMS = (
-    "tag_position_var_m2",
-    "tag_orientation_var_rad2",
-    "odom_linear_var_m2_per_s",
-    "odom_angular_var_rad2_per_s",
-    "gravity_var_rad2",
-)
+TUNABLE_PARAMS = NOISE_VARIANCE_FIELDS
 #: The paper's grid: these three axes, ``PAPER_GRID_VALUES`` values each, log-spaced over the range.
 PAPER_GRID_AXES = (
     "tag_orientation_var_rad2",
@@ -209,8 +200,9 @@ class Trial:
     iterations: int
     duration_s: float
     error: str | None = None
-    #: LM's iteration cap: a trial's, or a build's (the base parameters'). A build that reaches
-    #: it still makes the map ``apply`` stores, so it is reported, marked unconverged.
+    #: LM's iteration cap: a trial's, or a build's (the base parameters'; also a trial's at the
+    #: default variances, which is the build's first stage). One that reaches it is reported,
+    #: marked unconverged.
     max_iterations: int = TRIAL_MAX_ITERATIONS
 
     @property
@@ -258,6 +250,8 @@ class TuningTarget:
         self.pairs = pairs
         self.graph = TrialGraph(inputs)
         self._warm_start: gtsam.Values | None = None
+        self._start_map: dict[int, FloatArray] = {}
+        self._start_iterations = 0
         pre_all = first_observation_tag_poses(session)
         self.pre_map = {tag_id: pre_all[tag_id] for tag_id in inputs.tag_rows}
 
@@ -275,10 +269,13 @@ class TuningTarget:
 
     @property
     def warm_start(self) -> gtsam.Values:
-        """Where every trial starts LM: the optimum with the base parameters (computed once)."""
+        """Where every trial starts LM: the optimum with the base parameters' default variances
+        (computed once), which is the first stage of a build (``slam.optimize_session``)."""
         if self._warm_start is None:
-            base = self.base_params.with_overrides({"compute_marginals": False})
-            _, _, self._warm_start = self.graph.optimize(base)
+            start = self.base_params.with_default_variances().with_overrides(
+                {"compute_marginals": False}
+            )
+            self._start_map, self._start_iterations, self._warm_start = self.graph.optimize(start)
         return self._warm_start
 
     @property
@@ -317,8 +314,14 @@ class TuningTarget:
         started = time.perf_counter()
         values = {name: float(value) for name, value in values.items()}
         params = self.trial_params(values)
+        max_iterations = params.max_iterations
         try:
-            map_T_tag, iterations, _ = self.graph.optimize(params, initial=self.warm_start)
+            start = self.warm_start
+            if params.has_default_variances:  # a build makes the first stage its map
+                map_T_tag, iterations = self._start_map, self._start_iterations
+                max_iterations = self.base_params.max_iterations
+            else:
+                map_T_tag, iterations, _ = self.graph.optimize(params, initial=start)
         except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
             return Trial(
                 values=values,
@@ -336,21 +339,22 @@ class TuningTarget:
             gt_metric=gt_metric,
             tag_rmse_m=rmse_m,
             iterations=iterations,
+            max_iterations=max_iterations,
             duration_s=time.perf_counter() - started,
         )
 
     def build_params(self, values: Mapping[str, float]) -> SlamParams:
         """The base parameters with ``values`` swapped in, as a build uses them (``apply``'s
-        rebuild, ``process --param``): LM from raw odometry with the base iteration cap. Without
-        marginals, which do not move the map."""
+        rebuild, ``process --param``): the base iteration cap, and no marginals, which do not
+        move the map."""
         _check_tunable(values)
         return self.base_params.with_overrides({**values, "compute_marginals": False})
 
     def build(self, values: Mapping[str, float]) -> Trial:
-        """Build the map with ``values`` (:func:`slam.optimize_session`, from raw odometry, as
-        ``apply`` does) and score it as a trial is scored (:meth:`score_map`); never raises on a
-        solver failure. Its tags are those of the trials: ``values`` change no rejection
-        threshold, so the build screens the session as :meth:`prepare` did."""
+        """Build the map with ``values`` (:func:`slam.optimize_session` from raw odometry, in two
+        stages, as ``apply`` does) and score it as a trial is scored (:meth:`score_map`); never
+        raises on a solver failure. Its tags are those of the trials: ``values`` change no
+        rejection threshold, so the build screens the session as :meth:`prepare` did."""
         started = time.perf_counter()
         values = {name: float(value) for name, value in values.items()}
         params = self.build_params(values)
@@ -469,8 +473,8 @@ def _clip(value: float, space: SearchSpace, name: str) -> float:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SweepSummary:
-    """What a sweep's trials found (the API's ``summary``); every figure is a *trial*'s. What a
-    sweep reports as its result scores the chosen settings by builds: :class:`SweepResult`.
+    """What a sweep's trials found (the API's ``summary``). A chosen trial has converged, so its
+    figures are those of the map a build with its setting makes (``apply``, ``process --param``).
 
     best_values: the best trial's values by ``objective``; best_shift its shift metric.
     gt_metric_pre: the pre-optimized map's ground-truth metric (same tags as the optimized maps);
@@ -527,13 +531,13 @@ def summarize(
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SweepResult:
-    """What a sweep reports as its result (the ``sweep --json`` object): the settings the trials
-    chose, scored by the maps builds with them make (:meth:`TuningTarget.build`), which are the
-    maps a user gets; the trials' own figures are kept beside them.
+    """What a sweep reports as its result (the ``sweep --json`` object): the trials' summary, and
+    the settings it chose built again from raw odometry, as ``apply`` builds them
+    (:meth:`TuningTarget.build`), a check that the chosen trials are the maps a user gets.
 
-    summary: the trials' :class:`SweepSummary` (which settings were chosen, and their trial
-    scores); shift_chosen: the build of the setting the shift metric chose; gt_chosen: the build
-    of the setting the ground-truth metric chose (None without ground truth or a converged trial).
+    summary: the trials' :class:`SweepSummary`; shift_chosen: the build of the setting the shift
+    metric chose; gt_chosen: the build of the setting the ground-truth metric chose (None without
+    ground truth or a converged trial).
     """
 
     summary: SweepSummary
@@ -545,39 +549,45 @@ class SweepResult:
         """The build of the setting the objective chose (``summary.best_values``)."""
         return self.shift_chosen if self.summary.objective == "shift" else self.gt_chosen
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (NaN becomes None). The summary's names carry the builds' figures:
-        ``best_shift`` (the build of ``best_values``), ``gt_metric_at_best_shift`` and
-        ``tag_rmse_at_best_shift_m`` (the build of the shift-chosen setting), ``gt_metric_best``
-        and ``tag_rmse_at_best_gt_m`` (the build of the ground-truth-chosen setting; not
-        necessarily the lowest of any build, only the build of the best trial). The same figures
-        of the trials are under ``trial_…``; ``builds`` holds both builds in full; the baseline
-        (``…_pre``), ``best_gt_values`` and ``shift_gt_spearman`` (over the trials) are the
-        summary's."""
+    @property
+    def builds_equal_trials(self) -> bool:
+        """Whether each build scores exactly as the trial that chose it (it always should: a
+        converged trial is its build)."""
         summary = self.summary
+        pairs: list[tuple[tuple[float, ...], tuple[float, ...]]] = []
+        if self.shift_chosen is not None:
+            pairs.append(
+                (
+                    (self.shift_chosen.gt_metric, self.shift_chosen.tag_rmse_m),
+                    (summary.gt_metric_at_best_shift, summary.tag_rmse_at_best_shift_m),
+                )
+            )
+        if self.gt_chosen is not None:
+            pairs.append(
+                (
+                    (self.gt_chosen.gt_metric, self.gt_chosen.tag_rmse_m),
+                    (summary.gt_metric_best, summary.tag_rmse_at_best_gt_m),
+                )
+            )
+        if self.best is not None:
+            pairs.append(((self.best.shift,), (summary.best_shift,)))
+        return all(_same_scores(build, trial) for build, trial in pairs)
 
-        def build_value(build: Trial | None, name: str) -> float:
-            return math.nan if build is None else float(getattr(build, name))
-
-        out = summary.to_dict()
-        out.update(
-            best_shift=build_value(self.best, "shift"),
-            gt_metric_at_best_shift=build_value(self.shift_chosen, "gt_metric"),
-            gt_metric_best=build_value(self.gt_chosen, "gt_metric"),
-            tag_rmse_at_best_shift_m=build_value(self.shift_chosen, "tag_rmse_m"),
-            tag_rmse_at_best_gt_m=build_value(self.gt_chosen, "tag_rmse_m"),
-            trial_best_shift=summary.best_shift,
-            trial_gt_metric_at_best_shift=summary.gt_metric_at_best_shift,
-            trial_gt_metric_best=summary.gt_metric_best,
-            trial_tag_rmse_at_best_shift_m=summary.tag_rmse_at_best_shift_m,
-            trial_tag_rmse_at_best_gt_m=summary.tag_rmse_at_best_gt_m,
-        )
-        out = {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in out.items()}
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN becomes None): the summary's fields, ``builds`` (each build in full)
+        and ``builds_equal_trials``."""
+        out = self.summary.to_dict()
         out["builds"] = {
             "shift_chosen": None if self.shift_chosen is None else self.shift_chosen.to_dict(),
             "gt_chosen": None if self.gt_chosen is None else self.gt_chosen.to_dict(),
         }
+        out["builds_equal_trials"] = self.builds_equal_trials
         return out
+
+
+def _same_scores(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Equal, NaN equal to NaN (an undefined metric is undefined in both)."""
+    return all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b, strict=True))
 
 
 def sweep_result(target: TuningTarget, trials: Sequence[Trial], objective: str) -> SweepResult:

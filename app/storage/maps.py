@@ -146,6 +146,7 @@ def store_version(
         "detections_rejected": len(result.rejections),
         "rejection_counts": dict(result.rejection_counts()),
         "iterations": result.stats.iterations,
+        "start_iterations": result.stats.start_iterations,
         "initial_error": result.stats.initial_error,
         "final_error": result.stats.final_error,
         "build_ms": result.stats.build_ms,

@@ -137,7 +137,8 @@ def test_apply_rebuilds_the_map_with_the_best_parameters_as_a_new_version(
     assert (response.status_code, response.json()["code"]) == (409, "no_best_trial")
 
     drain(api)
-    best = sweep(api, sweep_id)["summary"]["best_values"]
+    summary = sweep(api, sweep_id)["summary"]
+    best = summary["best_values"]
     response = api.client.post(f"/v1/sweeps/{sweep_id}/apply", headers=ADMIN)
     assert response.status_code == 202, response.text
     assert response.json()["params"] == {"huber_k": 2.0, **best}
@@ -148,6 +149,9 @@ def test_apply_rebuilds_the_map_with_the_best_parameters_as_a_new_version(
     assert newest["params"]["huber_k"] == 2.0
     for name, value in best.items():
         assert newest["params"][name] == pytest.approx(value)
+    # the version is the map the best trial measured, exactly
+    assert newest["shift_metric"] == summary["best_shift"]
+    assert newest["statistics"]["start_iterations"] > 0
     assert sweep(api, sweep_id)["applied_job_id"] == response.json()["job_id"]
 
 

@@ -767,7 +767,7 @@ def chosen_trials() -> list[Trial]:
     ]
 
 
-def test_a_sweep_result_reports_builds_of_the_chosen_settings(occam: TuningTarget) -> None:
+def test_a_sweep_result_builds_the_chosen_settings(occam: TuningTarget) -> None:
     trials = chosen_trials()
     shift_build = occam.build(trials[0].values)
     gt_build = occam.build(trials[1].values)
@@ -783,20 +783,16 @@ def test_a_sweep_result_reports_builds_of_the_chosen_settings(occam: TuningTarge
     report = json.loads(json.dumps(result.to_dict(), allow_nan=False))
     assert report["best_values"] == trials[0].values
     assert report["best_gt_values"] == trials[1].values
-    # The result: the builds.
-    assert report["best_shift"] == shift_build.shift
-    assert report["gt_metric_at_best_shift"] == shift_build.gt_metric
-    assert report["tag_rmse_at_best_shift_m"] == shift_build.tag_rmse_m
-    assert report["gt_metric_best"] == gt_build.gt_metric
-    assert report["tag_rmse_at_best_gt_m"] == gt_build.tag_rmse_m
+    # The summary: the trials'.
+    assert report["best_shift"] == 0.1
+    assert report["gt_metric_at_best_shift"] == 0.3
+    assert report["tag_rmse_at_best_shift_m"] == 3.0
+    assert report["gt_metric_best"] == 0.05
+    assert report["tag_rmse_at_best_gt_m"] == 5.0
+    # Beside it, the builds: made-up trials are not their builds, and the report says so.
     assert report["builds"]["shift_chosen"]["gt_metric"] == shift_build.gt_metric
     assert report["builds"]["gt_chosen"]["values"] == trials[1].values
-    # Beside it: the trials'.
-    assert report["trial_best_shift"] == 0.1
-    assert report["trial_gt_metric_at_best_shift"] == 0.3
-    assert report["trial_tag_rmse_at_best_shift_m"] == 3.0
-    assert report["trial_gt_metric_best"] == 0.05
-    assert report["trial_tag_rmse_at_best_gt_m"] == 5.0
+    assert report["builds_equal_trials"] is False
     # And the baseline as before.
     shift_pre, gt_pre, rmse_pre = occam.baseline()
     assert (report["shift_pre"], report["gt_metric_pre"], report["tag_rmse_pre_m"]) == (
@@ -805,10 +801,18 @@ def test_a_sweep_result_reports_builds_of_the_chosen_settings(occam: TuningTarge
         rmse_pre,
     )
 
-    by_gt = sweep_result(occam, trials, "ground_truth").to_dict()
-    assert by_gt["best_values"] == trials[1].values
-    assert by_gt["best_shift"] == gt_build.shift  # the build of the setting the objective chose
-    assert by_gt["trial_best_shift"] == 0.2
+    by_gt = sweep_result(occam, trials, "ground_truth")
+    assert by_gt.best is by_gt.gt_chosen
+    assert by_gt.to_dict()["best_values"] == trials[1].values
+
+
+def test_the_builds_of_real_trials_equal_them(occam: TuningTarget) -> None:
+    trials = [occam.run({LINEAR: value}) for value in (1e-5, 1e-3, 1e-1)]
+    result = sweep_result(occam, trials, "shift")
+    assert result.builds_equal_trials
+    by_shift = min(trials, key=lambda t: t.shift)
+    assert result.shift_chosen is not None
+    assert scores(result.shift_chosen) == scores(by_shift)
 
 
 def test_a_sweep_result_builds_a_setting_both_metrics_chose_once(occam: TuningTarget) -> None:
@@ -828,8 +832,7 @@ def test_a_sweep_result_without_ground_truth_or_trials_has_nulls(occam: TuningTa
     assert result.gt_chosen is None
     report = json.loads(json.dumps(result.to_dict(), allow_nan=False))
     assert result.shift_chosen is not None
-    assert report["best_shift"] == result.shift_chosen.shift
-    assert report["trial_best_shift"] == 0.1
+    assert report["best_shift"] == 0.1
     assert report["gt_metric_at_best_shift"] is None
     assert report["gt_metric_best"] is None
     assert report["builds"]["gt_chosen"] is None
@@ -837,7 +840,7 @@ def test_a_sweep_result_without_ground_truth_or_trials_has_nulls(occam: TuningTa
     nothing = json.loads(json.dumps(sweep_result(occam, [], "shift").to_dict(), allow_nan=False))
     assert nothing["best_values"] is None
     assert nothing["best_shift"] is None
-    assert nothing["trial_best_shift"] is None
+    assert nothing["builds_equal_trials"] is True  # nothing to check
     assert nothing["builds"] == {"shift_chosen": None, "gt_chosen": None}
 
 
