@@ -154,6 +154,52 @@ def rotation_angle_rad(R: FloatArray) -> float:
     return math.acos(min(1.0, max(-1.0, cos_angle)))
 
 
+def skew(v: FloatArray) -> FloatArray:
+    """(..., 3, 3) cross-product matrices ``[v]×`` of (..., 3) vectors: ``[v]× u = v × u``."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp(rotation_vector: FloatArray) -> FloatArray:
+    """(..., 3, 3) rotations from (..., 3) rotation vectors (Rodrigues); exactly I for zero."""
+    angle = np.linalg.norm(rotation_vector, axis=-1)[..., None, None]
+    K = skew(rotation_vector)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    return np.asarray(np.eye(3) + a * K + b * (K @ K), dtype=np.float64)
+
+
+def so3_log(R: FloatArray) -> FloatArray:
+    """(..., 3) rotation vectors (angle in [0, π] times the unit axis) of (..., 3, 3) rotations;
+    the inverse of :func:`so3_exp`. Near π, where ``R − Rᵀ`` vanishes, the axis comes from the
+    symmetric part instead: ``(R + Rᵀ)/2 = cos θ I + (1 − cos θ) axis axisᵀ``."""
+    cos_angle = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arccos(cos_angle)
+    vee = 0.5 * np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )  # sin(angle) · axis
+    sin_angle = np.sin(angle)
+    general = np.where(
+        angle[..., None] < 1e-6,
+        vee * (1.0 + angle[..., None] ** 2 / 6.0),  # angle / sin(angle) ≈ 1 + angle²/6
+        vee * (angle / np.where(sin_angle == 0.0, 1.0, sin_angle))[..., None],
+    )
+    symmetric = 0.5 * (R + np.swapaxes(R, -1, -2)) - cos_angle[..., None, None] * np.eye(3)
+    outer = symmetric / np.maximum(1.0 - cos_angle, 1e-12)[..., None, None]  # axis axisᵀ
+    column = np.argmax(np.diagonal(outer, axis1=-2, axis2=-1), axis=-1)
+    axis = np.take_along_axis(outer, column[..., None, None], axis=-1)[..., 0]
+    axis /= np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-300)  # 0 away from π
+    sign = np.where(np.sum(axis * vee, axis=-1) < 0.0, -1.0, 1.0)
+    near_pi = angle[..., None] > math.pi - 1e-3
+    return np.asarray(np.where(near_pi, axis * (sign * angle)[..., None], general))
+
+
 def pose_to_xyz_quat_xyzw(T: FloatArray) -> list[float]:
     """``[x, y, z, qx, qy, qz, qw]`` from a 4×4 pose (the ground-truth JSON form)."""
     return [*T[:3, 3].tolist(), *quat_xyzw_from_rotation(T[:3, :3]).tolist()]

@@ -61,7 +61,7 @@ import numpy.typing as npt
 from gtsam.symbol_shorthand import X
 
 from app.domain.errors import InvisibleMapError, ParameterError, SessionFormatError
-from app.domain.frames import FloatArray, se3_inverse
+from app.domain.frames import FloatArray, se3_inverse, skew
 from app.domain.json_values import json_type_name
 from app.domain.params import SlamParams
 from app.domain.screening import screen_detections
@@ -1189,15 +1189,6 @@ def median_and_p90(values: npt.ArrayLike) -> tuple[float, float]:
 # --------------------------------------------------------------------------- small helpers
 
 
-def _skew(v: FloatArray) -> FloatArray:
-    """(..., 3, 3) cross-product matrices of (..., 3) vectors."""
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
 def _adjoints(A_T_B: FloatArray) -> FloatArray:
     """(..., 6, 6) adjoint maps of (..., 4, 4) poses in gtsam's ``[rot, trans]`` order:
     ``A_T_B · Exp(ξ_B) · A_T_B⁻¹ = Exp(Ad · ξ_B)``."""
@@ -1205,7 +1196,7 @@ def _adjoints(A_T_B: FloatArray) -> FloatArray:
     out = np.zeros((*A_T_B.shape[:-2], 6, 6))
     out[..., :3, :3] = R
     out[..., 3:, 3:] = R
-    out[..., 3:, :3] = _skew(A_T_B[..., :3, 3]) @ R
+    out[..., 3:, :3] = skew(A_T_B[..., :3, 3]) @ R
     return out
 
 

@@ -46,6 +46,8 @@ from app.domain.frames import (
     FloatArray,
     project_pinhole_px,
     se3_inverse,
+    skew,
+    so3_exp,
     tag_corners_in_camera,
     tag_corners_in_tag_frame,
 )
@@ -840,7 +842,7 @@ def _drift_odometry(
     offset = np.concatenate([np.zeros((1, 3)), np.cumsum(turned_steps + translation_steps, axis=0)])
 
     odometry = world_T_phone_true.copy()
-    odometry[:, :3, :3] = _so3_exp(tilt_rad) @ drift_R @ world_T_phone_true[:, :3, :3]
+    odometry[:, :3, :3] = so3_exp(tilt_rad) @ drift_R @ world_T_phone_true[:, :3, :3]
     odometry[:, :3, 3] += offset
     return odometry
 
@@ -956,7 +958,7 @@ def _measure(
     corner_noise = rng.standard_normal((m, 4, 2)) * config.corner_noise_px
 
     camera_T_tag = camera_T_tag_true.copy()
-    camera_T_tag[:, :3, :3] = _so3_exp(rotation_noise) @ camera_T_tag_true[:, :3, :3]
+    camera_T_tag[:, :3, :3] = so3_exp(rotation_noise) @ camera_T_tag_true[:, :3, :3]
     camera_T_tag[:, :3, 3] = t_true + position_noise
 
     is_outlier = rng_outliers.random(size=m) < config.outlier_fraction
@@ -969,7 +971,7 @@ def _measure(
     if np.any(is_outlier):
         bad = np.flatnonzero(is_outlier)
         camera_T_tag[bad, :3, :3] = (
-            _so3_exp(axis[bad] * angle_rad[bad, None]) @ camera_T_tag_true[bad, :3, :3]
+            so3_exp(axis[bad] * angle_rad[bad, None]) @ camera_T_tag_true[bad, :3, :3]
         )
         moved = t_true[bad] + direction[bad] * offset_m[bad, None]
         moved[:, 2] = np.maximum(moved[:, 2], _MIN_OUTLIER_DEPTH_M)
@@ -1006,7 +1008,7 @@ def _joint_covariance(camera_T_tag: FloatArray, config: SimulationConfig) -> Flo
     d_uv_d_point[:, :, 1, 2] = -fy * Y / Z**2
     d_point_d_params = np.zeros((m, 4, 3, 6))
     d_point_d_params[:, :, :, :3] = np.eye(3)
-    d_point_d_params[:, :, :, 3:] = -_skew(rotated)
+    d_point_d_params[:, :, :, 3:] = -skew(rotated)
     J = (d_uv_d_point @ d_point_d_params).reshape(m, 8, 6)
     information = np.einsum("nki,nkj->nij", J, J) / _JOINT_COVAR_PIXEL_SIGMA**2
     covariance_6 = np.linalg.inv(information + 1e-12 * np.eye(6))
@@ -1014,7 +1016,7 @@ def _joint_covariance(camera_T_tag: FloatArray, config: SimulationConfig) -> Flo
     quat_xyzw = _quat_xyzw_from_rotations(R)
     G = np.zeros((m, 7, 6))
     G[:, :3, :3] = np.eye(3)
-    G[:, 3:6, 3:] = 0.5 * (quat_xyzw[:, 3, None, None] * np.eye(3) - _skew(quat_xyzw[:, :3]))
+    G[:, 3:6, 3:] = 0.5 * (quat_xyzw[:, 3, None, None] * np.eye(3) - skew(quat_xyzw[:, :3]))
     G[:, 6, 3:] = -0.5 * quat_xyzw[:, :3]
     covariance_7 = G @ covariance_6 @ np.swapaxes(G, 1, 2)
     return np.asarray(0.5 * (covariance_7 + np.swapaxes(covariance_7, 1, 2)), dtype=np.float64)
@@ -1142,26 +1144,6 @@ def _smooth_noise(
     white = rng.standard_normal(n + 2 * half_width)
     smooth = np.convolve(white, kernel, mode="valid") / float(np.linalg.norm(kernel))
     return np.asarray(sigma * smooth, dtype=np.float64)
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    """(..., 3, 3) cross-product matrices [v]× of (..., 3) vectors."""
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _so3_exp(rotation_vector: FloatArray) -> FloatArray:
-    """(..., 3, 3) rotations from (..., 3) rotation vectors (Rodrigues); exactly I for zero."""
-    angle = np.linalg.norm(rotation_vector, axis=-1)[..., None, None]
-    K = _skew(rotation_vector)
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
-    return np.asarray(np.eye(3) + a * K + b * (K @ K), dtype=np.float64)
 
 
 def _rotations_about_x(angle_rad: FloatArray) -> FloatArray:
