@@ -85,6 +85,7 @@ def map_to_json(result: MapResult) -> dict[str, Any]:
             for r in result.rejections
         ],
         "residuals": {
+            "keyframe_index": residuals.keyframe_index.tolist(),
             "odometry_chi2": residuals.odometry_chi2.tolist(),
             "gravity_chi2": residuals.gravity_chi2.tolist(),
             "tag_chi2": residuals.tag_chi2.tolist(),
@@ -114,7 +115,8 @@ def map_from_json(document: Any) -> MapResult:
         pois = document["points_of_interest"]
         return MapResult(
             map_id=str(document["map_id"]),
-            params=SlamParams.from_dict(document["params"]),
+            # maps stored before keyframes had every pose in the graph
+            params=SlamParams.from_dict({"keyframe_interval_s": 0.0, **document["params"]}),
             pose_id=np.asarray(trajectory["pose_id"], dtype=np.int64),
             timestamp_s=np.asarray(trajectory["timestamp_s"], dtype=np.float64),
             world_T_phone=_poses(trajectory["pose_xyz_quat_xyzw"]),
@@ -138,6 +140,10 @@ def map_from_json(document: Any) -> MapResult:
                 for r in document["rejections"]
             ),
             residuals=FactorResiduals(
+                keyframe_index=np.asarray(
+                    residuals.get("keyframe_index", range(len(trajectory["pose_id"]))),
+                    dtype=np.int64,
+                ),
                 odometry_chi2=np.asarray(residuals["odometry_chi2"], dtype=np.float64),
                 gravity_chi2=np.asarray(residuals["gravity_chi2"], dtype=np.float64),
                 tag_chi2=np.asarray(residuals["tag_chi2"], dtype=np.float64),
@@ -170,7 +176,8 @@ def map_from_json(document: Any) -> MapResult:
 def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
     """The app's download format (DESIGN §7).
 
-    ``adjChi2`` of a pose is the chi² of the odometry factors touching it; ``vizTags`` the number of
+    ``adjChi2`` of a pose is the chi² of the odometry factors touching it (a pose between two
+    keyframes: the factor spanning it); ``vizTags`` the number of
     tag detections used from it. ``neighbors`` are the path-graph links: without ``path_graph``,
     the previous and next pose. With it (built from this ``result``), every pose is still listed
     and its ``neighbors`` are its graph links (:func:`app.domain.path_graph.app_neighbors`: a pose
@@ -179,9 +186,7 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
     position, an identity rotation, ``adjChi2`` and ``vizTags`` 0.
     """
     n = result.world_T_phone.shape[0]
-    adjacent_chi2 = np.zeros(n)
-    adjacent_chi2[1:] += result.residuals.odometry_chi2
-    adjacent_chi2[:-1] += result.residuals.odometry_chi2
+    adjacent_chi2 = _adjacent_odometry_chi2(n, result.residuals)
     visible_tags = np.bincount(result.residuals.tag_pose_index, minlength=n).astype(float)
     pose_ids = result.pose_id.tolist()
     if path_graph is None:
@@ -221,6 +226,22 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
             for k, name in enumerate(result.poi_names)
         ],
     }
+
+
+def _adjacent_odometry_chi2(n: int, residuals: FactorResiduals) -> FloatArray:
+    """(n,) per pose: the chi² of the odometry factors touching it (a keyframe), or of the one
+    spanning it (a pose between keyframes)."""
+    keyframes, chi2 = residuals.keyframe_index, residuals.odometry_chi2
+    adjacent = np.zeros(n)
+    if keyframes.size < 2:
+        return adjacent
+    poses = np.arange(n)
+    span = np.minimum(np.searchsorted(keyframes, poses, side="right") - 1, keyframes.size - 2)
+    between = ~np.isin(poses, keyframes)
+    adjacent[between] = chi2[span[between]]
+    np.add.at(adjacent, keyframes[1:], chi2)
+    np.add.at(adjacent, keyframes[:-1], chi2)
+    return adjacent
 
 
 def save_json(document: Any, path: str | Path) -> None:

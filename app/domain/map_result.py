@@ -46,8 +46,10 @@ class Rejection:
 class FactorResiduals:
     """Per-factor residuals at the solution; chi² is the whitened squared error (‖r‖²_Σ).
 
-    odometry_chi2: (N−1,) between consecutive poses.
-    gravity_chi2: (N,) one attitude factor per pose.
+    keyframe_index: (K,) the phone poses in the graph (``SlamParams.keyframe_interval_s``), sorted;
+        all N when every pose is.
+    odometry_chi2: (K−1,) between consecutive keyframes.
+    gravity_chi2: (K,) one attitude factor per keyframe.
     tag_chi2: (U,) one per used detection, in ``detection_index`` order (before any robust kernel).
     tag_detection_index: (U,) which detection each tag factor came from.
     tag_pose_index: (U,) the phone pose each tag factor hangs on.
@@ -55,6 +57,7 @@ class FactorResiduals:
     tag_rotation_rad: (U,) rotation part of the tag factor's error, rad.
     """
 
+    keyframe_index: IntArray
     odometry_chi2: FloatArray
     gravity_chi2: FloatArray
     tag_chi2: FloatArray

@@ -56,6 +56,19 @@ class SlamParams:
         max_view_angle_deg          angle between the tag's normal and the line to the camera, deg.
         max_distance_m              camera-to-tag distance, m.
 
+    Graph:
+        keyframe_interval_s         longest time between two consecutive phone poses of the factor
+                                    graph, s. Poses a used tag detection hangs on, the first and
+                                    the last are always in it; others only as needed to keep
+                                    consecutive graph poses at most this far apart. The poses left
+                                    out are placed afterwards by interpolating the odometry
+                                    correction linearly in time between the graph poses around
+                                    them (the mean of a random walk pinned at both ends). 0 puts
+                                    every pose in the graph, as the paper does. At 2 s the real
+                                    sessions' graphs hold 20–50% of their poses, their tags stay
+                                    within 1 cm RMS of the every-pose maps' and sweeps run 3–4×
+                                    faster (README, "Keyframes").
+
     Geometry and solver:
         tag_size_m                  side of the tags' black square, m; ``tag_sizes_m`` per tag id.
         max_iterations              Levenberg–Marquardt iteration cap.
@@ -76,6 +89,8 @@ class SlamParams:
     max_reprojection_px: float = 8.0
     max_view_angle_deg: float = 70.0
     max_distance_m: float = 5.0
+
+    keyframe_interval_s: float = 2.0
 
     tag_size_m: float = DEFAULT_TAG_SIZE_M
     tag_sizes_m: Mapping[int, float] = field(default_factory=dict)
@@ -104,6 +119,11 @@ class SlamParams:
                 raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.tag_depth_var_ratio < 1:
             raise ParameterError(f"tag_depth_var_ratio must be ≥ 1, got {self.tag_depth_var_ratio}")
+        if self.keyframe_interval_s < 0:
+            raise ParameterError(
+                f"keyframe_interval_s must be ≥ 0 (0 keeps every pose), got "
+                f"{self.keyframe_interval_s}"
+            )
         if self.huber_k < 0:
             raise ParameterError(f"huber_k must be ≥ 0 (0 disables it), got {self.huber_k}")
         if not 0 < self.max_view_angle_deg <= 90:

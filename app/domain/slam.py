@@ -21,6 +21,7 @@ Steps:
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable
@@ -31,6 +32,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from app.domain.frames import FloatArray, relative_se3
+from app.domain.keyframes import interpolate_poses, select_keyframes
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats
 from app.domain.params import SlamParams
 from app.domain.screening import screen_detections
@@ -135,22 +137,28 @@ def optimize_session(
     initial_error = float(problem.graph.error(inputs.initial))
     # every setting gives the same graph structure, so one ordering serves both stages
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(problem.graph)
-    start, start_iterations = inputs.initial, 0
-    if start_graph is not None:
+    if start_graph is None:
+        start_iterations = 0
+        values, iterations, final_error = _levenberg_marquardt(
+            problem.graph, inputs.initial, params, on_iteration, ordering=ordering
+        )
+    else:
         start, start_iterations, _ = _levenberg_marquardt(
             start_graph, inputs.initial, start_params, on_iteration, ordering=ordering
         )
-    values, iterations, final_error = _levenberg_marquardt(
-        problem.graph,
-        start,
-        params,
-        _counting_from(start_iterations, on_iteration),
-        ordering=ordering,
-    )
+        values, iterations, final_error = _levenberg_marquardt(
+            problem.graph,
+            start,
+            params,
+            _counting_from(start_iterations, on_iteration),
+            ordering=ordering,
+        )
     optimize_ms = (time.perf_counter() - started) * 1e3
 
-    n = session.num_poses
-    world_T_phone = np.stack([values.atPose3(X(i)).matrix() for i in range(n)])
+    world_T_keyframe = np.stack([values.atPose3(X(int(i))).matrix() for i in inputs.keyframes])
+    world_T_phone = interpolate_poses(
+        session.world_T_phone, session.timestamp_s, inputs.keyframes, world_T_keyframe
+    )
     tag_ids = np.array(sorted(inputs.tag_rows), dtype=np.int64)
     world_T_tag = (
         np.stack([values.atPose3(L(int(t))).matrix() for t in tag_ids])
@@ -234,8 +242,10 @@ def linearize_and_solve_ms(session: Session, params: SlamParams | None = None) -
 
 class GraphInputs:
     """What the factor graph is built from that no noise parameter changes: the screened
-    detections, the odometry steps, the measured up vectors, the tag measurements and the initial
-    values. A sweep prepares them once (:func:`prepare_graph_inputs`) and builds a graph per trial.
+    detections, the keyframes (the phone poses in the graph: ``params.keyframe_interval_s``),
+    the odometry between consecutive keyframes, their measured up vectors, the tag measurements
+    and the initial values. A sweep prepares them once (:func:`prepare_graph_inputs`) and builds a
+    graph per trial. Phone pose ``i`` of the session is the variable ``X(i)``.
     """
 
     def __init__(
@@ -246,19 +256,26 @@ class GraphInputs:
     ) -> None:
         self.session = session
         self.screening = screen_detections(session.detections, params)
+        detections = session.detections
         world_T_phone = session.world_T_phone
         start_T_phone = world_T_phone if initial_world_T_phone is None else initial_world_T_phone
-        n = session.num_poses
+        #: (K,) the session's pose indices in the graph, sorted
+        self.keyframes = select_keyframes(
+            session.timestamp_s,
+            required=detections.pose_index[self.screening.used],
+            interval_s=params.keyframe_interval_s,
+        )
+        keyframes = self.keyframes.tolist()
         self.gauge_pose = to_pose3(world_T_phone[0])
         self.odometry_dt_s = np.round(
-            np.maximum(np.diff(session.timestamp_s), MIN_ODOMETRY_DT_S), 4
+            np.maximum(np.diff(session.timestamp_s[self.keyframes]), MIN_ODOMETRY_DT_S), 4
         )
         self.phone_T_next = [
-            to_pose3(relative_se3(world_T_phone[i], world_T_phone[i + 1])) for i in range(n - 1)
+            to_pose3(relative_se3(world_T_phone[a], world_T_phone[b]))
+            for a, b in itertools.pairwise(keyframes)
         ]
-        phone_up = np.einsum("nji,j->ni", world_T_phone[:, :3, :3], WORLD_UP)
-        self.phone_up = [gtsam.Unit3(phone_up[i]) for i in range(n)]
-        detections = session.detections
+        phone_up = np.einsum("nji,j->ni", world_T_phone[self.keyframes, :3, :3], WORLD_UP)
+        self.phone_up = [gtsam.Unit3(up) for up in phone_up]
         self.tag_detection_rows = [int(row) for row in np.flatnonzero(self.screening.used)]
         self.tag_ids = [int(detections.tag_id[row]) for row in self.tag_detection_rows]
         self.tag_pose_indices = [int(detections.pose_index[row]) for row in self.tag_detection_rows]
@@ -267,7 +284,7 @@ class GraphInputs:
         ]
         self.camera_T_tag = detections.camera_T_tag[self.tag_detection_rows]
         self.initial = gtsam.Values()
-        for i in range(n):
+        for i in keyframes:
             self.initial.insert(X(i), to_pose3(start_T_phone[i]))
         self.tag_rows: dict[int, list[int]] = {}
         for row, tag_id, pose_index in zip(
@@ -287,14 +304,14 @@ def prepare_graph_inputs(session: Session, params: SlamParams | None = None) -> 
 
 
 def optimize_tag_poses(
-    inputs: GraphInputs, params: SlamParams, *, initial: gtsam.Values | None = None
+    inputs: GraphInputs, params: SlamParams
 ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
     """The optimized ``world_T_tag`` of every tag in the graph, the number of LM iterations and
-    the solution (no residuals, no marginals). ``params``' noise fields are used; its rejection
-    thresholds were applied when ``inputs`` were prepared. ``initial`` (default: raw odometry and
-    first observations) is where LM starts. For many settings of one session, keep a
+    the solution (no residuals, no marginals), one LM run from the initial values (raw odometry
+    and first observations). ``params``' noise fields are used; its rejection thresholds were
+    applied when ``inputs`` were prepared. For many settings of one session, keep a
     :class:`TrialGraph` instead: it rebuilds only what a setting changes."""
-    return TrialGraph(inputs).optimize(params, initial=initial)
+    return TrialGraph(inputs).optimize(params)
 
 
 #: The ``SlamParams`` fields each kind of factor is built from (besides ``GraphInputs``).
@@ -341,21 +358,34 @@ class TrialGraph:
         )
         return graph
 
-    def optimize(
-        self, params: SlamParams, *, initial: gtsam.Values | None = None
-    ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
-        """As :func:`optimize_tag_poses`."""
+    def optimize(self, params: SlamParams) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
+        """As :func:`optimize_tag_poses`: LM from the initial values (a build's first stage)."""
         graph = self.graph(params)
+        values, iterations, _ = _levenberg_marquardt(
+            graph, self.inputs.initial, params, None, ordering=self._ordering_of(graph)
+        )
+        return self._tag_poses(values), iterations, values
+
+    def refine(
+        self, params: SlamParams, start: gtsam.Values
+    ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
+        """LM with ``params`` from ``start`` (the optimum with other variances), as a build's
+        second stage runs it: the tag poses, the iterations and the solution."""
+        graph = self.graph(params)
+        values, iterations, _ = _levenberg_marquardt(
+            graph, start, params, None, ordering=self._ordering_of(graph)
+        )
+        return self._tag_poses(values), iterations, values
+
+    def _ordering_of(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Ordering:
         if self._ordering is None:
             self._ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
-        start = self.inputs.initial if initial is None else initial
-        values, iterations, _ = _levenberg_marquardt(
-            graph, start, params, None, ordering=self._ordering
-        )
-        poses = {
+        return self._ordering
+
+    def _tag_poses(self, values: gtsam.Values) -> dict[int, FloatArray]:
+        return {
             tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(self.inputs.tag_rows)
         }
-        return poses, iterations, values
 
     def _kind(
         self,
@@ -413,27 +443,31 @@ def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
 
 
 def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.BetweenFactorPose3]:
-    """2b. Odometry, noise growing with the time between poses (one noise model per distinct
-    step duration)."""
+    """2b. Odometry between consecutive keyframes, noise growing with the time between them (one
+    noise model per distinct duration)."""
     noise_by_dt: dict[float, gtsam.noiseModel.Base] = {}
     factors = []
-    for i, phone_T_next in enumerate(inputs.phone_T_next):
-        key_dt = float(inputs.odometry_dt_s[i])
+    keyframes = inputs.keyframes.tolist()
+    for k, phone_T_next in enumerate(inputs.phone_T_next):
+        key_dt = float(inputs.odometry_dt_s[k])
         noise = noise_by_dt.get(key_dt)
         if noise is None:
             noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(key_dt, params))
             noise_by_dt[key_dt] = noise
-        factors.append(gtsam.BetweenFactorPose3(X(i), X(i + 1), phone_T_next, noise))
+        factors.append(
+            gtsam.BetweenFactorPose3(X(keyframes[k]), X(keyframes[k + 1]), phone_T_next, noise)
+        )
     return factors
 
 
 def _gravity_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.AttitudeFactorPose3]:
-    """2c. Gravity: the measured up direction in the phone frame, held to the map's up."""
+    """2c. Gravity: the measured up direction in the phone frame, held to the map's up, at every
+    keyframe."""
     gravity_noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(params.gravity_var_rad2))
     world_up = gtsam.Unit3(WORLD_UP)
     return [
-        gtsam.AttitudeFactorPose3(X(i), world_up, gravity_noise, phone_up)
-        for i, phone_up in enumerate(inputs.phone_up)
+        gtsam.AttitudeFactorPose3(X(int(i)), world_up, gravity_noise, phone_up)
+        for i, phone_up in zip(inputs.keyframes, inputs.phone_up, strict=True)
     ]
 
 
@@ -525,6 +559,7 @@ def _residuals(inputs: GraphInputs, problem: _Problem, values: gtsam.Values) -> 
         ]
     )
     return FactorResiduals(
+        keyframe_index=inputs.keyframes.copy(),
         odometry_chi2=odometry_chi2.reshape(-1),
         gravity_chi2=gravity_chi2.reshape(-1),
         tag_chi2=tag_chi2.reshape(-1),

@@ -321,7 +321,7 @@ class TuningTarget:
                 map_T_tag, iterations = self._start_map, self._start_iterations
                 max_iterations = self.base_params.max_iterations
             else:
-                map_T_tag, iterations, _ = self.graph.optimize(params, initial=start)
+                map_T_tag, iterations, _ = self.graph.refine(params, start)
         except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
             return Trial(
                 values=values,

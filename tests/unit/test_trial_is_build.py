@@ -60,7 +60,7 @@ def assert_trial_is_build(target: TuningTarget, values: dict[str, float]) -> Non
     build_map = build.tag_poses()
 
     trial = target.run(values)
-    trial_map, _, _ = target.graph.optimize(target.trial_params(values), initial=target.warm_start)
+    trial_map, _, _ = target.graph.refine(target.trial_params(values), target.warm_start)
 
     assert trial.converged
     assert trial.iterations == build.stats.iterations
