@@ -77,13 +77,10 @@ def interpolate_poses(
     fraction = np.where(
         span_s > 0, (timestamp_s - timestamp_s[a]) / np.where(span_s > 0, span_s, 1.0), by_index
     )
+    f = fraction[:, None]
     start_R, end_R = correction[segment, :3, :3], correction[segment + 1, :3, :3]
-    rotation = start_R @ so3_exp(
-        fraction[:, None] * so3_log(np.swapaxes(start_R, -1, -2) @ end_R)
-    )
-    translation = (1.0 - fraction[:, None]) * correction[segment, :3, 3] + fraction[
-        :, None
-    ] * correction[segment + 1, :3, 3]
+    rotation = start_R @ so3_exp(f * so3_log(np.swapaxes(start_R, -1, -2) @ end_R))
+    translation = (1.0 - f) * correction[segment, :3, 3] + f * correction[segment + 1, :3, 3]
     interpolated = np.tile(np.eye(4), (n, 1, 1))
     interpolated[:, :3, :3] = rotation
     interpolated[:, :3, 3] = translation
