@@ -1,5 +1,5 @@
 # The Invisible Map server: one image for the API, the workers and the one-shot migration
-# (docker-compose.yml chooses the command). Everything comes from PyPI at build time.
+# (docker-compose.yml chooses the command). Everything comes from PyPI and Debian at build time.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -8,6 +8,13 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     INVISIBLE_MAP_DATA_DIR=/var/lib/invisible-map
 
 WORKDIR /srv/invisible-map
+# jemalloc: optimizations run about 20% faster on it (app/allocator.py). Worker processes that
+# `serve` or `worker --processes N` start preload it themselves; the compose file's single-process
+# worker preloads it through LD_PRELOAD, at this architecture-independent path.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libjemalloc2 \
+    && rm -rf /var/lib/apt/lists/* \
+    && ln -s "$(find /usr/lib -name libjemalloc.so.2 | head -n 1)" /usr/local/lib/libjemalloc.so.2
 RUN useradd --create-home --uid 10001 invisible-map \
     && mkdir -p /var/lib/invisible-map \
     && chown invisible-map /var/lib/invisible-map

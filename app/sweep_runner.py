@@ -5,16 +5,21 @@
 
 The server runs the same trials as jobs that any worker takes (``workers/sweep.py``); both use
 :class:`SweepPlan` to decide which trials come next, so a sweep means the same thing everywhere.
+The pool's processes are started fresh (``spawn``) so that they can preload jemalloc
+(``app.allocator``: about 20% faster trials).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+import multiprocessing
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
+from app.allocator import preloading_jemalloc
 from app.domain.errors import ParameterError
 from app.domain.frames import FloatArray
 from app.domain.params import SlamParams
@@ -80,6 +85,26 @@ def _run_chunk(chunk: Sequence[Mapping[str, float]]) -> list[Trial]:
     return [_target.run(values) for values in chunk]
 
 
+@contextlib.contextmanager
+def trial_pool(
+    processes: int,
+    session: Session,
+    params: SlamParams,
+    ground_truth: Mapping[int, FloatArray] | None,
+) -> Iterator[ProcessPoolExecutor]:
+    """``processes`` fresh processes (``spawn``, preloading jemalloc where the machine has it),
+    each with ``session`` prepared for trials (:func:`_run_chunk`)."""
+    with preloading_jemalloc():
+        pool = ProcessPoolExecutor(
+            processes,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(session, params, ground_truth),
+        )
+        with pool:  # processes start as tasks come, so the whole use is inside the preload
+            yield pool
+
+
 def run_sweep(
     session: Session,
     plan: SweepPlan,
@@ -96,9 +121,7 @@ def run_sweep(
     params = base_params or SlamParams()
     processes = processes or os.cpu_count() or 1
     trials: list[Trial] = []
-    with ProcessPoolExecutor(
-        processes, initializer=_init_worker, initargs=(session, params, ground_truth)
-    ) as pool:
+    with trial_pool(processes, session, params, ground_truth) as pool:
         while batch := plan.next_batch(trials, len(trials)):
             # at most GRID_CHUNK per task, and every process gets a share of a small batch
             size = min(GRID_CHUNK, math.ceil(len(batch) / processes))

@@ -39,6 +39,7 @@ from multiprocessing.connection import wait
 from multiprocessing.process import BaseProcess
 from types import FrameType
 
+from app.allocator import preloading_jemalloc
 from app.config import Settings
 from app.storage import queue
 from app.storage.db import Database, database_fault, first_line
@@ -377,7 +378,8 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
 
 
 def start_worker_processes(settings: Settings, processes: int) -> list[BaseProcess]:
-    """Start ``processes`` worker processes (spawn context) and return them (none for 0)."""
+    """Start ``processes`` worker processes (spawn context, preloading jemalloc where the
+    machine has it: ``app.allocator``) and return them (none for 0)."""
     if processes < 0:
         raise ValueError(f"processes must be at least 0, got {processes}")
     context = multiprocessing.get_context("spawn")
@@ -389,8 +391,9 @@ def start_worker_processes(settings: Settings, processes: int) -> list[BaseProce
         )
         for k in range(processes)
     ]
-    for proc in procs:
-        proc.start()
+    with preloading_jemalloc():
+        for proc in procs:
+            proc.start()
     return procs
 
 

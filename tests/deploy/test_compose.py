@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
-from app import cli
+from app import allocator, cli
 from app.config import Settings
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -120,6 +120,20 @@ def test_dockerfile_installs_the_project_and_runs_unprivileged():
     assert users[-1] != "root"
     cmd = next(rest for keyword, rest in instructions if keyword == "CMD")
     assert "invisible-map" in cmd
+
+
+def test_the_worker_preloads_the_jemalloc_the_image_links():
+    """The compose worker runs one process, which cannot preload jemalloc itself
+    (``app/allocator.py``): the image installs it and links it where the worker's LD_PRELOAD
+    points, and where ``app.allocator`` looks for it."""
+    dockerfile = (REPO_ROOT / "Dockerfile").read_text()
+    worker = yaml.safe_load((REPO_ROOT / "docker-compose.yml").read_text())["services"]["worker"]
+    preload = worker["environment"]["LD_PRELOAD"]
+    run = next(line for line in _logical_lines(dockerfile) if "libjemalloc2" in line)
+    assert run.startswith("RUN ")
+    assert "apt-get install" in run
+    assert run.rstrip().endswith(preload)
+    assert preload in allocator.JEMALLOC_PATHS
 
 
 def _logical_lines(text: str) -> list[str]:
