@@ -3,6 +3,7 @@ and that a map with keyframes is the map with every pose on real sessions."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,7 @@ def test_keyframes_keep_the_ends_the_required_and_gaps_within_the_interval(
     assert keyframes[-1] == n - 1
     assert np.all(np.diff(keyframes) > 0)
     assert set(required_poses) <= set(keyframes.tolist())
-    for a, b in zip(keyframes[:-1], keyframes[1:], strict=True):
+    for a, b in itertools.pairwise(keyframes):
         gap_s = timestamp_s[b] - timestamp_s[a]
         # a gap wider than the interval is a single step (nothing in between to keep)
         assert gap_s <= interval_s + 1e-12 or b == a + 1
