@@ -4,6 +4,8 @@ Variables (defaults in brackets): ``DATABASE_URL`` [a SQLite file in the data di
 ``INVISIBLE_MAP_DATA_DIR`` [./var], ``INVISIBLE_MAP_ADMIN_KEY`` [unset: accepted as an admin key
 when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
 ``INVISIBLE_MAP_API_THREADS`` [400: threads for the API's requests; see ``api_threads``],
+``INVISIBLE_MAP_KEEP_ALIVE_S`` [75: how long ``serve`` keeps an idle connection open; see
+``keep_alive_s``],
 ``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
 [256 MiB: the body after gunzip], ``INVISIBLE_MAP_MAX_REQUEST_BYTES`` [4 MiB: any other request's
 body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
@@ -46,6 +48,13 @@ class Settings(BaseSettings):
     #: (``app.api.route_class``), so no number of threads can starve the pool. Threads start only
     #: when needed, so a large number costs nothing until that many requests come at once.
     api_threads: int = Field(default=400, ge=1, le=4096)
+    #: How long ``serve`` keeps an idle keep-alive connection open, in seconds (uvicorn's
+    #: ``timeout_keep_alive``; its default is 5). A server that closes an idle connection races
+    #: with a client sending its next request on it, and that request fails unanswered. So the
+    #: server waits longer than its clients and proxies keep idle connections (httpx: 5 s;
+    #: nginx's upstream keepalive and AWS load balancers: 60 s), and they are the ones that
+    #: close them. Keep it above the idle timeout of any proxy in front of the API.
+    keep_alive_s: int = Field(default=75, ge=1)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
     #: any other request's body (routes, localization updates, keys, sweeps, dashboard forms)

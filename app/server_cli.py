@@ -188,7 +188,13 @@ def _serve(args: argparse.Namespace) -> int:
             target=_upload_demo_sessions, args=(url, settings.admin_key), daemon=True
         ).start()
     server = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host=args.host, port=args.port, log_level="info")
+        uvicorn.Config(
+            create_app(settings),
+            host=args.host,
+            port=args.port,
+            log_level="info",
+            timeout_keep_alive=settings.keep_alive_s,
+        )
     )
     # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
     # previous handler: with the default one the process would die right there, before stopping
