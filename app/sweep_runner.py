@@ -36,8 +36,12 @@ METHODS = ("grid", "sampler")
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SweepPlan:
-    """Which trials a sweep runs: every grid point, or ``trials`` proposals of the sampler in
-    batches of ``batch``."""
+    """Which trials a sweep runs: every grid point, or ``trials`` of the sampler in batches of
+    ``batch``. The sampler's first trials are the corners and the centre of the box
+    (:meth:`SearchSpace.corners_and_centre`, when they are at most half of its trials): the
+    best setting often sits on the box's edge (the shift metric favours stiff odometry, and on
+    occam_room the grid's best is a corner), where Optuna's proposals rarely go. The rest are
+    Optuna's TPE's."""
 
     method: str
     space: SearchSpace
@@ -66,8 +70,19 @@ class SweepPlan:
         count = min(self.batch, self.trials - started)
         if count <= 0:
             return []
+        fixed = self.initial_design()[started : started + count]
+        if len(fixed) == count:
+            return fixed
         history = [(t.values, t.score(self.objective)) for t in done]
-        return propose_trials(self.space, history, count=count, seed=self.seed)
+        return fixed + propose_trials(self.space, history, count=count - len(fixed), seed=self.seed)
+
+    def initial_design(self) -> list[dict[str, float]]:
+        """The sampler's first trials: the box's corners and centre if they are at most half of
+        its trials (none otherwise, and none for a grid)."""
+        if self.method != "sampler":
+            return []
+        design = self.space.corners_and_centre()
+        return design if 2 * len(design) <= self.trials else []
 
 
 _target: TuningTarget | None = None

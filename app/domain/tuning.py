@@ -178,6 +178,16 @@ class SearchSpace:
     def grid_size(self) -> int:
         return math.prod(axis.num for axis in self.axes)
 
+    def corners_and_centre(self) -> list[dict[str, float]]:
+        """The 2^d corners of the box (every axis at ``low`` or ``high``, the last axis varying
+        fastest), then its centre (each axis at the geometric mean of its ends)."""
+        corners = [
+            dict(zip(self.names, point, strict=True))
+            for point in itertools.product(*((axis.low, axis.high) for axis in self.axes))
+        ]
+        centre = {axis.name: math.sqrt(axis.low * axis.high) for axis in self.axes}
+        return [*corners, centre]
+
     def grid(self) -> list[dict[str, float]]:
         """Every combination, the last axis varying fastest."""
         columns = [axis.values() for axis in self.axes]
