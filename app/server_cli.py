@@ -24,6 +24,8 @@ import time
 from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
+from app.allocator import jemalloc_path
+
 if TYPE_CHECKING:
     import uvicorn
 
@@ -164,6 +166,7 @@ def _serve(args: argparse.Namespace) -> int:
             raise ServerCommandError(f"--workers must be 0–64, got {args.workers}")
         overrides["workers"] = args.workers
     settings = _settings(**overrides)
+    jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     generated_key = settings.admin_key is None
     if generated_key:
         settings = settings.model_copy(
@@ -233,6 +236,7 @@ def _worker(args: argparse.Namespace) -> int:
     if not 1 <= args.processes <= 64:
         raise ServerCommandError(f"--processes must be 1–64, got {args.processes}")
     settings = _settings()
+    jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     _database(settings).dispose()
     return run_worker_processes(settings, args.processes)
 

@@ -374,6 +374,23 @@ def test_serve_and_worker_refuse_bad_options(
     assert (tmp_path / "empty.sqlite3").stat().st_size == 0  # not even migrated
 
 
+@pytest.mark.parametrize("args", [["serve", "--workers", "0"], ["worker", "--processes", "1"]])
+def test_serve_and_worker_refuse_a_jemalloc_that_is_no_file(
+    tmp_path: Path, empty_sqlite_url: str, args: list[str]
+) -> None:
+    """Even a single in-process worker, which would preload nothing, checks the setting."""
+    missing = tmp_path / "no-such-libjemalloc.so.2"
+    environment = server_env(
+        empty_sqlite_url, tmp_path / "var", INVISIBLE_MAP_JEMALLOC=str(missing)
+    )
+    environment.pop("INVISIBLE_MAP_ADMIN_KEY", None)
+    result = run_cli(environment, *args)
+    assert_one_line_error(
+        result.returncode, result.stderr, f"INVISIBLE_MAP_JEMALLOC={missing}: no such file"
+    )
+    assert (tmp_path / "empty.sqlite3").stat().st_size == 0  # not even migrated
+
+
 # --------------------------------------------------------------------------- serve
 
 
