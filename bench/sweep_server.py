@@ -8,7 +8,10 @@ For each worker count: a fresh database, ``invisible-map serve`` (no embedded wo
 ``invisible-map worker --processes N``; the real session ``occam_room`` is uploaded over HTTP and
 built, then ``POST /v1/maps/{id}/sweeps`` starts the grid and ``GET /v1/sweeps/{id}`` is polled
 every 0.5 s until it succeeds. Wall time is from the POST to the last trial stored (±0.5 s).
-Target (issue 4): 2 worker processes ≥ 1.8× faster than 1.
+Both runs use the same allocator: where the machine has jemalloc, the worker command gets it in
+``LD_PRELOAD`` (one process runs its worker in itself, so it cannot preload it on its own; the
+processes ``--processes 2`` starts would). Target (issue 4): 2 worker processes ≥ 1.8× faster
+than 1.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from app.allocator import jemalloc_path  # noqa: E402
 from app.client import Client  # noqa: E402
 from app.server_process import ServerProcess, WorkerProcess  # noqa: E402
 from app.tables import render_markdown_table  # noqa: E402
@@ -39,7 +43,10 @@ def run_once(database_url: str, processes: int, values_per_axis: int, log_dir: P
             database_url, workers=0, log_path=log_dir / f"serve-{processes}.log"
         ) as server,
         WorkerProcess(
-            database_url, processes=processes, log_path=log_dir / f"worker-{processes}.log"
+            database_url,
+            processes=processes,
+            env=_allocator_env(),
+            log_path=log_dir / f"worker-{processes}.log",
         ),
     ):
         client = Client(server.url, api_key=server.admin_key)
@@ -91,8 +98,14 @@ def main() -> int:
             )
     header = ["worker processes", "trials", "wall s", "trials/s", "speed-up"]
     print(render_markdown_table([header, *rows], justify="right"))
+    print(f"allocator: {jemalloc_path() or 'malloc (no jemalloc on this machine)'}")
     print("target: 2 worker processes ≥ 1.8× faster than 1")
     return 0
+
+
+def _allocator_env() -> dict[str, str]:
+    library = jemalloc_path()
+    return {"LD_PRELOAD": library} if library else {}
 
 
 def _reset_postgres(url: str) -> None:

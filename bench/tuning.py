@@ -1,30 +1,31 @@
 """Tuning benchmark (DESIGN §5): the paper's grid on the real sessions, Optuna's sampler against it,
-and the shift metric against ground truth on simulations. One command, prints four tables.
+and the shift metric against ground truth on simulations. One command, prints its tables.
 
-    .venv/bin/python -m bench.tuning                 # the full benchmark (about 7 minutes)
+    .venv/bin/python -m bench.tuning                 # the full benchmark (about 5 minutes)
     .venv/bin/python -m bench.tuning --quick         # two sessions, smaller grids (about 1 minute)
     .venv/bin/python -m bench.tuning --json out.json # also write the raw numbers
-    .venv/bin/python -m bench.tuning --timing        # (a) and (a2) only (about 3 minutes)
+    .venv/bin/python -m bench.tuning --timing        # (a), (a2) and (a3) only
 
 (a) Wall time of the paper grid (10 × 10 × 10 over 1e-8..1, 1000 trials) per real session with
     ground truth, on 2 processes, and on 1 process for the first session (the speed-up); the
     workers' CPU time shows how much of the 2 cores the sweep actually got on a shared machine.
+    The pool preloads jemalloc where the machine has it (``app/allocator.py``; the "allocator"
+    column says which one ran).
 (a2) Where a trial's time goes, per session: CPU time per trial (``time.process_time`` in this
     one process, so other programs on the machine inflate it far less than the wall time) of its
     parts — the factor graph for its setting, Levenberg–Marquardt, scoring — and LM's iterations,
     over every ``COMPONENT_ROW_STRIDE``-th row of the grid, in grid order.
+(a3) Keyframes (``SlamParams.keyframe_interval_s``, default 2 s) against every pose in the graph
+    (0, the paper's graph): the graph's poses, the grid's wall time, and how far apart the two
+    maps with the default parameters are (tag RMSE between them after a rigid alignment, the
+    ground-truth metric of each).
 (b) The paper's Table 2 from those grids: the ground-truth metric of the pre-optimized map, of the
     map built with the setting the shift metric chooses and of the map built with the best setting
     by ground truth (the % change against pre-optimized), the same three tag RMSEs, and the
     Spearman correlation of shift and GT metric over the grid's trials. "defaults" is our
-    SlamParams() map, for reference. A setting is chosen by its trial's scores, but the figures
-    are of a build with it (``TuningTarget.build``: ``optimize_session`` from raw odometry, what
-    ``apply`` makes); the trials' own figures are in the "trial" columns. They differ where LM's
-    0.1% stopping rule leaves the map loose (README, "what a trial measures").
-(b2) The chosen settings, each one's build against its trial.
-(b3) Analysis, not what a sweep does: among the ``TOP_BUILDS`` best trials by each metric, the
-    build that scores best by that metric (``TOP_BUILDS`` more builds per metric): how much of the
-    gap between a build and its trial a build-aware choice would recover.
+    SlamParams() map, for reference. A converged trial is its build (``optimize_session`` with
+    its setting, what ``apply`` makes): "= build" checks it for the chosen settings.
+(b2) The chosen settings, and their builds' iterations.
 (c) Optuna's TPE sampler (``SweepPlan(method="sampler")``, the shift metric, seeds 0–2) over the
     same box: how many trials it needs to come within 2% of the grid's best shift metric, and its
     best after all its trials against the grid's best.
@@ -54,10 +55,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
+from app.allocator import jemalloc_path  # noqa: E402
 from app.domain.ground_truth import load_ground_truth  # noqa: E402
+from app.domain.metrics import ground_truth_metric, tag_rmse_m  # noqa: E402
 from app.domain.params import SlamParams  # noqa: E402
 from app.domain.session import Session, load_session, parse_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.slam import optimize_session  # noqa: E402
 from app.domain.tuning import (  # noqa: E402
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
@@ -95,8 +99,6 @@ SIM_NOISE = {
 SIM_DEPTH_RATIO = 3.0
 #: (a2) times the trials of every this-many-th row of the grid (rows along the last axis).
 COMPONENT_ROW_STRIDE = 4
-#: (b3) builds this many of the best trials by each metric.
-TOP_BUILDS = 10
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -210,82 +212,28 @@ def real_sessions(plan: Plan) -> tuple[list[dict[str, Any]], list[dict[str, Any]
                     "mean_iterations": statistics.fmean(t.iterations for t in trials),
                     "unconverged": sum(1 for t in trials if not t.converged and t.error is None),
                     "failed": sum(1 for t in trials if t.error is not None),
+                    "allocator": "jemalloc" if jemalloc_path() else "malloc",
                 }
             )
         target = TuningTarget.prepare(session, SlamParams(), ground_truth)
         started = time.perf_counter()
         result = sweep_result(target, trials, "shift")
-        rescore_s = time.perf_counter() - started
+        builds_s = time.perf_counter() - started
         defaults = target.build({})
-        defaults_trial = target.run({})
         converged = [t for t in trials if t.converged]
-        by_gt = best_trial(trials, "ground_truth")
         table2_rows.append(
             {
                 "session": name,
                 "tags": len(target.pre_map),
                 **result.to_dict(),
-                "trial_shift_at_best_gt": by_gt.shift if by_gt else math.nan,
-                "rescore_wall_s": rescore_s,
-                "top_builds": {
-                    objective: top_builds(target, trials, objective)
-                    for objective in ("shift", "ground_truth")
-                },
+                "builds_wall_s": builds_s,
                 "gt_metric_defaults": defaults.gt_metric,
                 "tag_rmse_defaults_m": defaults.tag_rmse_m,
-                "trial_gt_metric_defaults": defaults_trial.gt_metric,
-                "trial_tag_rmse_defaults_m": defaults_trial.tag_rmse_m,
                 "distinct_shift_values": len({t.shift for t in converged}),
                 "converged_trials": len(converged),
             }
         )
     return timing_rows, table2_rows
-
-
-def top_builds(target: TuningTarget, trials: list[Trial], objective: str) -> dict[str, Any]:
-    """(b3): build the ``TOP_BUILDS`` best trials by ``objective``; the build best by it."""
-    ranked = sorted(
-        (t for t in trials if math.isfinite(t.score(objective))), key=lambda t: t.score(objective)
-    )
-    builds = [target.build(t.values) for t in ranked[:TOP_BUILDS]]
-    scored = [b for b in builds if b.error is None]
-    if not scored:
-        return {"builds": len(builds), "best": None, "rank": None}
-    metric = "shift" if objective == "shift" else "gt_metric"
-    best = min(scored, key=lambda b: getattr(b, metric))
-    return {"builds": len(builds), "best": best.to_dict(), "rank": builds.index(best) + 1}
-
-
-def top_builds_table(rows: list[dict[str, Any]]) -> str:
-    lines = [
-        [
-            "session",
-            "GT pre",
-            "GT shift-chosen build",
-            f"best-shift build of the {TOP_BUILDS} best-shift trials: GT (rank)",
-            "GT GT-chosen build",
-            f"best-GT build of the {TOP_BUILDS} best-GT trials: GT (rank)",
-        ]
-    ]
-    for row in rows:
-        pre = row["gt_metric_pre"]
-
-        def cell(top: dict[str, Any], pre: float = pre) -> str:
-            if top["best"] is None:
-                return "—"
-            return f"{with_pct(top['best']['gt_metric'], pre)} (#{top['rank']})"
-
-        lines.append(
-            [
-                row["session"],
-                fmt(pre),
-                with_pct(row["gt_metric_at_best_shift"], pre),
-                cell(row["top_builds"]["shift"]),
-                with_pct(row["gt_metric_best"], pre),
-                cell(row["top_builds"]["ground_truth"]),
-            ]
-        )
-    return render_markdown_table(lines, justify="right")
 
 
 def trial_components(plan: Plan) -> list[dict[str, Any]]:
@@ -309,7 +257,7 @@ def trial_components(plan: Plan) -> list[dict[str, Any]]:
             started = time.process_time()
             target.graph.graph(params)
             built = time.process_time()
-            map_T_tag, trial_iterations, _ = target.graph.optimize(params, initial=start)
+            map_T_tag, trial_iterations, _ = target.graph.refine(params, start)
             optimized = time.process_time()
             target.score_map(map_T_tag)
             scored = time.process_time()
@@ -376,6 +324,7 @@ def timing_table(rows: list[dict[str, Any]]) -> str:
             "mean iterations",
             "unconverged",
             "failed",
+            "allocator",
         ]
     ]
     for row in rows:
@@ -392,13 +341,75 @@ def timing_table(rows: list[dict[str, Any]]) -> str:
                 f"{row['mean_iterations']:.1f}",
                 str(row["unconverged"]),
                 str(row["failed"]),
+                row["allocator"],
+            ]
+        )
+    return render_markdown_table(lines, justify="right")
+
+
+def keyframe_runs(plan: Plan) -> list[dict[str, Any]]:
+    """(a3): every pose against keyframes, per session: graph size, grid wall time, and the two
+    default maps against each other and against ground truth."""
+    space = paper_space(plan.grid_values)
+    rows = []
+    for name, gt_file in plan.sessions:
+        session = load_session(SESSIONS / f"{name}.json")
+        ground_truth = load_ground_truth(GROUND_TRUTH / gt_file)
+        row: dict[str, Any] = {"session": name, "poses": session.num_poses}
+        maps = {}
+        for label, interval_s in (
+            ("every_pose", 0.0),
+            ("keyframes", SlamParams().keyframe_interval_s),
+        ):
+            params = SlamParams(keyframe_interval_s=interval_s)
+            log(f"keyframes {name}: {label}, {space.grid_size} trials …")
+            _, wall_s, _ = timed_sweep(
+                session,
+                SweepPlan(method="grid", space=space),
+                ground_truth=ground_truth,
+                processes=plan.processes,
+                base_params=params,
+            )
+            result = optimize_session(session, params)
+            maps[label] = result.tag_poses()
+            row[f"{label}_graph_poses"] = int(result.residuals.keyframe_index.size)
+            row[f"{label}_grid_wall_s"] = wall_s
+            row[f"{label}_gt_metric"] = ground_truth_metric(maps[label], ground_truth)
+        row["tag_rmse_between_m"] = tag_rmse_m(maps["keyframes"], maps["every_pose"])
+        rows.append(row)
+    return rows
+
+
+def keyframe_table(rows: list[dict[str, Any]]) -> str:
+    lines = [
+        [
+            "session",
+            "poses",
+            "graph poses: every / keyframes",
+            "grid wall s: every / keyframes",
+            "speed-up",
+            "GT defaults: every / keyframes",
+            "tag RMSE between the maps mm",
+        ]
+    ]
+    for row in rows:
+        every_s, keyframe_s = row["every_pose_grid_wall_s"], row["keyframes_grid_wall_s"]
+        lines.append(
+            [
+                row["session"],
+                str(row["poses"]),
+                f"{row['every_pose_graph_poses']} / {row['keyframes_graph_poses']}",
+                f"{every_s:.1f} / {keyframe_s:.1f}",
+                f"{every_s / keyframe_s:.1f}×",
+                f"{fmt(row['every_pose_gt_metric'])} / {fmt(row['keyframes_gt_metric'])}",
+                f"{row['tag_rmse_between_m'] * 1e3:.1f}",
             ]
         )
     return render_markdown_table(lines, justify="right")
 
 
 def table2(rows: list[dict[str, Any]]) -> str:
-    """Builds of the defaults and of the chosen settings; the trials' GT metric beside them."""
+    """The defaults and the chosen settings (a converged trial is its build)."""
     lines = [
         [
             "session",
@@ -407,8 +418,7 @@ def table2(rows: list[dict[str, Any]]) -> str:
             "GT defaults",
             "GT shift-chosen",
             "GT GT-chosen",
-            "trial GT shift-chosen",
-            "trial GT GT-chosen",
+            "= build",
             "RMSE pre m",
             "RMSE shift-chosen m",
             "RMSE GT-chosen m",
@@ -425,8 +435,7 @@ def table2(rows: list[dict[str, Any]]) -> str:
                 with_pct(row["gt_metric_defaults"], pre),
                 with_pct(row["gt_metric_at_best_shift"], pre),
                 with_pct(row["gt_metric_best"], pre),
-                with_pct(row["trial_gt_metric_at_best_shift"], pre),
-                with_pct(row["trial_gt_metric_best"], pre),
+                "yes" if row["builds_equal_trials"] else "NO",
                 fmt(row["tag_rmse_pre_m"], "{:.3f}"),
                 fmt(row["tag_rmse_at_best_shift_m"], "{:.3f}"),
                 fmt(row["tag_rmse_at_best_gt_m"], "{:.3f}"),
@@ -437,41 +446,29 @@ def table2(rows: list[dict[str, Any]]) -> str:
 
 
 def chosen_table(rows: list[dict[str, Any]]) -> str:
-    """(b2): the chosen settings, and each one's build against its trial."""
+    """(b2): the chosen settings and their builds."""
     lines = [
         [
             "session",
             "choice",
             "orientation / linear / angular",
-            "build: GT · shift · RMSE m · LM iterations",
-            "trial: GT · shift · RMSE m",
-            "GT build vs trial",
+            "GT · shift · RMSE m",
+            "LM iterations (second stage)",
         ]
     ]
     for row in rows:
-        for choice, key, trial_gt, trial_rmse in (
-            (
-                "shift",
-                "shift_chosen",
-                "trial_gt_metric_at_best_shift",
-                "trial_tag_rmse_at_best_shift_m",
-            ),
-            ("GT", "gt_chosen", "trial_gt_metric_best", "trial_tag_rmse_at_best_gt_m"),
-        ):
+        for choice, key in (("shift", "shift_chosen"), ("GT", "gt_chosen")):
             build = row["builds"][key]
             if build is None:
                 continue
-            trial_shift = row["trial_best_shift" if choice == "shift" else "trial_shift_at_best_gt"]
             lines.append(
                 [
                     row["session"],
                     choice,
                     " / ".join(f"{build['values'][n]:.1e}" for n in PAPER_GRID_AXES),
                     f"{fmt(build['gt_metric'])} · {fmt(build['shift'], '{:.5f}')} · "
-                    f"{fmt(build['tag_rmse_m'], '{:.3f}')} · {build['iterations']}",
-                    f"{fmt(row[trial_gt])} · {fmt(trial_shift, '{:.5f}')} · "
-                    f"{fmt(row[trial_rmse], '{:.3f}')}",
-                    pct(build["gt_metric"], row[trial_gt]),
+                    f"{fmt(build['tag_rmse_m'], '{:.3f}')}",
+                    str(build["iterations"]),
                 ]
             )
     return render_markdown_table(lines, justify="right")
@@ -597,13 +594,9 @@ def simulation_runs(plan: Plan) -> list[dict[str, Any]]:
                 "wall_s": wall_s,
                 "gt_metric_pre": summary.gt_metric_pre,
                 "gt_metric_at_truth": target.build(truth).gt_metric,
-                "trial_gt_metric_at_truth": min(
-                    (t.gt_metric for t in trials if off(t) == [0.0, 0.0, 0.0]), default=math.nan
-                ),
                 "gt_metric_at_best_shift": reported["gt_metric_at_best_shift"],
                 "gt_metric_best": reported["gt_metric_best"],
-                "trial_gt_metric_at_best_shift": summary.gt_metric_at_best_shift,
-                "trial_gt_metric_best": summary.gt_metric_best,
+                "builds_equal_trials": reported["builds_equal_trials"],
                 "spearman": summary.shift_gt_spearman,
                 "shift_chosen_decades_off": off(by_shift),
                 "gt_chosen_decades_off": off(by_gt),
@@ -625,8 +618,7 @@ def simulation_table(rows: list[dict[str, Any]]) -> str:
             "GT at truth",
             "GT shift-chosen",
             "GT GT-chosen",
-            "trial GT shift-chosen",
-            "trial GT GT-chosen",
+            "= build",
             "Spearman",
             "shift-chosen off (decades)",
             "GT-chosen off (decades)",
@@ -642,8 +634,7 @@ def simulation_table(rows: list[dict[str, Any]]) -> str:
                 fmt(row["gt_metric_at_truth"]),
                 fmt(row["gt_metric_at_best_shift"]),
                 fmt(row["gt_metric_best"]),
-                fmt(row["trial_gt_metric_at_best_shift"]),
-                fmt(row["trial_gt_metric_best"]),
+                "yes" if row["builds_equal_trials"] else "NO",
                 fmt(row["spearman"], "{:+.2f}"),
                 decades(row["shift_chosen_decades_off"]),
                 decades(row["gt_chosen_decades_off"]),
@@ -669,11 +660,11 @@ def main() -> int:
 
     timing_rows, table2_rows = real_sessions(plan)
     component_rows = trial_components(plan)
+    keyframe_rows = keyframe_runs(plan)
     sampler_rows: list[dict[str, Any]] = []
     simulation_rows: list[dict[str, Any]] = []
     if not args.timing:
-        # the sampler is measured against the grid's trials (the same kind of score)
-        grid_best = {row["session"]: row["trial_best_shift"] for row in table2_rows}
+        grid_best = {row["session"]: row["best_shift"] for row in table2_rows}
         sampler_rows = sampler_runs(plan, grid_best)
         simulation_rows = simulation_runs(plan)
 
@@ -682,18 +673,16 @@ def main() -> int:
     print(timing_table(timing_rows))
     print("\n(a2) Where a trial's time goes: CPU per trial in one process\n")
     print(components_table(component_rows))
+    print("\n(a3) Keyframes (2 s) against every pose in the graph, the same grid\n")
+    print(keyframe_table(keyframe_rows))
     if not args.timing:
         print(
             f"\n(b) Table 2: ground-truth metric and tag RMSE over the {grid_size}-trial grid "
-            "(builds with the chosen settings; the trials' GT beside them)\n"
+            "(maps built with the chosen settings)\n"
         )
         print(table2(table2_rows))
-        print("\n(b2) The chosen settings: build against trial\n")
+        print("\n(b2) The chosen settings\n")
         print(chosen_table(table2_rows))
-        print(
-            f"\n(b3) Analysis: the best build among the {TOP_BUILDS} best trials by each metric\n"
-        )
-        print(top_builds_table(table2_rows))
         print(f"\n(c) Optuna TPE, {plan.sampler_trials} trials, shift metric, against the grid\n")
         print(sampler_table(sampler_rows, grid_size))
         print(
@@ -722,6 +711,7 @@ def main() -> int:
             },
             "grid_timing": timing_rows,
             "trial_components": component_rows,
+            "keyframes": keyframe_rows,
             "table2": table2_rows,
             "sampler": sampler_rows,
             "simulation": simulation_rows,
