@@ -3,20 +3,23 @@
     result = optimize_session(session, SlamParams())
 
 Steps:
- 1. screen detections (``screening.py``): the rejected never enter the graph;
- 2. build the factor graph
+ 1. screen detections (``screening.py``): the rejected never enter the graph; choose the
+    keyframes (``keyframes.py``): the poses a used detection hangs on, and as many others as keep
+    consecutive keyframes at most ``keyframe_interval_s`` apart;
+ 2. build the factor graph over the keyframes ``t < u`` (consecutive)
     2a. a prior on the first phone pose fixes the gauge,
-    2b. odometry: ``BetweenFactorPose3(X(t), X(t+1), world_T_phone_t⁻¹ · world_T_phone_t+1)`` with
+    2b. odometry: ``BetweenFactorPose3(X(t), X(u), world_T_phone_t⁻¹ · world_T_phone_u)`` with
         variance growing linearly with the time between the poses,
-    2c. gravity: an ``AttitudeFactorPose3`` per pose holds the phone's up vector (ARKit's world +y,
-        seen in the phone frame) to the map's +y,
+    2c. gravity: an ``AttitudeFactorPose3`` per keyframe holds the phone's up vector (ARKit's
+        world +y, seen in the phone frame) to the map's +y,
     2d. tags: ``BetweenFactorPose3(X(a), L(b), phone_T_tag)`` per used detection, noise in the
         camera frame (depth the weak axis, growing with distance²), under a Huber kernel;
  3. initial values: raw odometry for the poses, each tag's first used observation;
  4. Levenberg–Marquardt with a COLAMD ordering computed once, in two stages when the noise
     variances are not the defaults: first with the default variances from the initial values,
     then with the parameters' own from that optimum (see :func:`optimize_session`);
- 5. per-factor residuals and the marginal covariances of the tag poses.
+ 5. the poses between keyframes placed by their interpolated odometry correction; per-factor
+    residuals and the marginal covariances of the tag poses.
 """
 
 from __future__ import annotations
