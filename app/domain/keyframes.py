@@ -52,6 +52,14 @@ def select_keyframes(
     return np.flatnonzero(keep).astype(np.int64)
 
 
+def keyframe_spans(keyframes: IntArray, n: int) -> IntArray:
+    """(n,) for each of the n poses, the graph's odometry factor that spans it or starts at it:
+    ``k`` with ``keyframes[k] ≤ pose ≤ keyframes[k + 1]`` (the last pose: the last factor).
+    ``keyframes``: (K,) sorted, K ≥ 2, starting at 0."""
+    after = np.searchsorted(keyframes, np.arange(n), side="right") - 1
+    return np.asarray(np.minimum(after, keyframes.shape[0] - 2), dtype=np.int64)
+
+
 def interpolate_poses(
     raw_world_T_phone: FloatArray,
     timestamp_s: FloatArray,
@@ -68,9 +76,7 @@ def interpolate_poses(
     if keyframes.shape[0] == n:
         return np.array(world_T_keyframe, dtype=np.float64)
     correction = world_T_keyframe @ se3_inverse(raw_world_T_phone[keyframes])  # (K, 4, 4)
-    # segment[i]: the keyframe at or before pose i (the last segment ends at the last keyframe)
-    segment = np.clip(np.searchsorted(keyframes, np.arange(n), side="right") - 1, 0, None)
-    segment = np.minimum(segment, keyframes.shape[0] - 2)
+    segment = keyframe_spans(keyframes, n)
     a, b = keyframes[segment], keyframes[segment + 1]
     span_s = timestamp_s[b] - timestamp_s[a]
     by_index = (np.arange(n) - a) / (b - a)

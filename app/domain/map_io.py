@@ -24,6 +24,7 @@ from app.domain.frames import (
     pose_to_xyz_quat_xyzw,
     quat_xyzw_from_rotation,
 )
+from app.domain.keyframes import keyframe_spans
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
 from app.domain.params import SlamParams
 from app.domain.path_graph import AppVertex, PathGraph, app_neighbors
@@ -235,9 +236,8 @@ def _adjacent_odometry_chi2(n: int, residuals: FactorResiduals) -> FloatArray:
     adjacent = np.zeros(n)
     if keyframes.size < 2:
         return adjacent
-    poses = np.arange(n)
-    span = np.minimum(np.searchsorted(keyframes, poses, side="right") - 1, keyframes.size - 2)
-    between = ~np.isin(poses, keyframes)
+    span = keyframe_spans(keyframes, n)
+    between = ~np.isin(np.arange(n), keyframes)
     adjacent[between] = chi2[span[between]]
     np.add.at(adjacent, keyframes[1:], chi2)
     np.add.at(adjacent, keyframes[:-1], chi2)
