@@ -363,32 +363,23 @@ class TrialGraph:
 
     def optimize(self, params: SlamParams) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
         """As :func:`optimize_tag_poses`: LM from the initial values (a build's first stage)."""
-        graph = self.graph(params)
-        values, iterations, _ = _levenberg_marquardt(
-            graph, self.inputs.initial, params, None, ordering=self._ordering_of(graph)
-        )
-        return self._tag_poses(values), iterations, values
+        return self.refine(params, self.inputs.initial)
 
     def refine(
         self, params: SlamParams, start: gtsam.Values
     ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
-        """LM with ``params`` from ``start`` (the optimum with other variances), as a build's
-        second stage runs it: the tag poses, the iterations and the solution."""
+        """LM with ``params`` from ``start`` (the optimum with other variances, for a build's
+        second stage): the tag poses, the iterations and the solution."""
         graph = self.graph(params)
-        values, iterations, _ = _levenberg_marquardt(
-            graph, start, params, None, ordering=self._ordering_of(graph)
-        )
-        return self._tag_poses(values), iterations, values
-
-    def _ordering_of(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Ordering:
         if self._ordering is None:
             self._ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
-        return self._ordering
-
-    def _tag_poses(self, values: gtsam.Values) -> dict[int, FloatArray]:
-        return {
+        values, iterations, _ = _levenberg_marquardt(
+            graph, start, params, None, ordering=self._ordering
+        )
+        poses = {
             tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(self.inputs.tag_rows)
         }
+        return poses, iterations, values
 
     def _kind(
         self,
