@@ -71,14 +71,3 @@ def preloading_jemalloc(setting: str | None = None) -> Iterator[str | None]:
             os.environ.pop("LD_PRELOAD", None)
         else:
             os.environ["LD_PRELOAD"] = before
-
-
-def loaded_libraries(pid: int) -> set[str]:
-    """The paths of the shared libraries mapped into process ``pid`` (Linux ``/proc``; empty
-    where it cannot be read)."""
-    try:
-        maps = Path(f"/proc/{pid}/maps").read_text()
-    except OSError:
-        return set()
-    paths = (line.split()[-1] for line in maps.splitlines() if len(line.split()) >= 6)
-    return {path for path in paths if ".so" in Path(path).name}

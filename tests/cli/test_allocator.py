@@ -15,7 +15,7 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import allocator, cli
-from app.allocator import AllocatorError, jemalloc_path, loaded_libraries, preloading_jemalloc
+from app.allocator import AllocatorError, jemalloc_path, preloading_jemalloc
 from app.config import Settings
 from app.domain.params import SlamParams
 from app.domain.session import load_session
@@ -80,6 +80,17 @@ def test_the_preload_is_set_inside_the_block_only(tmp_path, monkeypatch) -> None
     with preloading_jemalloc("off") as chosen:
         assert chosen is None
         assert os.environ["LD_PRELOAD"] == str(library)
+
+
+def loaded_libraries(pid: int) -> set[str]:
+    """The paths of the shared libraries mapped into process ``pid`` (Linux ``/proc``; empty
+    where it cannot be read)."""
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return set()
+    paths = (line.split()[-1] for line in maps.splitlines() if len(line.split()) >= 6)
+    return {path for path in paths if ".so" in Path(path).name}
 
 
 def libraries_once_started(pid: int, timeout_s: float = 20.0) -> set[str]:
