@@ -33,14 +33,9 @@ from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.tuning import Axis, SearchSpace, TuningTarget  # noqa: E402
 from app.sweep_runner import SweepPlan, run_sweep  # noqa: E402
 from app.tables import render_markdown_table  # noqa: E402
+from bench.tuning import REAL  # noqa: E402  (the real sessions with ground truth)
 
 DATA = REPO / "data"
-REAL = (
-    ("occam_room", "occam_room_tape.json"),
-    ("floor_2_straight", "rtabmap_mac_1_2.txt"),
-    ("straight_209_occam", "rtabmap_mac_1_2.txt"),
-    ("desnat_straight_once", "rtabmap_mac_1_2.txt"),
-)
 
 
 def datasets() -> list[tuple[str, Session, dict[int, Any]]]:

@@ -29,18 +29,12 @@ from app.domain.frames import FloatArray, rotation_angle_rad  # noqa: E402
 from app.domain.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.metrics import compare_tag_sets, ground_truth_metric, umeyama_rigid  # noqa: E402
 from app.domain.session import load_session  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.slam import WORLD_UP, optimize_session  # noqa: E402
 from app.tables import render_markdown_table  # noqa: E402
+from bench.tuning import REAL  # noqa: E402  (the real sessions with ground truth)
 
 DATA = REPO / "data"
-SESSIONS = (
-    ("occam_room", "occam_room_tape.json"),
-    ("floor_2_straight", "rtabmap_mac_1_2.txt"),
-    ("straight_209_occam", "rtabmap_mac_1_2.txt"),
-    ("desnat_straight_once", "rtabmap_mac_1_2.txt"),
-)
 GROUND_TRUTHS = ("rtabmap_mac_1_2.txt", "occam_room_tape.json")
-WORLD_UP = np.array([0.0, 1.0, 0.0])
 
 
 def map_T_gt(map_T_tag: dict[int, FloatArray], gt_T_tag: dict[int, FloatArray]) -> FloatArray:
@@ -106,7 +100,7 @@ def main() -> int:
             "orientation error median °",
         ]
     ]
-    for name, gt_file in SESSIONS:
+    for name, gt_file in REAL:
         session = load_session(DATA / "sessions" / f"{name}.json")
         truth = load_ground_truth(DATA / "ground_truth" / gt_file)
         tags = optimize_session(session).tag_poses()
