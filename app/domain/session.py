@@ -11,8 +11,11 @@ Everything downstream reads these arrays; nobody walks the dicts again. Any malf
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
+from collections import Counter
 from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +24,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
 from app.domain.errors import SessionFormatError
 from app.domain.frames import (
     PHONE_T_CAMERA_CV,
@@ -40,6 +44,9 @@ MAX_ID = 2**53
 MAX_TRANSLATION_M = 1e5
 #: Largest focal length, principal point or corner coordinate accepted, px.
 MAX_PIXELS = 1e5
+
+#: Why a session with no tag detections makes no map (its build job fails with this).
+NO_TAGS_REASON = "no tags were recorded: a map needs at least one tag"
 
 #: The app misspelt this key in at least one real upload; both spellings are read.
 LOCATION_KEYS = ("location_data", "location_ data")
@@ -179,9 +186,24 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     """
     if not isinstance(document, Mapping):
         raise SessionFormatError("", f"expected a JSON object, got {json_type_name(document)}")
+    warnings: list[str] = []
+    if is_earlier_format(document):
+        try:
+            document, notes = convert_earlier_format(document)
+            return _parse_current(document, correct_poi_pose_id, list(notes))
+        except SessionFormatError as err:
+            raise SessionFormatError(err.field, f"{err.reason} ({EARLIER_FORMAT})") from err
+    return _parse_current(document, correct_poi_pose_id, warnings)
+
+
+def _parse_current(
+    document: Mapping[str, Any], correct_poi_pose_id: bool, warnings: list[str]
+) -> Session:
     map_id = document.get("map_id")
-    if not isinstance(map_id, str) or not map_id.strip():
-        raise SessionFormatError("map_id", "missing or not a non-empty string")
+    if map_id is None:
+        raise SessionFormatError("map_id", "missing")
+    if not isinstance(map_id, str):
+        raise SessionFormatError("map_id", f"expected a string, got {json_type_name(map_id)}")
 
     pose_id, timestamp_s, world_T_phone = _parse_poses(document.get("pose_data"))
     index_of_pose_id = {int(pid): i for i, pid in enumerate(pose_id)}
@@ -191,9 +213,12 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     pois = _parse_locations(
         document.get(location_key, []), location_key, index_of_pose_id, correct_poi_pose_id
     )
-    warnings = []
+    if not map_id.strip():
+        map_id = derived_map_id(timestamp_s, world_T_phone)
+        warnings.append(f"map_id was empty: named {map_id!r} from the upload's poses")
+    pois = _name_unnamed_pois(pois, location_key, warnings)
     if len(detections) == 0:
-        warnings.append("session has no tag detections: the map holds the walked path alone")
+        warnings.append(NO_TAGS_REASON)
     return Session(
         map_id=map_id,
         pose_id=pose_id,
@@ -355,8 +380,12 @@ def _parse_locations(
         where = f"{key}[{i}]"
         _require_object(entry, where)
         name = entry.get("name")
-        if not isinstance(name, str) or not name.strip():
-            raise SessionFormatError(f"{where}.name", "missing or not a non-empty string")
+        if name is None:
+            raise SessionFormatError(f"{where}.name", "missing")
+        if not isinstance(name, str):
+            raise SessionFormatError(
+                f"{where}.name", f"expected a string, got {json_type_name(name)}"
+            )
         pose_id = _integer(entry, "pose_id", where)
         corrected = pose_id - 1 if correct_poi_pose_id else pose_id
         if corrected not in index_of_pose_id:
@@ -378,6 +407,41 @@ def _parse_locations(
             )
         )
     return pois
+
+
+def derived_map_id(timestamp_s: FloatArray, world_T_phone: FloatArray) -> str:
+    """A stable name for a session sent with an empty ``map_id`` (the app sets it to the name the
+    person typed, which may be empty): ``unnamed-`` and a digest of its poses' times and places,
+    so the same walk always gets the same name."""
+    digest = hashlib.sha256(timestamp_s.tobytes() + world_T_phone[:, :3, 3].tobytes())
+    return f"unnamed-{digest.hexdigest()[:10]}"
+
+
+def _name_unnamed_pois(
+    pois: list[PointOfInterest], key: str, warnings: list[str]
+) -> list[PointOfInterest]:
+    """Points of interest with an empty name (the app's "add location" button accepts one) are
+    named ``Point <k>`` after their place in ``location_data`` (1-based), so the name is the same
+    whenever the upload is read; a name already taken gets `` (2)``, `` (3)``…. Repeated names are
+    kept as sent (the app-map says how it tells them apart); both are reported in ``warnings``."""
+    taken = {poi.name for poi in pois if poi.name}
+    named = []
+    for k, poi in enumerate(pois):
+        if not poi.name:
+            name = candidate = f"Point {k + 1}"
+            suffix = 2
+            while name in taken:
+                name = f"{candidate} ({suffix})"
+                suffix += 1
+            taken.add(name)
+            warnings.append(f"{key}[{k}].name was empty: named {name!r}")
+            poi = dataclasses.replace(poi, name=name)
+        named.append(poi)
+    counts = Counter(poi.name for poi in named)
+    for name, count in sorted(counts.items()):
+        if count > 1:
+            warnings.append(f"{count} points of interest are named {name!r}")
+    return named
 
 
 def _empty_detections() -> TagDetections:

@@ -221,22 +221,18 @@ def test_process_without_ground_truth_prints_no_ground_truth_metric(capsys):
 
 
 @pytest.mark.slow
-def test_process_session_without_detections_warns(tmp_path):
+def test_process_session_without_detections_says_no_map_can_be_made(tmp_path):
     document = onetag_document()
     document["tag_data"] = []
     session = write_json(tmp_path / "notags.json", document)
     app_map = tmp_path / "notags.app.json"
 
-    proc = run_cli("process", session, "--app-map", app_map, "--plot", tmp_path / "notags.png")
+    proc = run_cli("process", session, "--app-map", app_map)
 
-    assert proc.returncode == 0, proc.stderr
-    warnings = [line for line in proc.stdout.splitlines() if line.startswith("warning:")]
-    assert warnings
-    assert any("no tag detections" in line for line in warnings)
-    written = json.loads(app_map.read_text())
-    assert written["tag_vertices"] == []
-    assert len(written["odometry_vertices"]) == 25
-    assert (tmp_path / "notags.png").read_bytes()[:8] == PNG_MAGIC
+    assert proc.returncode != 0
+    assert "no tags were recorded: a map needs at least one tag" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not app_map.exists()
 
 
 @pytest.mark.slow
