@@ -86,13 +86,16 @@ def app_map_of(upload: Any) -> dict[str, Any]:
 
 def main() -> int:
     rows: list[tuple[str, ConformanceReport | str, float]] = []
+    notes: dict[str, list[str]] = {}
     for name, make in uploads():
         started_s = time.perf_counter()
         try:
-            document = json.loads(json.dumps(app_map_of(make())))
+            text = json.dumps(app_map_of(make()), separators=(",", ":"), allow_nan=False)
         except InvisibleMapError as err:
             rows.append((name, f"not a map: {err}", time.perf_counter() - started_s))
             continue
+        document = json.loads(text)
+        notes[name] = [f"{len(text) / 2**20:.2f} MiB", *document.get("notes", [])]
         rows.append((name, check_app_map(document), time.perf_counter() - started_s))
     width = max(len(name) for name, _, _ in rows)
     print(
@@ -109,12 +112,12 @@ def main() -> int:
         crashing += report.crashing_pairs
         pairs += report.pairs
         share = f"{report.crashing_pairs}/{report.pairs}"
-        notes = report.decode_error or "; ".join(report.traps[:1])
+        said = [*notes[name], report.decode_error or "; ".join(report.traps[:1])]
         if report.unreachable_waypoints:
-            notes = f"waypoints shadowed: {', '.join(report.unreachable_waypoints)}; " + notes
+            said.append(f"waypoints shadowed: {', '.join(report.unreachable_waypoints)}")
         print(
             f"{name:<{width}}  {report.vertices:>8}  {len(report.isolated_vertices):>8}  "
-            f"{report.components:>5}  {share:>20}  {seconds:5.1f}  {notes}"
+            f"{report.components:>5}  {share:>20}  {seconds:5.1f}  {'; '.join(filter(None, said))}"
         )
     percent = 100.0 * crashing / pairs if pairs else 0.0
     print(
