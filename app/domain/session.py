@@ -15,6 +15,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 from collections import Counter
 from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -415,6 +416,20 @@ def derived_map_id(timestamp_s: FloatArray, world_T_phone: FloatArray) -> str:
     so the same walk always gets the same name."""
     digest = hashlib.sha256(timestamp_s.tobytes() + world_T_phone[:, :3, 3].tobytes())
     return f"unnamed-{digest.hexdigest()[:10]}"
+
+
+#: A run of digits the app appends to the typed name (a timestamp: 6 digits or more) or puts
+#: before it (``963934784127833-Test``), with the separator.
+_TRAILING_DIGITS = re.compile(r"[\s_-]*\d{6,}$")
+_LEADING_DIGITS = re.compile(r"^\d{6,}[\s_-]+")
+
+
+def display_name_of(map_id: str) -> str:
+    """The name a person typed, from the ``map_id`` the app made of it: the timestamp digits it
+    adds are dropped (``"Lab 1700000000"`` → ``"Lab"``, ``"963934784127833-Test"`` → ``"Test"``);
+    a map id that is nothing but digits is kept as it is."""
+    name = _LEADING_DIGITS.sub("", _TRAILING_DIGITS.sub("", map_id.strip())).strip()
+    return name or map_id.strip()
 
 
 def _name_unnamed_pois(

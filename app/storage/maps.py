@@ -23,7 +23,8 @@ from app.domain.evaluation import Evaluation
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
-from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
+from app.domain.session import display_name_of
+from app.storage.orm import MapRow, MapTag, MapVersion, SessionImage, utc_now
 
 #: Load options for a version's metadata without its (large) map document and plot.
 _WITHOUT_BLOBS = (
@@ -84,7 +85,12 @@ class VersionInfo:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class MapInfo:
-    """A map with its current version (None until the first build succeeds)."""
+    """A map with its current version (None until the first build succeeds).
+
+    name: the upload's ``map_id``; display_name: the name people see (set by an admin, else the
+    name typed in the app: ``app.domain.session.display_name_of(name)``); image_sha256: of the
+    session's picture, None without one.
+    """
 
     id: int
     name: str
@@ -92,6 +98,8 @@ class MapInfo:
     created_at: datetime
     version_count: int
     current: VersionInfo | None
+    display_name: str = ""
+    image_sha256: str | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -108,11 +116,23 @@ class TagPose:
 # --------------------------------------------------------------------------- writing
 
 
-def create_map(session: Session, *, name: str, session_id: int) -> int:
-    row = MapRow(name=name, session_id=session_id, created_at=utc_now())
+def create_map(
+    session: Session, *, name: str, session_id: int, display_name: str | None = None
+) -> int:
+    row = MapRow(name=name, display_name=display_name, session_id=session_id, created_at=utc_now())
     session.add(row)
     session.flush()
     return row.id
+
+
+def set_display_name(session: Session, map_id: int, display_name: str) -> MapInfo:
+    """Change the name people see; MapNotFound if there is no such map."""
+    row = session.get(MapRow, map_id)
+    if row is None:
+        raise MapNotFound(map_id)
+    row.display_name = display_name
+    session.flush()
+    return _map_info(session, row)
 
 
 def store_version(
@@ -306,6 +326,9 @@ def _map_info(session: Session, row: MapRow) -> MapInfo:
         .order_by(MapVersion.number.desc())
         .limit(1)
     )
+    image_sha256 = session.scalar(
+        select(SessionImage.sha256).where(SessionImage.session_id == row.session_id)
+    )
     return MapInfo(
         id=row.id,
         name=row.name,
@@ -313,6 +336,8 @@ def _map_info(session: Session, row: MapRow) -> MapInfo:
         created_at=row.created_at,
         version_count=count or 0,
         current=VersionInfo.from_row(current) if current is not None else None,
+        display_name=row.display_name or display_name_of(row.name),
+        image_sha256=image_sha256,
     )
 
 
