@@ -47,6 +47,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain import simulate as sim_module  # noqa: E402
 from app.domain.frames import (  # noqa: E402
     PHONE_T_CAMERA_CV,
@@ -69,7 +70,6 @@ from app.domain.metrics import tag_rmse_m, umeyama_rigid  # noqa: E402
 from app.domain.session import Session, load_session, parse_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 COST_POSES = (100, 1_000, 10_000)

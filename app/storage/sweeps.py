@@ -22,10 +22,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.domain.ground_truth import parse_ground_truth_json
+from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
 from app.domain.tuning import SearchSpace, SweepSummary, Trial, summarize
 from app.storage import queue
 from app.storage.orm import Job, JobState, Sweep, SweepTrial, utc_now
-from app.sweep_runner import GRID_CHUNK, SweepPlan
 
 #: The job kind that runs some trials of a sweep.
 SWEEP_TRIALS = "sweep_trials"

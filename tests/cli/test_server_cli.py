@@ -26,7 +26,8 @@ import pytest
 from cli_support import ERROR_PREFIX, assert_one_line_error
 
 from app import cli
-from app.server_process import ServerProcess, free_port
+from app.cli.common import DEMO_SESSIONS
+from app.cli.server_process import ServerProcess, free_port
 from app.storage import keys
 from app.storage.db import Database
 from app.storage.migrate import current_revision, head_revision, is_current
@@ -550,7 +551,7 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
         first.close()
     log = first.log()
     uploads = demo_uploads(log)
-    assert sorted(uploads) == sorted(name for name, _ in cli.DEMO_SESSIONS)
+    assert sorted(uploads) == sorted(name for name, _ in DEMO_SESSIONS)
     assert "not uploaded" not in log
     assert "Traceback" not in log
 

@@ -126,7 +126,7 @@ def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) 
     evaluation = evaluate_map(parsed, result)
     png = None
     if plot:
-        from app.plot import render_map_png
+        from app.render.map_plot import render_map_png
 
         png = render_map_png(result, parsed)
     with db.transaction() as session:

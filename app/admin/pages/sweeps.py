@@ -40,6 +40,7 @@ from app.api.routes.sweeps import (
     heatmap_content,
     shift_vs_gt_content,
 )
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import (
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
@@ -52,7 +53,6 @@ from app.storage import maps, queue, sweeps
 from app.storage.maps import MapInfo, MapNotFound
 from app.storage.queue import JobInfo, JobNotFound
 from app.storage.sweeps import SweepInfo
-from app.sweep_runner import SweepPlan
 
 router = admin_router()
 

@@ -31,11 +31,11 @@ from app.api.schemas import RebuildAccepted
 from app.api.sweep_schemas import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
 from app.domain.errors import InvisibleMapError, ParameterError
 from app.domain.ground_truth import parse_ground_truth_json
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, best_trial, check_objective
 from app.storage import sweeps
 from app.storage.maps import MapInfo
 from app.storage.sweeps import SweepInfo
-from app.sweep_runner import SweepPlan
 
 router = APIRouter(tags=["sweeps"], route_class=SessionEndingRoute)
 
@@ -82,7 +82,7 @@ def checked_plan(
 
 def heatmap_content(session: Session, info: SweepInfo) -> bytes:
     """The sweep's heat map, PNG."""
-    from app.sweep_plots import heatmap_png  # matplotlib: imported when a plot is asked for
+    from app.render.sweep_plots import heatmap_png
 
     trials = sweeps.list_trials(session, info.id)
     return heatmap_png(SearchSpace.from_dict(info.space), trials, objective=info.objective)
@@ -90,7 +90,7 @@ def heatmap_content(session: Session, info: SweepInfo) -> bytes:
 
 def shift_vs_gt_content(session: Session, info: SweepInfo) -> bytes:
     """The sweep's shift-vs-ground-truth scatter, PNG; ApiError 409 without ground truth."""
-    from app.sweep_plots import shift_vs_gt_png
+    from app.render.sweep_plots import shift_vs_gt_png
 
     if not info.has_ground_truth:
         raise ApiError(409, NO_GROUND_TRUTH[0], f"sweep {info.id} has no ground truth")
