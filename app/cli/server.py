@@ -206,9 +206,9 @@ def _keys_create(args: argparse.Namespace) -> int:
         raise CommandError(f"--name is {len(args.name)} characters; at most 100")
     expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
     database = open_migrated(load_settings())
-    with database.transaction() as session:
+    with database.transaction() as db_session:
         info, secret = keys.create_key(
-            session, name=args.name, role=Role(args.role), expires_at=expires_at
+            db_session, name=args.name, role=Role(args.role), expires_at=expires_at
         )
     database.dispose()
     print(
@@ -227,8 +227,8 @@ def _keys_list(_args: argparse.Namespace) -> int:
     from app.storage.orm import utc_now
 
     database = open_migrated(load_settings())
-    with database.read() as session:
-        rows = keys.list_keys(session)
+    with database.read() as db_session:
+        rows = keys.list_keys(db_session)
     database.dispose()
     now = utc_now()
     for info in rows:
@@ -251,8 +251,8 @@ def _keys_revoke(args: argparse.Namespace) -> int:
     try:
         if not 1 <= args.key_id <= MAX_ID:  # the database could not even compare it
             raise keys.KeyNotFound(args.key_id)
-        with database.transaction() as session:
-            info = keys.revoke_key(session, args.key_id)
+        with database.transaction() as db_session:
+            info = keys.revoke_key(db_session, args.key_id)
     except keys.KeyNotFound as err:
         raise CommandError(str(err)) from err
     finally:

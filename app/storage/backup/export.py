@@ -80,32 +80,32 @@ def export_archive(
 def _snapshot(database: Database) -> Iterator[Session]:
     """A read-only transaction that sees one state of the database throughout (SQLite's WAL
     read transactions do; PostgreSQL needs REPEATABLE READ)."""
-    with database.read() as session:
+    with database.read() as db_session:
         if database.backend == "postgresql":
-            session.connection(execution_options={"isolation_level": "REPEATABLE READ"})
-        yield session
+            db_session.connection(execution_options={"isolation_level": "REPEATABLE READ"})
+        yield db_session
 
 
 def _export(
-    session: Session,
+    db_session: Session,
     writer: _ArchiveWriter,
     include_key_hashes: bool,
     on_progress: Progress | None,
 ) -> Manifest:
     now = utc_now()
-    revision = MigrationContext.configure(session.connection()).get_current_revision()
+    revision = MigrationContext.configure(db_session.connection()).get_current_revision()
     if revision is None:
         raise BackupError("the database has no schema (run `invisible-map migrate`)")
-    total = sum(_row_count(session, TABLES_BY_NAME[name]) for name in PROGRESS_TABLES)
+    total = sum(_row_count(db_session, TABLES_BY_NAME[name]) for name in PROGRESS_TABLES)
     done = 0
     counts: dict[str, int] = {}
     for spec in TABLES:
         with writer.table(spec.member) as write_line:
-            for row in _exported_rows(session, spec, include_key_hashes, now):
+            for row in _exported_rows(db_session, spec, include_key_hashes, now):
                 write_line(_encode_row(spec, row))
                 for column, pattern in spec.blobs.items():
                     if row[column]:
-                        _copy_blob(session, spec, row, column, writer, pattern.format(**row))
+                        _copy_blob(db_session, spec, row, column, writer, pattern.format(**row))
                 counts[spec.name] = counts.get(spec.name, 0) + 1
                 if spec.name in PROGRESS_TABLES:
                     done += 1
@@ -116,25 +116,25 @@ def _export(
         format_version=FORMAT_VERSION,
         schema_revision=revision,
         created_at=now,
-        source_backend=session.get_bind().dialect.name,
+        source_backend=db_session.get_bind().dialect.name,
         key_hashes=include_key_hashes,
         counts=counts,
-        id_high_water=_id_high_water(session),
+        id_high_water=_id_high_water(db_session),
         members=dict(writer.members),
     )
     writer.write_manifest(manifest)
     return manifest
 
 
-def _row_count(session: Session, spec: TableSpec) -> int:
+def _row_count(db_session: Session, spec: TableSpec) -> int:
     query = select(func.count()).select_from(spec.table)
     if spec.only is not None:
         query = query.where(spec.only())
-    return int(session.scalar(query) or 0)
+    return int(db_session.scalar(query) or 0)
 
 
 def _exported_rows(
-    session: Session, spec: TableSpec, include_key_hashes: bool, now: datetime
+    db_session: Session, spec: TableSpec, include_key_hashes: bool, now: datetime
 ) -> Iterator[dict[str, Any]]:
     """The table's rows as exported, in key order, a page at a time. A binary column's value is
     whether the row has one (its bytes are read by :func:`_copy_blob`)."""
@@ -152,18 +152,18 @@ def _exported_rows(
             query = query.where(spec.only())
         if last is not None:
             query = query.where(key > last)
-        page = [dict(row) for row in session.execute(query).mappings()]
+        page = [dict(row) for row in db_session.execute(query).mappings()]
         if not page:
             return
         last = page[-1][spec.key]
         for row in page:
             if not spec.export_key:
                 del row[spec.key]
-            yield _as_exported(session, spec.name, row, include_key_hashes, now)
+            yield _as_exported(db_session, spec.name, row, include_key_hashes, now)
 
 
 def _as_exported(
-    session: Session, table: str, row: dict[str, Any], include_key_hashes: bool, now: datetime
+    db_session: Session, table: str, row: dict[str, Any], include_key_hashes: bool, now: datetime
 ) -> dict[str, Any]:
     """A row as the archive holds it: no key hashes unless asked for, no state of the queue."""
     if table == "api_key" and not include_key_hashes:
@@ -171,7 +171,7 @@ def _as_exported(
     elif table == "job":
         _requeued(row, now)
     elif table == "sweep":
-        info = sweeps.get_sweep(session, row["id"])  # its state as the API shows it
+        info = sweeps.get_sweep(db_session, row["id"])  # its state as the API shows it
         row["state"], row["error"] = info.state, info.error
         if row["state"] == "running":
             row["state"], row["finished_at"] = "canceled", row["finished_at"] or now
@@ -205,7 +205,7 @@ def _requeued(job: dict[str, Any], now: datetime) -> None:
 
 
 def _copy_blob(
-    session: Session,
+    db_session: Session,
     spec: TableSpec,
     row: Mapping[str, Any],
     column: str,
@@ -213,7 +213,7 @@ def _copy_blob(
     member: str,
 ) -> None:
     key = spec.table.c[spec.key]
-    data = session.scalar(select(spec.table.c[column]).where(key == row[spec.key]))
+    data = db_session.scalar(select(spec.table.c[column]).where(key == row[spec.key]))
     if data is not None:
         writer.write_blob(member, bytes(data))
 
@@ -230,26 +230,26 @@ def _encode_row(spec: TableSpec, row: Mapping[str, Any]) -> dict[str, Any]:
     return encoded
 
 
-def _id_high_water(session: Session) -> dict[str, int]:
+def _id_high_water(db_session: Session) -> dict[str, int]:
     """Per table, the largest id ever given out: the id sequence, or the largest id left."""
     marks: dict[str, int] = {}
     for table in ID_SEQUENCE_TABLES:
-        largest = session.scalar(text(f'SELECT COALESCE(MAX(id), 0) FROM "{table}"'))
-        marks[table] = max(int(largest or 0), sequence_value(session, table))
+        largest = db_session.scalar(text(f'SELECT COALESCE(MAX(id), 0) FROM "{table}"'))
+        marks[table] = max(int(largest or 0), sequence_value(db_session, table))
     return marks
 
 
-def sequence_value(session: Session, table: str) -> int:
+def sequence_value(db_session: Session, table: str) -> int:
     """The last id the table's sequence gave out (0 if none)."""
-    if session.get_bind().dialect.name == "sqlite":
-        value = session.scalar(
+    if db_session.get_bind().dialect.name == "sqlite":
+        value = db_session.scalar(
             text("SELECT seq FROM sqlite_sequence WHERE name = :table"), {"table": table}
         )
         return int(value or 0)
-    sequence = session.scalar(text("SELECT pg_get_serial_sequence(:t, 'id')"), {"t": table})
+    sequence = db_session.scalar(text("SELECT pg_get_serial_sequence(:t, 'id')"), {"t": table})
     if sequence is None:
         return 0
-    last_value, is_called = session.execute(
+    last_value, is_called = db_session.execute(
         text(f"SELECT last_value, is_called FROM {sequence}")
     ).one()
     return int(last_value) if is_called else 0

@@ -79,16 +79,16 @@ def import_archive(
                 f"{path} has no API key hashes (export it with --include-keys to carry keys)"
             )
         try:
-            with database.transaction() as session:
+            with database.transaction() as db_session:
                 check_schema_revision(
                     manifest.schema_revision,
-                    MigrationContext.configure(session.connection()).get_current_revision(),
+                    MigrationContext.configure(db_session.connection()).get_current_revision(),
                 )
                 if not merge:
-                    _lock_for_restore(session)
-                    _require_empty(session, include_keys)
+                    _lock_for_restore(db_session)
+                    _require_empty(db_session, include_keys)
                 run = _ImportRun(
-                    session=session,
+                    db_session=db_session,
                     archive=archive,
                     include_keys=include_keys,
                     merge=merge,
@@ -96,7 +96,7 @@ def import_archive(
                 )
                 run.run()
                 if not merge:
-                    _raise_id_sequences(session, manifest.id_high_water)
+                    _raise_id_sequences(db_session, manifest.id_high_water)
                 return run.report()
         except (IntegrityError, DataError) as err:
             raise ArchiveInvalid(
@@ -109,18 +109,18 @@ def _first_line(err: BaseException) -> str:
     return message.splitlines()[0] if message else type(err).__name__
 
 
-def _lock_for_restore(session: Session) -> None:
+def _lock_for_restore(db_session: Session) -> None:
     """On PostgreSQL, keep other writers out of the restored tables until the commit (SQLite's
     BEGIN IMMEDIATE already does)."""
-    if session.get_bind().dialect.name == "postgresql":
+    if db_session.get_bind().dialect.name == "postgresql":
         tables = ", ".join(f'"{name}"' for name in ("api_key", *RESTORE_NEEDS_EMPTY))
-        session.execute(text(f"LOCK TABLE {tables} IN SHARE ROW EXCLUSIVE MODE"))
+        db_session.execute(text(f"LOCK TABLE {tables} IN SHARE ROW EXCLUSIVE MODE"))
 
 
-def _require_empty(session: Session, include_keys: bool) -> None:
+def _require_empty(db_session: Session, include_keys: bool) -> None:
     names = RESTORE_NEEDS_EMPTY + (("api_key",) if include_keys else ())
     found = {
-        name: int(session.scalar(text(f'SELECT COUNT(*) FROM "{name}"')) or 0) for name in names
+        name: int(db_session.scalar(text(f'SELECT COUNT(*) FROM "{name}"')) or 0) for name in names
     }
     held = ", ".join(f"{count} {name} rows" for name, count in found.items() if count)
     if held:
@@ -131,22 +131,22 @@ def _require_empty(session: Session, include_keys: bool) -> None:
         )
 
 
-def _raise_id_sequences(session: Session, high_water: Mapping[str, int]) -> None:
+def _raise_id_sequences(db_session: Session, high_water: Mapping[str, int]) -> None:
     """Make every id sequence give out ids above both the source's and this database's."""
-    postgres = session.get_bind().dialect.name == "postgresql"
+    postgres = db_session.get_bind().dialect.name == "postgresql"
     for table in ID_SEQUENCE_TABLES:
-        largest = int(session.scalar(text(f'SELECT COALESCE(MAX(id), 0) FROM "{table}"')) or 0)
+        largest = int(db_session.scalar(text(f'SELECT COALESCE(MAX(id), 0) FROM "{table}"')) or 0)
         wanted = max(high_water.get(table, 0), largest)
-        if wanted <= sequence_value(session, table):
+        if wanted <= sequence_value(db_session, table):
             continue
         if postgres:
-            session.execute(
+            db_session.execute(
                 text("SELECT setval(pg_get_serial_sequence(:t, 'id'), :v, true)"),
                 {"t": table, "v": wanted},
             )
         else:
-            session.execute(text("DELETE FROM sqlite_sequence WHERE name = :t"), {"t": table})
-            session.execute(
+            db_session.execute(text("DELETE FROM sqlite_sequence WHERE name = :t"), {"t": table})
+            db_session.execute(
                 text("INSERT INTO sqlite_sequence (name, seq) VALUES (:t, :v)"),
                 {"t": table, "v": wanted},
             )
@@ -158,13 +158,13 @@ class _ImportRun:
     def __init__(
         self,
         *,
-        session: Session,
+        db_session: Session,
         archive: ArchiveReader,
         include_keys: bool,
         merge: bool,
         on_progress: Progress | None,
     ) -> None:
-        self.session = session
+        self.db_session = db_session
         self.archive = archive
         self.include_keys = include_keys
         self.merge = merge
@@ -278,7 +278,7 @@ class _ImportRun:
     def _key(self, values: dict[str, Any]) -> dict[str, Any] | None:
         """The key to insert, or None when this database has it already (a merge)."""
         if self.merge:
-            existing = self.session.execute(
+            existing = self.db_session.execute(
                 select(ApiKey.id, ApiKey.secret_sha256).where(ApiKey.prefix == values["prefix"])
             ).first()
             if existing is not None:
@@ -307,7 +307,7 @@ class _ImportRun:
         key = values["idempotency_key"]
         if key is None:
             return
-        existing = self.session.scalar(
+        existing = self.db_session.scalar(
             select(SessionRow.id).where(
                 SessionRow.uploaded_by == values["uploaded_by"], SessionRow.idempotency_key == key
             )
@@ -329,17 +329,17 @@ class _ImportRun:
                 self._flush(spec, batch)
             return
         if not spec.allocates_ids:
-            self.session.execute(insert(spec.table).values(values))
+            self.db_session.execute(insert(spec.table).values(values))
             self.written[spec.name] += 1
             return
         archive_id = values["id"]
         if self.merge:
             del values["id"]
-            new_id = self.session.execute(
+            new_id = self.db_session.execute(
                 insert(spec.table).values(values).returning(spec.table.c.id)
             ).scalar_one()
         else:
-            self.session.execute(insert(spec.table).values(values))
+            self.db_session.execute(insert(spec.table).values(values))
             new_id = archive_id
         self.ids[spec.name][archive_id] = new_id
         self.written[spec.name] += 1
@@ -348,7 +348,7 @@ class _ImportRun:
 
     def _flush(self, spec: TableSpec, batch: list[dict[str, Any]]) -> None:
         if batch:
-            self.session.execute(insert(spec.table), batch)
+            self.db_session.execute(insert(spec.table), batch)
             self.written[spec.name] += len(batch)
             batch.clear()
 
