@@ -144,7 +144,7 @@ def simulated_errors(
     else:
         map_tags = optimize_session(parse_session(mapping.upload)).tag_poses()
     # The truth in the map's frame: an optimized map is placed by its own gauge (its first pose),
-    # so the truth is carried onto it by the best-fit rigid transform of the tags (DESIGN §4).
+    # so the truth is carried onto it by the best-fit rigid transform of the tags (architecture §4).
     common = sorted(map_tags)
     map_T_truth = umeyama_rigid(
         np.stack([mapping.world_T_tag_true[t][:3, 3] for t in common]),

@@ -1,4 +1,4 @@
-"""Tuning benchmark (DESIGN §5): the paper's grid on the real sessions, Optuna's sampler against it,
+"""Tuning benchmark (§5): the paper's grid on the real sessions, Optuna's sampler against it,
 and the shift metric against ground truth on simulations. One command, prints its tables.
 
     .venv/bin/python -m bench.tuning                 # the full benchmark (about 5 minutes)

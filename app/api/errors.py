@@ -38,7 +38,7 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.api.schemas import ErrorBody
+from app.api.schemas.common import ErrorBody
 from app.domain.errors import SessionFormatError
 from app.services.errors import STATUS_OF_ERROR, ServiceError
 from app.storage.db import DatabaseFault, database_fault, first_line

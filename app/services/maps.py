@@ -55,7 +55,7 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
-    """The app's map file (DESIGN §7) of ``version``, as compact JSON bytes."""
+    """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes."""
     graph_document = path_graph_document(db_session, version.id)
     app_map = map_to_app_format(
         map_from_json(maps.map_document(db_session, version.map_id, version.number)),

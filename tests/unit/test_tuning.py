@@ -1,4 +1,4 @@
-"""Hyperparameter tuning (DESIGN §5): search spaces, trials on simulated and real sessions, the
+"""Hyperparameter tuning (§5): search spaces, trials on simulated and real sessions, the
 sampler, the summary and the plots."""
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, valid_id
-from app.api.schemas import KeyCreate
+from app.api.schemas.keys import KeyCreate
 from app.services.errors import InvalidInput, ServiceError
 from app.services.keys import create_checked_key
 from app.storage import keys

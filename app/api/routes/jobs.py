@@ -16,7 +16,7 @@ from fastapi import APIRouter, Query
 from app.api.deps import AdminPrincipal, JobDep, ReadDbSessionDep, WriteDbSessionDep, valid_id
 from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import JobPublic, JobsPublic
+from app.api.schemas.jobs import JobPublic, JobsPublic
 from app.storage import queue
 from app.storage.orm import JobState
 

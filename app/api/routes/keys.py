@@ -8,7 +8,7 @@ from fastapi import APIRouter, Response
 from app.api.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
 from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import KeyCreate, KeyCreated, KeyPublic, KeysPublic
+from app.api.schemas.keys import KeyCreate, KeyCreated, KeyPublic, KeysPublic
 from app.services.keys import create_checked_key
 from app.storage import keys
 

@@ -22,12 +22,8 @@ from fastapi import APIRouter, Body, Request, Response
 
 from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
 from app.api.errors import ApiError, error_responses
-from app.api.navigation_schemas import (
-    LocalizationEstimate,
-    LocalizationPublic,
-    LocalizationUpdate,
-)
 from app.api.route_class import SessionEndingRoute
+from app.api.schemas.navigation import LocalizationEstimate, LocalizationPublic, LocalizationUpdate
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
 from app.domain.localize import (
     LocalizationUpdateError,

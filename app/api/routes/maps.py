@@ -31,7 +31,7 @@ from app.api.deps import (
 from app.api.errors import ApiError, error_responses
 from app.api.http import if_none_match_hits, strong_etag
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import (
+from app.api.schemas.maps import (
     AppMap,
     MapPublic,
     MapsPublic,
@@ -187,7 +187,7 @@ def rebuild_map(
 @router.get(
     "/{map_id}/app-map",  # noqa: FAST003 (map_id is read by MapDep)
     summary="Download the map in the app's format",
-    description="`{tag_vertices, odometry_vertices, waypoints_vertices}` (DESIGN §7) of the "
+    description="`{tag_vertices, odometry_vertices, waypoints_vertices}` (architecture §7) of the "
     "current version, or of `?version=N`; `neighbors` are the path graph's links (junctions are "
     "extra odometry vertices numbered after the last pose). 409 map_not_ready while the map has "
     "no version.",

@@ -15,8 +15,8 @@ from fastapi import APIRouter, Query, Request, Response
 from app.api.deps import MapDep, ReadDbSessionDep
 from app.api.errors import error_responses
 from app.api.http import strong_etag
-from app.api.navigation_schemas import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.api.route_class import SessionEndingRoute
+from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.domain.routing import (
     search_pois,
 )

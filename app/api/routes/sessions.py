@@ -1,6 +1,6 @@
 """``/v1/sessions``: upload a mapping session, list and read sessions, download the raw upload.
 
-An upload is validated completely before anything is stored (DESIGN §2); then the session, its
+An upload is validated completely before anything is stored (architecture §2); then the session, its
 raw bytes, its map and its build job are written in one transaction, and the answer is 202 with
 the ids and ``Location: /v1/jobs/{job_id}``.
 
@@ -27,7 +27,7 @@ from app.api.deps import (
 from app.api.errors import error_responses
 from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import SessionCreated, SessionPublic, SessionsPublic
+from app.api.schemas.sessions import SessionCreated, SessionPublic, SessionsPublic
 from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
@@ -91,7 +91,7 @@ UPLOAD_EXAMPLE: dict[str, Any] = {
 }
 UPLOAD_REQUEST_BODY: dict[str, Any] = {
     "required": True,
-    "description": "The app's mapping session (DESIGN §2), as JSON; may be sent with "
+    "description": "The app's mapping session (docs/architecture.md §2), as JSON; may be sent with "
     "Content-Encoding: gzip. Unknown keys are accepted and kept in the raw upload.",
     "content": {
         "application/json": {

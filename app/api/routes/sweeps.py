@@ -24,8 +24,8 @@ from app.api.deps import (
 )
 from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import RebuildAccepted
-from app.api.sweep_schemas import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
+from app.api.schemas.maps import RebuildAccepted
+from app.api.schemas.sweeps import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
 from app.services.maps import checked_overrides
 from app.services.sweeps import (
     NO_BEST,

@@ -9,7 +9,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, SettingsDep
 from app.api.errors import ApiError, error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import Health, Info, Ready, WorkerPublic
+from app.api.schemas.system import Health, Info, Ready, WorkerPublic
 from app.services.system import ALIVE_HEARTBEATS, package_version
 from app.storage import migrate, queue
 from app.storage.orm import JobState

@@ -1,4 +1,4 @@
-"""Live localization against a map with its tags held fixed (DESIGN §6, the paper's formulation).
+"""Live localization against a map with its tags held fixed (§6, the paper's formulation).
 
     state = LocalizerState.initial()
     batch = parse_update({"poses": [...], "tag_data": [...]})   # JSON from the phone

@@ -59,7 +59,7 @@ def parse_update(document: Any) -> UpdateBatch:
 
     ``poses[i] = {"id": int, "timestamp": s, "pose": [16 floats, column-major]}`` (ARKit's
     ``session_T_phone``, as the upload's ``pose_data``); ``tag_data`` is a list of frames, each a
-    list of detections in the upload's format (DESIGN §2), or a bare detection. Either list may be
+    list of detections in the upload's format (§2), or a bare detection. Either list may be
     empty or absent. Raises :class:`LocalizationUpdateError` naming the field and the reason.
     """
     try:

@@ -21,7 +21,7 @@ _APP_CHUNK = 256
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AppVertex:
-    """An extra odometry vertex of the app's format (DESIGN §7): a junction of the path graph.
+    """An extra odometry vertex of the app's format (architecture §7): a junction of the path graph.
 
     pose_id: the id it is given, above every pose id of the map; position_m: map frame, m.
     neighbors: the pose ids it links to.
