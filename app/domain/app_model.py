@@ -1,6 +1,6 @@
 """A model of how the iPhone app reads a map and plans a route, to check our app-map against.
 
-    report = check_app_map(document)          # the app-map JSON (DESIGN §7), as downloaded
+    report = check_app_map(document)          # the app-map JSON (architecture §7), as downloaded
     report.decode_error                       # None, or why JSONDecoder would refuse the map
     report.isolated_vertices                  # odometry vertices with no edge in the app's graph
     report.crashing_pairs, report.pairs       # (start vertex, destination) pairs that trap

@@ -1,4 +1,5 @@
-"""The app's earlier upload format (2020–2021), converted into the current one (DESIGN §2).
+"""The app's earlier upload format (2020–2021), converted into the current one
+(docs/architecture.md §2).
 
     if is_earlier_format(document):
         document, notes = convert_earlier_format(document)   # then parse_session as usual

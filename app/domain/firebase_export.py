@@ -6,7 +6,7 @@
 
 The app (``InvisibleMapCreator2/.../MapRecorder.swift``, ``sendToFirebase``) writes, per recording:
 
-- to Cloud Storage ``rawMapData/<uid>/<mapId>.json`` (the session, DESIGN §2) and
+- to Cloud Storage ``rawMapData/<uid>/<mapId>.json`` (the session, architecture §2) and
   ``rawMapData/<uid>/<mapId>.jpg`` (its picture), and a log ``<mapId> serialization error.json``
   next to them (not a session: skipped);
 - to the Realtime Database ``maps/<uid>/<mapId> = {"name", "image", "raw_file"}`` (the storage

@@ -1,4 +1,4 @@
-"""Maps to and from JSON: our own lossless form, and the app's download format (DESIGN §7).
+"""Maps to and from JSON: our own lossless form, and the app's download format (architecture §7).
 
     document = map_to_json(result)          # ours: everything in MapResult, round-trips
     result = map_from_json(document)
@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from app.domain.app_map import app_links, chain_links, unique_waypoint_names
 from app.domain.errors import InvisibleMapError, MapFormatError
 from app.domain.frames import (
     FloatArray,
@@ -28,7 +27,7 @@ from app.domain.frames import (
 from app.domain.keyframes import keyframe_spans
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
 from app.domain.params import SlamParams
-from app.domain.path_graph import PathGraph
+from app.domain.path_graph import PathGraph, app_links, chain_links, unique_waypoint_names
 
 MAP_FORMAT = "invisible-map/map"
 MAP_FORMAT_VERSION = 1
@@ -176,12 +175,12 @@ def map_from_json(document: Any) -> MapResult:
 
 
 def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
-    """The app's download format (DESIGN §7), made so the app can neither fail to decode it nor
-    crash planning a route on it (``app.domain.app_model`` models the app's rules).
+    """The app's download format (docs/architecture.md §7), made so the app can neither fail to
+    decode it nor crash planning a route on it (``app.domain.app_model`` models the app's rules).
 
     ``adjChi2`` of a pose is the chi² of the odometry factors touching it (a pose between two
     keyframes: the factor spanning it); ``vizTags`` the number of tag detections used from it.
-    ``neighbors`` (:func:`app.domain.app_map.app_links`): with ``path_graph`` (built from this
+    ``neighbors`` (:func:`app.domain.path_graph.app_links`): with ``path_graph`` (built from this
     ``result``), its links, listed at both ends, of its largest connected part; graph nodes that
     are no pose are extra odometry vertices with ``poseId`` = max pose id + 1, + 2, … (node-id
     order), their position, an identity rotation, ``adjChi2`` and ``vizTags`` 0; a pose that is no

@@ -15,11 +15,10 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from app.domain.app_map import unique_waypoint_names
 from app.domain.app_model import check_app_map
 from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
-from app.domain.path_graph import PathGraph, build_path_graph
+from app.domain.path_graph import PathGraph, build_path_graph, unique_waypoint_names
 from app.domain.session import parse_session, read_json_document
 from app.domain.simulate import SimulationConfig, simulate_session
 from app.domain.slam import optimize_session

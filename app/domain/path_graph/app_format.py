@@ -1,4 +1,5 @@
-"""The navigation links of the app's map file (DESIGN §7), made so the app cannot crash on them.
+"""The app's navigation links (``neighbors``) from a path graph (docs/architecture.md §7), made
+so the app cannot crash on them.
 
     links = app_links(path_graph, pose_id=…, positions_m=…)
     links.neighbors[row]          # pose row → the ids it links to (None: the pose is left out)
@@ -33,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.floors import assign_floors
-from app.domain.frames import FloatArray
+from app.domain.path_graph.geometry import project_to_segments, tuple3
 
 #: Poses per block when finding the nearest edge of poses that are not nodes.
 _CHUNK = 256
@@ -128,7 +129,7 @@ def app_links(
         )
         for start in range(0, len(loose), _CHUNK):
             rows = loose[start : start + _CHUNK]
-            distance_m = _distance_to_segments(world_p_phone[rows], a, b)
+            distance_m = project_to_segments(world_p_phone[rows][:, None, :], a[None], b[None])[1]
             # the nearest edge over the whole graph decides the part the pose belongs to
             nearest_any = np.argmin(distance_m, axis=1)
             other_floor = edge_floor[None, :] != pose_floor[start : start + _CHUNK, None]
@@ -158,7 +159,7 @@ def app_links(
     extra = [
         ExtraVertex(
             pose_id=app_id[node],
-            position_m=_tuple3(graph.nodes[node]["position_m"]),
+            position_m=tuple3(graph.nodes[node]["position_m"]),
             neighbors=sorted(links[app_id[node]]),
         )
         for node in extra_nodes
@@ -193,17 +194,3 @@ def _length_m(graph: nx.Graph[int], nodes: Sequence[int]) -> float:
     return float(
         sum(float(d.get("length_m", 0.0)) for _, _, d in graph.subgraph(nodes).edges(data=True))
     )
-
-
-def _distance_to_segments(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """(P, E) distance of each point to each segment a→b, m."""
-    ab = b - a
-    length2 = np.maximum(np.einsum("ei,ei->e", ab, ab), 1e-18)
-    t = np.einsum("pei,ei->pe", points[:, None, :] - a[None], ab) / length2
-    closest = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
-    return np.asarray(np.linalg.norm(points[:, None, :] - closest, axis=2), dtype=np.float64)
-
-
-def _tuple3(values: Sequence[float]) -> tuple[float, float, float]:
-    x, y, z = (float(v) for v in values)
-    return (x, y, z)
