@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 
 from app.domain.app_model import ConformanceReport, check_app_map  # noqa: E402
 from app.domain.errors import InvisibleMapError  # noqa: E402
-from app.domain.map_io import map_to_app_format  # noqa: E402
+from app.domain.map_io import app_map_as_served  # noqa: E402
 from app.domain.path_graph import build_path_graph  # noqa: E402
 from app.domain.session import parse_session, read_json_document  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
@@ -81,7 +81,7 @@ def uploads() -> Iterator[tuple[str, Callable[[], Any]]]:
 def app_map_of(upload: Any) -> dict[str, Any]:
     """The app-map the server serves for ``upload``'s first version (default parameters)."""
     result = optimize_session(parse_session(upload))
-    return map_to_app_format(result, path_graph=build_path_graph(result))
+    return app_map_as_served(result, path_graph=build_path_graph(result))
 
 
 def main() -> int:

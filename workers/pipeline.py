@@ -31,6 +31,7 @@ the job carries on where it was, in the same attempt, and runs once.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import gzip
@@ -45,6 +46,7 @@ from typing import Any, TypeVar
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
 from app.domain.path_graph import (
@@ -305,8 +307,17 @@ def evaluate(ctx: JobContext) -> None:
 def path_graph(ctx: JobContext) -> None:
     """Where a pedestrian can walk: the optimized path with junctions, floors, stairs and
     elevators, and the tags and points of interest attached to it."""
-    graph = build_path_graph(_need(ctx.result, "result"))
+    result = _need(ctx.result, "result")
+    graph = build_path_graph(result)
     ctx.path_graph = path_graph_to_json(graph)
+    # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
+    notes = map_to_app_format(result, path_graph=graph)["notes"]
+    if notes:
+        ctx.result = dataclasses.replace(
+            result, warnings=(*result.warnings, *(f"app map: {note}" for note in notes))
+        )
+        for note in notes:
+            ctx.log(f"app map: {note}")
     walk = graph.graph
     kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
     junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)

@@ -38,9 +38,10 @@ from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.frames import FloatArray
 from app.domain.ground_truth import load_ground_truth
-from app.domain.map_io import map_to_app_format, map_to_json, save_json
+from app.domain.map_io import app_map_as_served, map_to_json, save_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
+from app.domain.path_graph import build_path_graph
 from app.domain.session import Session, load_session
 from app.domain.slam import optimize_session
 
@@ -124,7 +125,8 @@ def _process(args: argparse.Namespace) -> int:
     if args.output:
         save_json(map_to_json(result), args.output)
     if args.app_map:
-        save_json(map_to_app_format(result), args.app_map)
+        # the document the server serves for this version: the same exporter, the same graph
+        save_json(app_map_as_served(result, path_graph=build_path_graph(result)), args.app_map)
     if args.plot:
         from app.render.map_plot import render_map_png
 
@@ -264,7 +266,8 @@ def _demo(args: argparse.Namespace) -> int:
         ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None
         result = optimize_session(session, params)
         save_json(map_to_json(result), args.out / f"{name}.map.json")
-        save_json(map_to_app_format(result), args.out / f"{name}.app-map.json")
+        app_map = app_map_as_served(result, path_graph=build_path_graph(result))
+        save_json(app_map, args.out / f"{name}.app-map.json")
         render_map_png(result, session, ground_truth=ground_truth, path=args.out / f"{name}.png")
         rows.append(evaluate_map(session, result, ground_truth, dataset=name))
     table = format_table(rows)

@@ -4,6 +4,7 @@
     result = map_from_json(document)
     app_map = map_to_app_format(result)     # what the iPhone app downloads
     app_map = map_to_app_format(result, path_graph=pg)   # … with the path graph's links
+    app_map = app_map_as_served(result, path_graph=pg)   # … byte for byte as the server has it
 
 Poses are written as ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion), map frame y up.
 """
@@ -237,6 +238,14 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
         ],
         "notes": [*links.notes, *renamed],
     }
+
+
+def app_map_as_served(result: MapResult, *, path_graph: PathGraph | None) -> dict[str, Any]:
+    """The app-map exactly as the server serves the version stored from ``result``: the server
+    stores poses as position + quaternion (:func:`map_to_json`), and a rotation read back from a
+    quaternion differs from the optimizer's in its last bits, so the CLI writes the same
+    document through the same round trip."""
+    return map_to_app_format(map_from_json(map_to_json(result)), path_graph=path_graph)
 
 
 def _adjacent_odometry_chi2(n: int, residuals: FactorResiduals) -> FloatArray:

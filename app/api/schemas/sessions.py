@@ -168,3 +168,25 @@ _JOB_EXAMPLE: dict[str, Any] = {
     "updated_at": LATER_EXAMPLE,
     "duration_s": 1.25,
 }
+
+
+class ImageStored(BaseModel):
+    """The answer to a picture upload: where it is served and whether it changed anything."""
+
+    model_config = examples(
+        {
+            "session_id": 17,
+            "map_id": 12,
+            "sha256": SHA_EXAMPLE,
+            "size_bytes": 48213,
+            "changed": True,
+            "image_url": "/v1/maps/12/image?v=3f1c2a9e0b7d4c21",
+        }
+    )
+
+    session_id: int
+    map_id: int | None = Field(description="the session's map (null if it was deleted)")
+    sha256: str = Field(description="SHA-256 of the JPEG's bytes")
+    size_bytes: int
+    changed: bool = Field(description="false when these very bytes were already stored")
+    image_url: str | None = Field(description="where the map serves it")
