@@ -11,6 +11,7 @@
     invisible-map serve | worker | migrate | keys …   (the server: see app/cli/server.py)
     invisible-map export OUT.zip [--include-keys] [--force]
     invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/cli/backup.py)
+    invisible-map import-firebase DIR     (a lab's Firebase export: app/cli/firebase.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
@@ -31,6 +32,7 @@ from app.cli.backup import add_backup_commands
 from app.cli.common import DATA_DIR, DEMO_SESSIONS, PROGRAM, CommandError
 from app.cli.common import add_param_option as _add_param_option
 from app.cli.common import slam_params as _params
+from app.cli.firebase import add_firebase_commands
 from app.cli.server import add_server_commands
 from app.cli.tables import render_markdown_table
 from app.cli.tuning import add_sweep_commands
@@ -109,6 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     add_sweep_commands(commands)
     add_server_commands(commands)
     add_backup_commands(commands)
+    add_firebase_commands(commands)
     return parser
 
 
