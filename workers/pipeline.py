@@ -56,7 +56,7 @@ from app.domain.path_graph import (
     build_path_graph,
     path_graph_to_json,
 )
-from app.domain.session import Session, decode_json_bytes, parse_session
+from app.domain.session import Session, decode_json_bytes, parse_session, require_tags
 from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
@@ -217,6 +217,7 @@ def load(ctx: JobContext) -> None:
     ctx.params = SlamParams().with_overrides(overrides)
     ctx.raw_upload, ctx.session = load_session_upload(ctx.db, lease.session_id)
     raw, session = ctx.raw_upload, ctx.session
+    require_tags(session)  # before any tuning: a walk with no tag makes no map
     ctx.log(
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"

@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
-from app.domain.errors import SessionFormatError
+from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.frames import (
     PHONE_T_CAMERA_CV,
     FloatArray,
@@ -422,6 +422,13 @@ def derived_map_id(timestamp_s: FloatArray, world_T_phone: FloatArray) -> str:
 #: before it (``963934784127833-Test``), with the separator.
 _TRAILING_DIGITS = re.compile(r"[\s_-]*\d{6,}$")
 _LEADING_DIGITS = re.compile(r"^\d{6,}[\s_-]+")
+
+
+def require_tags(session: Session) -> None:
+    """Raise :class:`NoTagsRecorded` for a session with no tag detection: it is a valid upload
+    (kept as it is), but a map needs at least one tag."""
+    if len(session.detections) == 0:
+        raise NoTagsRecorded(NO_TAGS_REASON)
 
 
 def display_name_of(map_id: str) -> str:
