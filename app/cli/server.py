@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import errno
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -110,16 +112,21 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["workers"] = args.workers
     settings = load_settings(**overrides)
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
+    listener = listening_socket(args.host, args.port)  # a busy port stops it before any output
     generated_key = settings.admin_key is None
     if generated_key:
         settings = settings.model_copy(
             update={"admin_key": "im_admin_" + secrets.token_urlsafe(24)}
         )
-    database = open_database(settings)
-    if not args.no_migrate:
-        revision = migrate_database(database, settings)
-        print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
-    database.dispose()
+    try:
+        database = open_database(settings)
+        if not args.no_migrate:
+            revision = migrate_database(database, settings)
+            print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
+        database.dispose()
+    except BaseException:
+        listener.close()
+        raise
 
     processes = start_worker_processes(settings, settings.workers)
     url = f"http://{args.host}:{args.port}"
@@ -152,7 +159,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         # uvicorn's Server.run, with the thread pool sized first (it belongs to the event loop).
         with asyncio.Runner(loop_factory=server.config.get_loop_factory()) as runner:
-            runner.run(_serve_with_threads(server, settings.api_threads))
+            runner.run(_serve_with_threads(server, settings.api_threads, listener))
     except SystemExit:  # uvicorn's sys.exit(3) when it cannot start (the port is taken, …)
         if server.started:
             raise
@@ -165,12 +172,32 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _serve_with_threads(server: uvicorn.Server, threads: int) -> None:
-    """Serve with ``threads`` threads for the routes (``Settings.api_threads``)."""
+async def _serve_with_threads(
+    server: uvicorn.Server, threads: int, listener: socket.socket
+) -> None:
+    """Serve on ``listener`` with ``threads`` threads for the routes (``Settings.api_threads``)."""
     from anyio import to_thread
 
     to_thread.current_default_thread_limiter().total_tokens = threads
-    await server.serve()
+    await server.serve(sockets=[listener])
+
+
+def listening_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host``:``port`` (uvicorn listens on it); CommandError naming the
+    address if it cannot be had (in use, no such address, a privileged port)."""
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+    except socket.gaierror as err:
+        raise CommandError(f"cannot listen on {host}:{port}: {err.strerror}") from err
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        hint = "; stop what uses it or pass --port" if err.errno == errno.EADDRINUSE else ""
+        raise CommandError(f"cannot listen on {host}:{port}: {err.strerror}{hint}") from err
+    return sock
 
 
 def _worker(args: argparse.Namespace) -> int:

@@ -23,7 +23,7 @@ from typing import IO, Any
 
 import httpx
 import pytest
-from cli_support import ERROR_PREFIX, assert_one_line_error
+from cli_support import assert_one_line_error
 
 from app import cli
 from app.cli.common import DEMO_SESSIONS
@@ -451,12 +451,13 @@ def test_serve_on_a_port_in_use(tmp_path: Path, empty_sqlite_url: str) -> None:
             server_env(empty_sqlite_url, tmp_path / "var", INVISIBLE_MAP_ADMIN_KEY=ADMIN_KEY),
             *("serve", "--port", port, "--workers", "0"),
         )
-    assert result.returncode == 1, result.stderr
-    assert "Traceback" not in result.stderr
-    assert "address already in use" in result.stderr  # uvicorn's log
-    last = result.stderr.splitlines()[-1]
-    assert last.startswith(ERROR_PREFIX)
-    assert f"could not start at http://127.0.0.1:{port}" in last
+    # Checked before anything else: no URL, no admin key, no migration, no "startup complete".
+    assert result.stdout == ""
+    assert_one_line_error(
+        result.returncode,
+        result.stderr,
+        f"cannot listen on 127.0.0.1:{port}: Address already in use; stop what uses it",
+    )
 
 
 class DemoServer:
@@ -612,4 +613,8 @@ def test_worker_runs_a_queued_job_and_stops_on_sigterm(db: Database, tmp_path: P
             if process.poll() is None:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+    # One process (the default, and what the compose file runs) logs like several do.
+    log = log_path.read_text()
+    assert "started" in log, log
+    assert f"job {inserted.job_id}" in log, log
     assert "Traceback" not in log_path.read_text()
