@@ -302,11 +302,14 @@ def _upload_demo_sessions(url: str, admin_key: str) -> None:
                 break
             except Exception:  # not listening yet, or not ready
                 time.sleep(0.2)
-        for name, _truth in DEMO_SESSIONS:
+        demo_sessions = [
+            (name, DATA_DIR / "sessions" / f"{name}.json") for name, _ in DEMO_SESSIONS
+        ]
+        # floor_2_straight with points of interest, for the README's quick start (data/README.md)
+        demo_sessions.append(("floor_2_pois", DATA_DIR / "demo" / "floor_2_pois.json"))
+        for name, path in demo_sessions:
             try:
-                accepted = client.upload_session(
-                    DATA_DIR / "sessions" / f"{name}.json", idempotency_key=f"demo-{name}"
-                )
+                accepted = client.upload_session(path, idempotency_key=f"demo-{name}")
             except (ApiError, OSError) as err:
                 print(f"demo: {name} not uploaded: {err}", file=sys.stderr)
                 continue

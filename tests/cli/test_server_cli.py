@@ -37,8 +37,8 @@ from tests.service.helpers import get_job, insert_session, wait_for
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
 ADMIN_KEY = "im_test_admin_0123456789abcdef"
-#: The demo sessions ``serve --demo`` uploads (data/sessions).
-DEMO_SESSION_COUNT = 7
+#: The demo sessions ``serve --demo`` uploads (data/sessions and data/demo).
+DEMO_SESSION_COUNT = 8
 KEY_LINE = re.compile(r"^im_[0-9a-f]{8}_[A-Za-z0-9_-]+$")
 
 
@@ -552,7 +552,7 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
         first.close()
     log = first.log()
     uploads = demo_uploads(log)
-    assert sorted(uploads) == sorted(name for name, _ in DEMO_SESSIONS)
+    assert sorted(uploads) == sorted([*(name for name, _ in DEMO_SESSIONS), "floor_2_pois"])
     assert "not uploaded" not in log
     assert "Traceback" not in log
 
