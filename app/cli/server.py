@@ -39,9 +39,13 @@ from workers.allocator import jemalloc_path
 if TYPE_CHECKING:
     import uvicorn
 
+    from app.client import Client
+
 
 #: The longest ``keys create --expires-in-days`` (100 years).
 MAX_KEY_DAYS = 36500
+#: How often the demo asks whether its maps are built, s.
+DEMO_POLL_S = 0.5
 #: The largest id a row can have (a signed 64-bit integer).
 MAX_ID = 2**63 - 1
 
@@ -138,7 +142,9 @@ def _serve(args: argparse.Namespace) -> int:
     if args.demo:
         assert settings.admin_key is not None
         threading.Thread(
-            target=_upload_demo_sessions, args=(url, settings.admin_key), daemon=True
+            target=_upload_demo_sessions,
+            args=(url, settings.admin_key, settings.workers),
+            daemon=True,
         ).start()
     server = uvicorn.Server(
         uvicorn.Config(
@@ -288,9 +294,10 @@ def _keys_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
-def _upload_demo_sessions(url: str, admin_key: str) -> None:
-    """Upload the demo sessions in data/ through the API once it is up. Idempotency keys make a
-    restart find them instead of adding them again."""
+def _upload_demo_sessions(url: str, admin_key: str, workers: int) -> None:
+    """Upload the demo sessions in data/ through the API once it is up, then say as each map
+    becomes ready and, at the end, how many are. Idempotency keys make a restart find them
+    instead of adding them again."""
     from app.cli.common import DATA_DIR, DEMO_SESSIONS
     from app.client import ApiError, Client
 
@@ -307,16 +314,49 @@ def _upload_demo_sessions(url: str, admin_key: str) -> None:
         ]
         # floor_2_straight with points of interest, for the README's quick start (data/README.md)
         demo_sessions.append(("floor_2_pois", DATA_DIR / "demo" / "floor_2_pois.json"))
+        building: dict[int, tuple[str, int]] = {}  # job id → (name, map id)
         for name, path in demo_sessions:
             try:
                 accepted = client.upload_session(path, idempotency_key=f"demo-{name}")
             except (ApiError, OSError) as err:
-                print(f"demo: {name} not uploaded: {err}", file=sys.stderr)
+                _say(f"demo: {name} not uploaded: {err}")
                 continue
-            print(
+            building[accepted["job_id"]] = (name, accepted["map_id"])
+            _say(
                 f"demo: {name}: session {accepted['session_id']}, map {accepted['map_id']}, "
-                f"job {accepted['job_id']}",
-                file=sys.stderr,
-                flush=True,
+                f"job {accepted['job_id']}"
             )
-        print(f"demo: maps at {url}/v1/maps", file=sys.stderr, flush=True)
+        if workers == 0:
+            _say("demo: no worker processes (--workers 0): maps are built when a worker runs")
+            return
+        ready = _report_demo_maps(client, url, building)
+        _say(f"demo: {ready} of {len(demo_sessions)} maps ready: {url}/admin/maps")
+
+
+def _report_demo_maps(client: Client, url: str, building: dict[int, tuple[str, int]]) -> int:
+    """Say each demo map as its build ends (ready, or failed with the reason); the number ready.
+    Stops quietly when the server stops answering (it is shutting down)."""
+    from app.client import ApiError
+
+    ready = 0
+    pending = dict(building)
+    while pending:
+        for job_id, (name, map_id) in list(pending.items()):
+            try:
+                job = client.get_job(job_id)
+            except (ApiError, OSError):
+                return ready
+            if job["state"] == "succeeded":
+                ready += 1
+                _say(f"demo: map {map_id} ({name}) ready: {url}/v1/maps/{map_id}")
+            elif job["state"] in ("failed", "canceled"):
+                _say(f"demo: map {map_id} ({name}) {job['state']}: {job.get('error') or ''}")
+            else:
+                continue
+            del pending[job_id]
+        time.sleep(DEMO_POLL_S)
+    return ready
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)

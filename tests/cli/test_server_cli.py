@@ -546,7 +546,8 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
             every_s=0.25,
         )
         assert first.count("/v1/jobs") == DEMO_SESSION_COUNT
-        wait_for(lambda: "demo: maps at" in first.log(), timeout_s=10, what="the demo's end")
+        final = f"demo: {DEMO_SESSION_COUNT} of {DEMO_SESSION_COUNT} maps ready"
+        wait_for(lambda: final in first.log(), timeout_s=10, what="the demo's end")
         assert first.terminate() == 0
     finally:
         first.close()
@@ -555,10 +556,14 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
     assert sorted(uploads) == sorted([*(name for name, _ in DEMO_SESSIONS), "floor_2_pois"])
     assert "not uploaded" not in log
     assert "Traceback" not in log
+    # Each map is announced as it becomes ready, before the final count.
+    announced = re.findall(r"^demo: map (\d+) \((\w+)\) ready: ", log, re.MULTILINE)
+    assert sorted(name for _, name in announced) == sorted(uploads)
+    assert log.index("ready: ") < log.index(final)
 
     second = DemoServer(url, tmp_path, run=2)
     try:
-        wait_for(lambda: "demo: maps at" in second.log(), timeout_s=60, what="the demo upload")
+        wait_for(lambda: final in second.log(), timeout_s=60, what="the demo upload")
         assert second.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT
         assert second.count("/v1/jobs") == DEMO_SESSION_COUNT  # no job queued again
         wait_for(
