@@ -145,7 +145,7 @@ def get_map(
 def list_versions(info: MapDep, db_session: ReadDbSessionDep) -> VersionsPublic:
     versions = maps.list_versions(db_session, info.id)
     return VersionsPublic(
-        data=[VersionSummary.from_domain(version) for version in versions], count=len(versions)
+        data=[VersionSummary.model_validate(version) for version in versions], count=len(versions)
     )
 
 
