@@ -2,14 +2,15 @@
 
     .venv/bin/python bench/app_conformance.py
 
-For each map — every session in ``data/sessions/`` and ``data/archive/`` (the app's earlier
-format, where it can be read), app-made variants of a real session (points of interest with empty
-and repeated names, as the app's "add location" button allows), and simulated buildings (two
-floors joined by stairs, loops, dead ends) — the session is optimized with the default
-parameters, its path graph built, and the app-map (``GET /v1/maps/{id}/app-map``, the same
-document as ``invisible-map process --app-map``) checked against the model of the app's decoder
-and route planner (``app.domain.app_model``): isolated odometry vertices, and (start vertex,
-destination) pairs on which the app would crash. Totals last.
+For each map — every session in ``data/sessions/``, ``data/archive/`` (the app's earlier
+format) and ``data/demo/floor_2_pois.json`` (points of interest), app-made variants of a real
+session (points of interest with empty and repeated names, as the app's "add location" button
+allows), and simulated buildings (two floors joined by stairs, loops, dead ends) — the session is
+optimized with the default parameters, its path graph built, and the app-map
+(``GET /v1/maps/{id}/app-map``, the same document as ``invisible-map process --app-map``)
+checked against the model of the app's decoder and route planner (``app.domain.app_model``):
+isolated odometry vertices, and (start vertex, destination) pairs on which the app would crash.
+Totals last; the exit status is 1 if any map has either.
 """
 
 from __future__ import annotations
@@ -71,6 +72,8 @@ def uploads() -> Iterator[tuple[str, Callable[[], Any]]]:
         yield path.stem, lambda path=path: read_json_document(path)
     for path in sorted((DATA / "archive").glob("*.json")):
         yield f"archive/{path.stem}", lambda path=path: read_json_document(path)
+    demo = DATA / "demo" / "floor_2_pois.json"
+    yield "demo/floor_2_pois", lambda: read_json_document(demo)
     occam = read_json_document(DATA / "sessions" / "occam_room.json")
     for variant, upload in app_made_variants(occam).items():
         yield f"occam_room+{variant}", lambda upload=upload: upload

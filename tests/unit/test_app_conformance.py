@@ -24,7 +24,12 @@ from app.domain.simulate import SimulationConfig, simulate_session
 from app.domain.slam import optimize_session
 
 DATA = Path(__file__).parents[2] / "data"
-REAL = sorted((DATA / "sessions").glob("*.json")) + sorted((DATA / "archive").glob("*.json"))
+#: Every session in data/ (the demo's floor_2 with points of interest included).
+REAL = [
+    *sorted((DATA / "sessions").glob("*.json")),
+    *sorted((DATA / "archive").glob("*.json")),
+    DATA / "demo" / "floor_2_pois.json",
+]
 #: The app fetches at most this much per map file.
 APP_MAX_BYTES = 10 * 2**20
 IDENTITY = [1.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
