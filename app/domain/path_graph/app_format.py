@@ -1,7 +1,7 @@
 """The app's navigation links (``neighbors``) from a path graph (docs/architecture.md §7), made
 so the app cannot crash on them.
 
-    links = app_links(path_graph, pose_id=…, positions_m=…)
+    links = app_links(pg.graph, floor_levels_m=pg.floor_levels_m, pose_id=…, positions_m=…)
     links.neighbors[row]          # pose row → the ids it links to (None: the pose is left out)
     links.extra                   # graph nodes that are not poses, as extra odometry vertices
     links.notes                   # what the map file should say (a disconnected walk)
