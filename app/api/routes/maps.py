@@ -251,7 +251,12 @@ def update_map(
     responses={
         200: {
             "description": "the picture",
-            "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}},
+            "content": {
+                "image/jpeg": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "example": "(JPEG bytes)",
+                }
+            },
         },
         **NOT_MODIFIED,
         **error_responses(401, 404, 422),

@@ -284,7 +284,12 @@ def get_raw_session(
     openapi_extra={
         "requestBody": {
             "required": True,
-            "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}},
+            "content": {
+                "image/jpeg": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "example": "(JPEG bytes)",
+                }
+            },
         }
     },
     responses=error_responses(401, 404, 413, 415, 422),
