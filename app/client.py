@@ -7,6 +7,7 @@
         job = client.wait_for_job(accepted["job_id"])          # raises JobFailed if it failed
         current = client.get_map(accepted["map_id"])["current_version"]
         app_map = client.app_map(accepted["map_id"])          # the app's download format
+        client.put_session_image(accepted["session_id"], jpeg) # the map's picture
 
 Responses are the API's JSON as plain dicts (the schemas are in the OpenAPI document at
 ``/openapi.json``). Every non-2xx answer raises :class:`ApiError` with the status and the server's
@@ -239,6 +240,28 @@ class Client:
 
     def plot_png(self, map_id: int) -> bytes:
         return self.request("GET", f"/v1/maps/{map_id}/plot.png").content
+
+    def put_session_image(self, session_id: int, jpeg: bytes) -> dict[str, Any]:
+        """Upload the session's picture (a JPEG, shown with its map); the same bytes again
+        change nothing (``changed: False``)."""
+        result: dict[str, Any] = self._json(
+            "PUT",
+            f"/v1/sessions/{session_id}/image",
+            content=jpeg,
+            headers={"Content-Type": "image/jpeg"},
+        )
+        return result
+
+    def map_image(self, map_id: int) -> bytes:
+        """The map's picture (ApiError 404 ``no_image`` without one)."""
+        return self.request("GET", f"/v1/maps/{map_id}/image").content
+
+    def rename_map(self, map_id: int, display_name: str) -> dict[str, Any]:
+        """Set the name people see (admin)."""
+        result: dict[str, Any] = self._json(
+            "PATCH", f"/v1/maps/{map_id}", json={"display_name": display_name}
+        )
+        return result
 
     def delete_map(self, map_id: int) -> None:
         self.request("DELETE", f"/v1/maps/{map_id}")
