@@ -46,7 +46,8 @@ less sensitive than requests/s to what else runs on the machine.
 
 The table holds issue 16's targets (ratios to ``/healthz`` in the same run; the update against
 the computation alone; route p50 at one connection) with pass/fail columns. Exit status 1 if a
-request failed (non-2xx or no answer).
+request failed (non-2xx or no answer; with ``--load``, also if the load test failed as
+``bench/load.py`` counts failure), not for a missed target.
 
 The load test (50 uploaders + 200 navigators for 60 s, its targets: 0 errors, 0 lost, route p99
 ≤ 100 ms, localization update p99 ≤ 200 ms, upload → map p95 ≤ 5 s) is ``bench/load.py``;
@@ -760,7 +761,9 @@ def describe_run() -> str:
 
 def run_load(backend: str, args: argparse.Namespace) -> tuple[str, bool]:
     """bench/load.py's default run (50 uploaders + 200 navigators, 60 s; shorter with
-    ``--quick``) on ``backend``; its report and a table against issue 16's targets."""
+    ``--quick``) on ``backend``; its report and a table against issue 16's targets, and whether
+    it did not fail as bench/load.py counts failure (a 5xx, a request with no answer, a lost
+    session)."""
     load_argv = ["--postgres-url", args.postgres_url]
     if args.quick:
         load_argv += ["--duration-s", "10", "--uploaders", "10", "--navigators", "40"]
@@ -794,10 +797,8 @@ def run_load(backend: str, args: argparse.Namespace) -> tuple[str, bool]:
         ["localization update p99 ≤ 200 ms", f"{update_p99:.0f} ms", _verdict(update_p99 <= 200)],
         ["upload → map p95 ≤ 5 s", f"{ready_p95:.1f} s", _verdict(ready_p95 <= 5)],
     ]
-    ok = errors == 0 and not outcome.lost and route_p99 <= 100 and update_p99 <= 200
-    ok = ok and ready_p95 <= 5
     text_ = "\n\n".join([load_bench.report(outcome, load_args), render_markdown_table(rows)])
-    return text_, ok
+    return text_, not outcome.failed
 
 
 # --------------------------------------------------------------------------- main
