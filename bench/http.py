@@ -756,6 +756,36 @@ def describe_run() -> str:
     return f"{now}, commit {commit}"
 
 
+def as_json(result: BackendResult) -> dict[str, Any]:
+    def measured(m: Measured | None) -> dict[str, Any] | None:
+        if m is None:
+            return None
+        return {**asdict(m), "per_s": m.per_s, "cpu_ms_per_request": m.cpu_ms_per_request}
+
+    return {
+        "backend": result.backend,
+        "client": result.client,
+        "connections": result.connections,
+        "duration_s": result.duration_s,
+        "serve_args": result.serve_args,
+        "when": describe_run(),
+        "load_before": result.load_before,
+        "load_after": result.load_after,
+        "healthz_per_s": result.healthz_per_s,
+        "healthz": [measured(m) for m in result.healthz],
+        "endpoints": {
+            e.name: {
+                **(measured(m) or {}),
+                "over_healthz": m.per_s / result.healthz_per_s if result.healthz_per_s else None,
+            }
+            for e, m in result.rows
+        },
+        "update_alone": measured(result.computation),
+        "healthz_1_connection": measured(result.healthz_1),
+        "route_1_connection": measured(result.route_1),
+    }
+
+
 # --------------------------------------------------------------------------- the load test
 
 
@@ -876,20 +906,7 @@ def main(argv: list[str] | None = None) -> int:
             load_ok &= ok
             print(f"### Load test, {result.backend}\n\n{report}\n", flush=True)
     if args.json:
-        args.json.write_text(
-            json.dumps(
-                [
-                    {
-                        **asdict(result),
-                        "healthz_per_s": result.healthz_per_s,
-                        "per_s": {e.name: m.per_s for e, m in result.rows},
-                    }
-                    for result in results
-                ],
-                indent=2,
-            )
-            + "\n"
-        )
+        args.json.write_text(json.dumps([as_json(result) for result in results], indent=2) + "\n")
     failed = sum(result.failed for result in results)
     if failed:
         log(f"{failed} request(s) failed (non-2xx or no answer)")
