@@ -14,8 +14,9 @@ database is only used to connect) and dropped at the end. With a device key (mad
 key, as a phone's), uploads ``floor_2_straight`` and then the other real sessions of
 ``data/sessions`` once, then the 3 smallest again and again (each upload a new map) until there
 are ``--maps`` (50) maps, and waits for every build. Then, on loopback, each endpoint in turn for
-``--duration-s`` (5 s; 1.5 s with ``--quick``) with ``--connections`` (8) keep-alive connections,
-each sending its next request as soon as the last is answered (a closed loop):
+``--duration-s`` (5 s; 1.5 s with ``--quick``, which wrk, counting whole seconds, makes 2 s) with
+``--connections`` (8) keep-alive connections, each sending its next request as soon as the last is
+answered (a closed loop):
 
 - ``GET /healthz`` (no key), measured first and again last: the floor, "the cost of doing
   nothing"; the ratios divide by the mean of the two runs;
@@ -73,6 +74,7 @@ import argparse  # noqa: E402
 import asyncio  # noqa: E402
 import datetime as dt  # noqa: E402
 import json  # noqa: E402
+import math  # noqa: E402
 import shutil  # noqa: E402
 import subprocess  # noqa: E402
 import tempfile  # noqa: E402
@@ -332,7 +334,7 @@ def run_wrk(
         "wrk",
         f"-t{connections}",
         f"-c{connections}",
-        f"-d{max(1, round(duration_s))}s",
+        f"-d{max(1, math.ceil(duration_s))}s",  # wrk counts whole seconds
         "--timeout",
         "30s",
         "-s",

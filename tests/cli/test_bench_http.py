@@ -1,6 +1,6 @@
 """``bench/http.py --quick --no-wrk`` on SQLite: the HTTP benchmark runs end to end with the Python
 client and prints a row with positive requests/s and no failed request for every endpoint it
-measures (20 maps instead of 50, 1 s per endpoint: about 45 s)."""
+measures (20 maps instead of 50, 1 s per endpoint: 30–55 s)."""
 
 from __future__ import annotations
 
