@@ -220,7 +220,7 @@ def get_app_map(
         return Response(status_code=304, headers=headers)
     content = app_map_content(db_session, chosen)
     if accepts_gzip(accept_encoding):
-        content = gzip.compress(content, compresslevel=6, mtime=0)
+        content = gzip.compress(content, compresslevel=1, mtime=0)  # 3 ms; 6 takes 18 ms
         headers["Content-Encoding"] = "gzip"
     return Response(content=content, media_type="application/json", headers=headers)
 
