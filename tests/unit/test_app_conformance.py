@@ -15,7 +15,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from app.domain.app_model import check_app_map
+from app.domain.app_model import build_app_graph, check_app_map, decode_app_map, plan_app_route
 from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
 from app.domain.path_graph import PathGraph, build_path_graph, unique_waypoint_names
@@ -56,6 +56,17 @@ def assert_app_survives(document: dict[str, Any]) -> None:
     assert report.decode_error is None, report.decode_error
     assert report.ok, str(report)
     assert report.pairs > 0
+    # and the app's own Dijkstra from phones standing at a spread of vertices to each destination
+    app_map = decode_app_map(document)
+    graph = build_app_graph(app_map)
+    vertices = sorted(graph.position)
+    phones = [graph.position[v] for v in vertices[:: max(1, len(vertices) // 4)]]
+    for destination in (*app_map.tags, *app_map.waypoints):
+        endpoint = graph.nearest(destination.position)
+        for phone in phones:
+            stops = plan_app_route(graph, phone, destination.position)
+            assert len(stops) >= 2
+            assert stops[-1] == endpoint
 
 
 def with_app_made_pois(upload: dict[str, Any]) -> dict[str, Any]:
