@@ -158,9 +158,12 @@ def build_skeleton_from_arrays(
     for change in changes:
         _add_floor_change(G, world_p_phone, levels_m, change, params)
     tags = {
-        int(t): _attach(G, str(t), p, levels_m) for t, p in zip(tag_ids, world_p_tag, strict=True)
+        int(t): attach_anchor(G, str(t), p, levels_m)
+        for t, p in zip(tag_ids, world_p_tag, strict=True)
     }
-    pois = tuple(_attach(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True))
+    pois = tuple(
+        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
+    )
     _mark_junctions(G)
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
@@ -264,7 +267,7 @@ def _densify(starts: FloatArray, ends: FloatArray, spacing_m: float) -> FloatArr
     t = (np.arange(segment.shape[0]) - np.repeat(offsets, pieces + 1)) / np.repeat(
         pieces, pieces + 1
     )
-    return starts[segment] + (ends - starts)[segment] * t[:, None]
+    return np.asarray(starts[segment] + (ends - starts)[segment] * t[:, None], dtype=np.float64)
 
 
 def _dilate(mask: BoolArray, radius_px: float) -> BoolArray:
@@ -723,7 +726,7 @@ def _split_nearest(
     return node
 
 
-def _attach(G: nx.Graph[int], name: str, world_p: FloatArray, levels_m: FloatArray) -> Anchor:
+def attach_anchor(G: nx.Graph[int], name: str, world_p: FloatArray, levels_m: FloatArray) -> Anchor:
     """Attach a tag or point of interest to the nearest point of its floor's skeleton."""
     floor = int(assign_floors(world_p[None, 1], levels_m)[0])
     node = _split_nearest(G, world_p, floor)
