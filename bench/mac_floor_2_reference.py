@@ -43,6 +43,9 @@ SPURS = [
     [(-40.8, 68.8), (-40.4, 72.3)],                              # the alcove of 318
 ]
 # fmt: on
+#: Where the stairs down to floor 1 leave the corridor (a branch point of the floor, though the
+#: stairs themselves are not drawn): south-west of 303, where straight_209_occam starts down.
+STAIRS_TOP_XZ = (-4.6, 13.5)
 #: Height of floor 2 in this frame, m (the ground-truth tags of the floor are at −0.2 … 0.3).
 FLOOR_2_Y_M = 0.0
 #: A ground-truth tag farther than this from the reference corridors is not on them, m.
@@ -91,8 +94,8 @@ def reference_graph(gt_positions_m: dict[int, tuple[float, float, float]]) -> Pa
 
 
 def branch_points_xz() -> list[tuple[float, float]]:
-    """The reference's branch points (x, z), m."""
-    return [s[0] for s in SPURS]
+    """The reference's branch points (x, z), m: where the spurs leave and the stairs' head."""
+    return [s[0] for s in SPURS] + [STAIRS_TOP_XZ]
 
 
 def _distance_to_lines(xz: tuple[float, float]) -> float:

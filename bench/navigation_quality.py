@@ -38,13 +38,19 @@ from app.domain.skeleton import build_skeleton_from_arrays  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
 from app.domain.turn_metrics import RouteScore, agreement, score_tag_routes  # noqa: E402
 from app.tables import render_markdown_table  # noqa: E402
-from bench.mac_floor_2_reference import branch_points_xz, reference_graph  # noqa: E402
+from bench.mac_floor_2_reference import (  # noqa: E402
+    FLOOR_2_Y_M,
+    branch_points_xz,
+    reference_graph,
+)
 
 SESSIONS = REPO / "data" / "sessions"
 GROUND_TRUTH = REPO / "data" / "ground_truth" / "rtabmap_mac_1_2.txt"
-FLOOR_2 = ("floor_2_straight", "desnat_straight_once")
+FLOOR_2 = ("floor_2_straight", "desnat_straight_once", "straight_209_occam")
 #: A skeleton junction this close (x–z, m) to a reference branch point is a real one.
 JUNCTION_NEAR_M = 3.0
+#: Poses within this height of floor 2 are on it, m.
+FLOOR_2_BAND_M = 1.5
 #: Reference corridor within this (x–z, m) of a walked pose is covered by the walk.
 COVERED_WITHIN_M = 2.0
 
@@ -88,15 +94,29 @@ def graphs(m: AlignedMap) -> dict[str, PathGraph]:
     }
 
 
+def floor_2_index(pg: PathGraph) -> int:
+    """The index of floor 2 (the level nearest the reference's height) in ``pg``."""
+    levels = np.asarray(pg.floor_levels_m)
+    return int(np.argmin(np.abs(levels - FLOOR_2_Y_M))) if levels.size else 0
+
+
 def walk_length_m(pg: PathGraph) -> float:
-    G = pg.graph
-    return float(sum(d["length_m"] for _, _, d in G.edges(data=True) if d["kind"] == WALK))
+    """Length of the walk edges on floor 2, m."""
+    G, floor = pg.graph, floor_2_index(pg)
+    return float(
+        sum(
+            d["length_m"]
+            for _, _, d in G.edges(data=True)
+            if d["kind"] == WALK and d["floor"] == floor
+        )
+    )
 
 
 def covered_reference_m(reference: PathGraph, positions_m: np.ndarray) -> float:
     """Length of the reference within ``COVERED_WITHIN_M`` of the walk (what the map can know)."""
     G = reference.graph
-    walk_xz = positions_m[:, [0, 2]]
+    on_floor = np.abs(positions_m[:, 1] - FLOOR_2_Y_M) < FLOOR_2_BAND_M
+    walk_xz = positions_m[on_floor][:, [0, 2]]
     covered = 0.0
     for u, v in G.edges:
         a = np.asarray(G.nodes[u]["position_m"])[[0, 2]]
@@ -112,11 +132,11 @@ def covered_reference_m(reference: PathGraph, positions_m: np.ndarray) -> float:
 
 def junction_stats(pg: PathGraph) -> tuple[int, float]:
     """(junctions, share within ``JUNCTION_NEAR_M`` of a reference branch point)."""
-    G = pg.graph
+    G, floor = pg.graph, floor_2_index(pg)
     junctions = [
         np.asarray(G.nodes[n]["position_m"])[[0, 2]]
         for n in G.nodes
-        if G.nodes[n]["kind"] == JUNCTION
+        if G.nodes[n]["kind"] == JUNCTION and G.nodes[n]["floor"] == floor
     ]
     branches = np.array(branch_points_xz())
     near = [
@@ -178,11 +198,15 @@ def quality_table() -> str:
             )
     table = render_markdown_table(rows, justify="right")
     agree = [
-        f"{label}: {agreement(scores[(FLOOR_2[0], label)], scores[(FLOOR_2[1], label)]):.0%}"
-        for label in ("before", "after")
+        f"{a} / {b}: "
+        + " → ".join(
+            f"{agreement(scores[(a, g)], scores[(b, g)]):.0%}" for g in ("before", "after")
+        )
+        for a, b in itertools.combinations(FLOOR_2, 2)
     ]
     return (
-        f"{table}\n\nsame turns announced by both maps (tag pairs in both): {', '.join(agree)}\n"
+        f"{table}\n\nsame turns announced by two maps of the floor (tag pairs in both), "
+        f"before → after: {'; '.join(agree)}\n"
         f"reference: {walk_length_m(reference):.0f} m of corridor, "
         f"{len(branch_points_xz())} branch points, {len(reference.tags)} tags"
     )

@@ -206,6 +206,23 @@ def guidance_steps(
     return steps
 
 
+def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[bool]]]:
+    """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
+    whether each point is a junction)."""
+    xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    kinds, junction = _segment_kinds(pg, xyz, route.nodes)
+    stretches = []
+    i = 0
+    while i < len(kinds):
+        j = i
+        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
+            j += 1
+        if kinds[i] == WALK:
+            stretches.append((xyz[i : j + 2], junction[i : j + 2]))
+        i = j + 1
+    return stretches
+
+
 def decision_points(
     xyz: FloatArray, junction: Sequence[bool], *, end_margin_m: float = END_MARGIN_M
 ) -> list[Decision]:

@@ -22,11 +22,14 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
 4. **Cleaning.** Cells of degree ≠ 2 are *ends* and *branch points*; the runs between them are
    branches. Repeatedly: a dead-end branch shorter than ``stub_max_m`` is removed (a step toward a
    tag on the wall, a bulge of the band), a small cycle (≤ ``loop_max_m`` round) loses its longer
-   side, and branch points joined by a branch shorter than ``junction_merge_m`` become one.
+   side, and branch points joined by a branch shorter than ``junction_merge_m`` become one,
+   placed where its branches' lines meet.
    Two dead ends within ``gap_close_m`` of each other that face each other are joined (a corridor
    walked in two passes that did not meet).
-5. **Straight segments.** Each branch is thinned by Douglas–Peucker with ``straight_tolerance_m``,
-   so a straight corridor is one edge. Node heights are their floor's level.
+5. **Straight segments.** Each branch loses its cells within half a corridor width of its ends
+   (the hook a merged branch point leaves) and is thinned by Douglas–Peucker with
+   ``straight_tolerance_m``, so a straight corridor is one edge. Node heights are their floor's
+   level.
 6. **Stairs and elevators** keep the walked poses of the floor change (simplified), joined at both
    ends to the nearest point of their floor's skeleton.
 7. **Anchors.** Each tag and point of interest is attached to the nearest point of a walk edge of
@@ -83,7 +86,7 @@ class SkeletonParams:
 
     corridor_width_m: float = 1.8
     close_m: float = 0.6
-    cell_m: float = 0.2
+    cell_m: float = 0.25
     stub_max_m: float = 3.0
     loop_max_m: float = 12.0
     junction_merge_m: float = 3.0
@@ -429,7 +432,48 @@ def _clean(state: _Branches, params: SkeletonParams) -> _Branches:
             break
     if _close_gaps(state, params.gap_close_m / cell, stub_px):
         _join_through_nodes(state)
+    _centre_junctions(state, params.corridor_width_m / cell, knot_px)
     return state
+
+
+def _centre_junctions(state: _Branches, reach_px: float, max_move_px: float) -> None:
+    """Move each branch point to where its branches' lines meet (least squares), each line
+    through the branch's points between 0.5 and 1.5 × ``reach_px`` from it: thinning bends the
+    line into a crossing, and a merged knot sits at its cells' middle."""
+    ends: dict[int, list[tuple[int, bool]]] = {}
+    for b, (u, v, _) in state.branches.items():
+        ends.setdefault(u, []).append((b, True))
+        ends.setdefault(v, []).append((b, False))
+    for key, incident in ends.items():
+        if len(incident) < 3:
+            continue
+        normal_sum = np.zeros((2, 2))
+        rhs = np.zeros(2)
+        for b, from_start in incident:
+            line = state.branches[b][2]
+            line = line if from_start else line[::-1]
+            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+            near = line[int(np.searchsorted(arc, min(0.5 * reach_px, arc[-1])))]
+            far = line[int(np.searchsorted(arc, min(1.5 * reach_px, arc[-1])))]
+            d = far - near
+            norm = float(np.linalg.norm(d))
+            if norm == 0:
+                continue
+            d /= norm
+            projector = np.eye(2) - np.outer(d, d)
+            normal_sum += projector
+            rhs += projector @ near
+        if abs(float(np.linalg.det(normal_sum))) < 1e-6:
+            continue
+        centre = np.asarray(np.linalg.solve(normal_sum, rhs), dtype=np.float64)
+        if float(np.linalg.norm(centre - state.key_ij[key])) > max_move_px:
+            continue
+        state.key_ij[key] = centre
+        for b, from_start in incident:
+            u, v, line = state.branches[b]
+            line = line.copy()
+            line[0 if from_start else -1] = centre
+            state.branches[b] = (u, v, line)
 
 
 def _prune_stubs(state: _Branches, stub_px: float) -> bool:
@@ -585,6 +629,14 @@ def _emit(
         key_node(key)
     for u, v, poly in state.branches.values():
         xz = (poly + 0.5) * cell + origin_xz
+        if u != v:  # a merged branch point's old cells would make a hook at the junction
+            radius_m = params.corridor_width_m / 2
+            interior = np.minimum(
+                np.linalg.norm(xz - xz[0], axis=1), np.linalg.norm(xz - xz[-1], axis=1)
+            )
+            keep = interior >= radius_m
+            keep[0] = keep[-1] = True
+            xz = xz[keep]
         kept = _douglas_peucker(xz, params.straight_tolerance_m)
         chain = [key_node(u)]
         chain += [_new_node(G, xz[k], floor, height_m) for k in kept[1:-1]]
@@ -609,9 +661,7 @@ def _new_node(G: nx.Graph[int], xz: FloatArray, floor: int, height_m: float) -> 
 
 
 def _add_walk_edge(G: nx.Graph[int], a: int, b: int, floor: int, kind: str = WALK) -> None:
-    length_m = float(
-        np.linalg.norm(np.subtract(G.nodes[a]["position_m"], G.nodes[b]["position_m"]))
-    )
+    length_m = math.dist(G.nodes[a]["position_m"], G.nodes[b]["position_m"])
     if G.has_edge(a, b) and G.edges[a, b]["length_m"] <= length_m:
         return
     G.add_edge(a, b, length_m=length_m, kind=kind, floor=floor)

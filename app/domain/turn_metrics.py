@@ -1,7 +1,7 @@
 """How good a route's turn-by-turn is, against a reference corridor graph (issue 18).
 
     turns = announced_turns(route)                  # the turns a walker is told (|turn| ≥ 45°)
-    truth = reference_turns(reference_route)        # the corridors' own turns
+    truth = reference_turns(reference, reference_route)   # the corridors' own turns
     hits = match_turns(turns, truth)                # (announced that are real, real that are told)
     has_zigzag(turns), has_turn_around(route)
     score = score_tag_routes(pg, reference, pairs, plan=plan_guided_route)   # all of it, per map
@@ -10,6 +10,7 @@ A turn is *matched* when a reference turn of the same side lies within ``MATCH_W
 it; each reference turn matches at most one announced turn. Precision counts a told turn as real
 when the reference corridor bends there, even right next to the route's end (a tag at a corner);
 recall asks for the reference's decision points (not within ``END_MARGIN_M`` of the ends).
+Both use a band below the threshold (see :func:`score_tag_routes`).
 A *zigzag* is two announced turns of opposite sides at most ``ZIGZAG_WITHIN_M`` apart along the
 route. A *turn-around* is a mid-route "turn around" or a bend of the route's polyline of ≥ 150°
 away from its ends.
@@ -17,6 +18,7 @@ away from its ends.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,10 +27,12 @@ import numpy as np
 
 from app.domain.frames import FloatArray
 from app.domain.instructions import (
+    BEAR_MIN_DEG,
     END_MARGIN_M,
     TURN_AROUND_MIN_DEG,
     TURN_MIN_DEG,
     decision_points,
+    walk_stretches,
 )
 from app.domain.path_graph import PathGraph
 from app.domain.routing import Endpoint, Route, RouteError, TagEnd, plan_route, signed_turn_deg
@@ -73,25 +77,33 @@ def announced_turns(route: Route, *, min_deg: float = TURN_MIN_DEG) -> list[Turn
 
 
 def reference_turns(
-    route: Route, *, min_deg: float = TURN_MIN_DEG, end_margin_m: float = END_MARGIN_M
+    reference: PathGraph,
+    route: Route,
+    *,
+    min_deg: float = TURN_MIN_DEG,
+    end_margin_m: float = END_MARGIN_M,
 ) -> list[Turn]:
-    """The turns of a route on the reference corridor graph: its decision points turning at
-    least ``min_deg`` (the reference's corridors are drawn straight, so no tolerance is needed
-    beyond rounding). ``end_margin_m`` = 0 also counts bends next to the route's ends (where a
-    guided route folds the turn into its first or last step)."""
+    """The turns of a route on the reference corridor graph: the decision points of its walked
+    stretches (stairs and elevators apart) turning at least ``min_deg``. ``end_margin_m`` = 0
+    also counts bends next to a stretch's ends (where a guided route folds the turn into its
+    first or last step)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    if len(xyz) < 3:
-        return []
     walked_m = _walked(xyz)
-    return [
-        Turn(
-            position_xz_m=(float(xyz[d.index, 0]), float(xyz[d.index, 2])),
-            turn_deg=d.turn_deg,
-            along_m=float(walked_m[d.index]),
-        )
-        for d in decision_points(xyz, [False] * len(xyz), end_margin_m=end_margin_m)
-        if abs(d.turn_deg) >= min_deg
-    ]
+    turns = []
+    for points, junction in walk_stretches(reference, route):
+        for d in decision_points(points, junction, end_margin_m=end_margin_m):
+            if abs(d.turn_deg) < min_deg:
+                continue
+            p = points[d.index]
+            k = int(np.argmin(np.linalg.norm(xyz - p, axis=1)))
+            turns.append(
+                Turn(
+                    position_xz_m=(float(p[0]), float(p[2])),
+                    turn_deg=d.turn_deg,
+                    along_m=float(walked_m[k]),
+                )
+            )
+    return turns
 
 
 def match_turns(
@@ -179,10 +191,16 @@ def score_tag_routes(
     *,
     plan: RoutePlanner,
     min_deg: float = TURN_MIN_DEG,
+    slack_deg: float = BEAR_MIN_DEG,
 ) -> RouteScore:
     """Route every (start tag, goal tag) pair on ``pg`` with ``plan`` and on ``reference`` (plain
     shortest path; its turns are the corridors' turns) and compare. Pairs either graph cannot
-    route are skipped."""
+    route are skipped. Among reference routes of (nearly) the same length, the one along the
+    route on ``pg`` is taken (:func:`_leaning_toward`): in a grid of corridors many routes tie, and
+    the map is not wrong to pick another of them. Turns of at least ``min_deg`` are scored with a
+    band below it: a told turn is real when the corridor bends at least ``slack_deg`` there, and a
+    real turn is told when a turn or bear of at least ``slack_deg`` is (a 43° corner told as 47°
+    is neither wrong nor missed)."""
 
     told = hit_told = real = hit_real = zigzags = turn_arounds = 0
     ratios: list[float] = []
@@ -190,14 +208,15 @@ def score_tag_routes(
     for a, b in pairs:
         try:
             route = plan(pg, TagEnd(a), TagEnd(b))
-            truth_route = plan_route(reference, TagEnd(a), TagEnd(b))
+            truth_route = plan_route(_leaning_toward(reference, route), TagEnd(a), TagEnd(b))
         except RouteError:
             continue
         turns = announced_turns(route, min_deg=min_deg)
-        truth = reference_turns(truth_route, min_deg=min_deg)
-        bends = reference_turns(truth_route, min_deg=min_deg, end_margin_m=0.0)
+        told_any = announced_turns(route, min_deg=slack_deg)
+        truth = reference_turns(reference, truth_route, min_deg=min_deg)
+        bends = reference_turns(reference, truth_route, min_deg=slack_deg, end_margin_m=0.0)
         matched_told = match_turns(turns, bends)[0]
-        matched_real = match_turns(turns, truth)[1]
+        matched_real = match_turns(told_any, truth)[1]
         told += len(turns)
         hit_told += matched_told
         real += len(truth)
@@ -219,6 +238,25 @@ def score_tag_routes(
         length_ratio_p90=float(np.percentile(ratios, 90)) if ratios else float("nan"),
         sides=sides,
     )
+
+
+#: Reference edges farther than this from the route being scored cost this much more, m and ratio.
+_TIE_BREAK_M = 3.0
+_TIE_BREAK_RATIO = 0.02
+
+
+def _leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
+    """``reference`` with its edges away from ``route`` (midpoint farther than ``_TIE_BREAK_M``)
+    made ``_TIE_BREAK_RATIO`` longer, so that ties between equally short routes go its way."""
+    xz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
+    if len(xz) == 0:
+        return reference
+    G = reference.graph.copy()
+    for u, v, data in G.edges(data=True):
+        middle = (np.asarray(G.nodes[u]["position_m"]) + np.asarray(G.nodes[v]["position_m"])) / 2
+        if float(np.min(np.linalg.norm(xz - middle[[0, 2]], axis=1))) > _TIE_BREAK_M:
+            data["length_m"] = float(data["length_m"]) * (1 + _TIE_BREAK_RATIO)
+    return dataclasses.replace(reference, graph=G)
 
 
 def agreement(first: RouteScore, second: RouteScore) -> float:
