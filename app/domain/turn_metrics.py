@@ -9,7 +9,8 @@
 A turn is *matched* when a reference turn of the same side lies within ``MATCH_WITHIN_M`` (x–z) of
 it; each reference turn matches at most one announced turn. Precision counts a told turn as real
 when the reference corridor bends there, even right next to the route's end (a tag at a corner);
-recall asks for the reference's decision points (not within ``END_MARGIN_M`` of the ends).
+recall asks for the reference's decision points (not within ``END_MARGIN_M`` + ``END_BAND_M`` of
+the ends).
 Both use a band below the threshold (see :func:`score_tag_routes`).
 A *zigzag* is two announced turns of opposite sides at most ``ZIGZAG_WITHIN_M`` apart along the
 route. A *turn-around* is a mid-route "turn around" or a bend of the route's polyline of ≥ 150°
@@ -43,6 +44,9 @@ RoutePlanner = Callable[[PathGraph, Endpoint, Endpoint], Route]
 MATCH_WITHIN_M = 4.0
 #: Opposite turns at most this far apart along the route are a zigzag, m.
 ZIGZAG_WITHIN_M = 6.0
+#: Recall does not ask for reference turns within this much more than ``END_MARGIN_M`` of a
+#: stretch's ends (where the map's corner or tag anchor may sit a little differently), m.
+END_BAND_M = 1.0
 #: A polyline bend this far (m) from both ends of the route is mid-route.
 MID_ROUTE_M = 1.0
 
@@ -213,7 +217,9 @@ def score_tag_routes(
             continue
         turns = announced_turns(route, min_deg=min_deg)
         told_any = announced_turns(route, min_deg=slack_deg)
-        truth = reference_turns(reference, truth_route, min_deg=min_deg)
+        truth = reference_turns(
+            reference, truth_route, min_deg=min_deg, end_margin_m=END_MARGIN_M + END_BAND_M
+        )
         bends = reference_turns(reference, truth_route, min_deg=slack_deg, end_margin_m=0.0)
         matched_told = match_turns(turns, bends)[0]
         matched_real = match_turns(told_any, truth)[1]
@@ -254,9 +260,19 @@ def _leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
     G = reference.graph.copy()
     for u, v, data in G.edges(data=True):
         middle = (np.asarray(G.nodes[u]["position_m"]) + np.asarray(G.nodes[v]["position_m"])) / 2
-        if float(np.min(np.linalg.norm(xz - middle[[0, 2]], axis=1))) > _TIE_BREAK_M:
+        if _distance_to_polyline(middle[[0, 2]], xz) > _TIE_BREAK_M:
             data["length_m"] = float(data["length_m"]) * (1 + _TIE_BREAK_RATIO)
     return dataclasses.replace(reference, graph=G)
+
+
+def _distance_to_polyline(p: FloatArray, polyline: FloatArray) -> float:
+    """Distance from point ``p`` (2,) to the polyline (K, 2), m."""
+    if len(polyline) == 1:
+        return float(np.linalg.norm(polyline[0] - p))
+    a, b = polyline[:-1], polyline[1:]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-12), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
 
 
 def agreement(first: RouteScore, second: RouteScore) -> float:
