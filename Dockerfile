@@ -8,7 +8,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     INVISIBLE_MAP_DATA_DIR=/var/lib/invisible-map
 
 WORKDIR /srv/invisible-map
-# jemalloc: optimizations run about 20% faster on it (app/allocator.py). Worker processes that
+# jemalloc: optimizations run about 20% faster on it (workers/allocator.py). Worker processes that
 # `serve` or `worker --processes N` start preload it themselves; the compose file's single-process
 # worker preloads it through LD_PRELOAD, at this architecture-independent path.
 RUN apt-get update \

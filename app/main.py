@@ -30,9 +30,9 @@ from app.api.routes import (
     sweeps,
     system,
 )
-from app.api.routes.system import package_version
-from app.api.version_cache import VersionCache
 from app.config import Settings, get_settings
+from app.services.system import package_version
+from app.services.version_cache import VersionCache
 from app.storage.db import Database
 from app.storage.migrate import head_revision
 

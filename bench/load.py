@@ -79,11 +79,11 @@ from sqlalchemy import Engine, create_engine, make_url, text
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from app.cli.server_process import ServerProcess, WorkerProcess  # noqa: E402
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.client import Client  # noqa: E402
 from app.domain.localize import session_update_documents  # noqa: E402
 from app.domain.session import load_session  # noqa: E402
-from app.server_process import ServerProcess, WorkerProcess  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 UPLOAD_SESSIONS = sorted(SESSIONS.glob("*.json"))

@@ -47,6 +47,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain import simulate as sim_module  # noqa: E402
 from app.domain.frames import (  # noqa: E402
     PHONE_T_CAMERA_CV,
@@ -69,7 +70,6 @@ from app.domain.metrics import tag_rmse_m, umeyama_rigid  # noqa: E402
 from app.domain.session import Session, load_session, parse_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 COST_POSES = (100, 1_000, 10_000)
@@ -144,7 +144,7 @@ def simulated_errors(
     else:
         map_tags = optimize_session(parse_session(mapping.upload)).tag_poses()
     # The truth in the map's frame: an optimized map is placed by its own gauge (its first pose),
-    # so the truth is carried onto it by the best-fit rigid transform of the tags (DESIGN §4).
+    # so the truth is carried onto it by the best-fit rigid transform of the tags (architecture §4).
     common = sorted(map_tags)
     map_T_truth = umeyama_rigid(
         np.stack([mapping.world_T_tag_true[t][:3, 3] for t in common]),

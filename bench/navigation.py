@@ -25,6 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.params import SlamParams  # noqa: E402
 from app.domain.path_graph import (  # noqa: E402
     JUNCTION,
@@ -36,7 +37,6 @@ from app.domain.routing import PositionEnd, TagEnd, plan_route  # noqa: E402
 from app.domain.session import load_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 #: Where a person stands relative to a node: beside the walked path, not on it.

@@ -32,11 +32,11 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.params import SlamParams  # noqa: E402
 from app.domain.session import load_session, parse_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.slam import linearize_and_solve_ms, optimize_session  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 SYNTHETIC_POSES = (1_000, 10_000, 100_000)

@@ -27,10 +27,10 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from app.allocator import jemalloc_path  # noqa: E402
+from app.cli.server_process import ServerProcess, WorkerProcess  # noqa: E402
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.client import Client  # noqa: E402
-from app.server_process import ServerProcess, WorkerProcess  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
+from workers.allocator import jemalloc_path  # noqa: E402
 
 SESSION = REPO / "data" / "sessions" / "occam_room.json"
 PAPER_AXES = ("tag_orientation_var_rad2", "odom_linear_var_m2_per_s", "odom_angular_var_rad2_per_s")

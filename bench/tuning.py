@@ -1,4 +1,4 @@
-"""Tuning benchmark (DESIGN §5): the paper's grid on the real sessions, Optuna's sampler against it,
+"""Tuning benchmark (§5): the paper's grid on the real sessions, Optuna's sampler against it,
 and the shift metric against ground truth on simulations. One command, prints its tables.
 
     .venv/bin/python -m bench.tuning                 # the full benchmark (about 5 minutes)
@@ -9,7 +9,7 @@ and the shift metric against ground truth on simulations. One command, prints it
 (a) Wall time of the paper grid (10 × 10 × 10 over 1e-8..1, 1000 trials) per real session with
     ground truth, on 2 processes, and on 1 process for the first session (the speed-up); the
     workers' CPU time shows how much of the 2 cores the sweep actually got on a shared machine.
-    The pool preloads jemalloc where the machine has it (``app/allocator.py``; the "allocator"
+    The pool preloads jemalloc where the machine has it (``workers/allocator.py``; the "allocator"
     column says which one ran).
 (a2) Where a trial's time goes, per session: CPU time per trial (``time.process_time`` in this
     one process, so other programs on the machine inflate it far less than the wall time) of its
@@ -55,13 +55,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from app.allocator import jemalloc_path  # noqa: E402
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.metrics import ground_truth_metric, tag_rmse_m  # noqa: E402
 from app.domain.params import SlamParams  # noqa: E402
 from app.domain.session import Session, load_session, parse_session  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.sweep_plan import SweepPlan  # noqa: E402
 from app.domain.tuning import (  # noqa: E402
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
@@ -72,8 +73,8 @@ from app.domain.tuning import (  # noqa: E402
     best_trial,
     sweep_result,
 )
-from app.sweep_runner import SweepPlan, run_sweep  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
+from workers.allocator import jemalloc_path  # noqa: E402
+from workers.sweep_pool import run_sweep  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 GROUND_TRUTH = REPO / "data" / "ground_truth"

@@ -39,12 +39,12 @@ from multiprocessing.connection import wait
 from multiprocessing.process import BaseProcess
 from types import FrameType
 
-from app.allocator import preloading_jemalloc
 from app.config import Settings
 from app.storage import queue
 from app.storage.db import Database, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
+from workers.allocator import preloading_jemalloc
 from workers.failures import log_failure
 from workers.lease import JobControl, LeaseKeeper
 from workers.pipeline import OUTAGE_MAX_WAIT_S, PIPELINES, JobReport, Outcome, Stage, run_job
@@ -379,7 +379,7 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
 
 def start_worker_processes(settings: Settings, processes: int) -> list[BaseProcess]:
     """Start ``processes`` worker processes (spawn context, preloading jemalloc where the
-    machine has it: ``app.allocator``) and return them (none for 0)."""
+    machine has it: ``workers.allocator``) and return them (none for 0)."""
     if processes < 0:
         raise ValueError(f"processes must be at least 0, got {processes}")
     context = multiprocessing.get_context("spawn")

@@ -56,15 +56,15 @@ from app.domain.path_graph import (
 )
 from app.domain.session import Session, decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
-from app.plot import render_map_png
+from app.render.map_plot import render_map_png
 from app.storage import maps, queue
 from app.storage.db import Database, database_fault, first_line
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
 from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP, SessionNotFound, raw_upload
-from app.sweep_runner import SweepPlan
 from workers.failures import log_failure
 from workers.lease import JobControl
 

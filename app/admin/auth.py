@@ -226,8 +226,8 @@ def _still_valid(
         return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
     if not isinstance(key_id, int):
         return None
-    with db.read() as session:
-        principal = keys.active_principal(session, key_id)
+    with db.read() as db_session:
+        principal = keys.active_principal(db_session, key_id)
     return principal if principal is not None and principal.is_admin else None
 
 

@@ -2,7 +2,7 @@
 and the route tester's endpoints.
 
     fields = rebuild_fields(current_params)          # what the form shows, prefilled
-    overrides = rebuild_overrides(form)              # ApiError 422 naming a bad parameter
+    overrides = rebuild_overrides(form)              # InvalidInput naming a bad parameter
     parse_endpoint("tag:5"), parse_endpoint("poi:Room 209"), parse_endpoint("pos:1.5,0,-2")
 """
 
@@ -12,10 +12,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from app.api.errors import ApiError
-from app.api.routes.maps import checked_overrides
 from app.domain.params import SlamParams
 from app.domain.routing import Endpoint, NodeEnd, PoiEnd, PositionEnd, TagEnd
+from app.services.errors import InvalidInput
+from app.services.maps import checked_overrides
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -81,7 +81,7 @@ def rebuild_fields(
 
 def rebuild_overrides(form: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
     """The parameters of a rebuild form that differ from the defaults (checked as the API
-    checks them: ApiError 422 naming the parameter), and the submitted texts."""
+    checks them: InvalidInput naming the parameter), and the submitted texts."""
     submitted = {
         field.name: str(form.get(field.name, "")).strip()
         for field in REBUILD_PARAMS
@@ -97,7 +97,7 @@ def rebuild_overrides(form: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str
 
 def parse_endpoint(text: str, what: str) -> Endpoint:
     """A route end from the route tester: ``tag:ID``, ``poi:NAME``, ``node:ID`` or
-    ``pos:X,Y,Z`` (m, map frame). ApiError 422 for anything else, naming ``what`` ("From")."""
+    ``pos:X,Y,Z`` (m, map frame). InvalidInput for anything else, naming ``what`` ("From")."""
     kind, _, value = text.partition(":")
     value = value.strip()
     try:
@@ -113,8 +113,7 @@ def parse_endpoint(text: str, what: str) -> Endpoint:
                 return PositionEnd((x, y, z))
     except ValueError:
         pass
-    raise ApiError(
-        422,
+    raise InvalidInput(
         "invalid_route",
         f"{what}: choose a tag, a point of interest or a place on the map (got {text!r})",
         field=what.lower(),

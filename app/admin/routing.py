@@ -6,10 +6,8 @@ endpoint (its dependencies included) so that:
 
     LoginRequired                         303 to /admin/login?next=…
     CsrfRefused                           403 page
-    ApiError (shared API helpers)         its status and detail
-    NOT_FOUND_ERRORS (MapNotFound, …)     404 page
-    InvalidTransition                     409 page (e.g. cancel a finished job)
-    ParameterError                        422 page
+    ServiceError, and every error of      the status app.services.errors gives it (as the
+    STATUS_OF_ERROR (MapNotFound …)       API answers it), with its detail
     RequestValidationError                422 page (a malformed query or path parameter)
     a database fault (app.storage.db)     503 page saying which (unavailable, full, read-only)
     anything else                         500 page (logged with its traceback)
@@ -31,11 +29,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
-from app.api.errors import FAULT_ANSWERS, NOT_FOUND_ERRORS, ApiError, field_path
+from app.api.errors import FAULT_ANSWERS, field_path
 from app.api.route_class import SessionEndingRoute
-from app.domain.errors import ParameterError
+from app.services.errors import ServiceError, status_and_code
 from app.storage.db import database_fault, first_line
-from app.storage.queue import InvalidTransition
 
 logger = logging.getLogger(__name__)
 
@@ -88,7 +85,7 @@ def error_page(request: Request, exc: Exception) -> Response:
         status=status,
         message=message,
     )
-    if isinstance(exc, ApiError):
+    if isinstance(exc, ServiceError):
         for name, value in exc.headers.items():
             if name.lower() != "www-authenticate":
                 response.headers[name] = value
@@ -98,14 +95,9 @@ def error_page(request: Request, exc: Exception) -> Response:
 def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:
     if isinstance(exc, CsrfRefused):
         return 403, f"{exc} Go back, reload the page and try again."
-    if isinstance(exc, ApiError):
-        return exc.status_code, sentence(exc.detail)
-    if isinstance(exc, NOT_FOUND_ERRORS):
-        return 404, sentence(str(exc))
-    if isinstance(exc, InvalidTransition):
-        return 409, sentence(str(exc))
-    if isinstance(exc, ParameterError):
-        return 422, sentence(str(exc))
+    known = status_and_code(exc)
+    if known is not None:
+        return known[0], sentence(str(exc))
     if isinstance(exc, RequestValidationError):
         parts = []
         for error in exc.errors():

@@ -21,7 +21,7 @@ from fastapi.templating import Jinja2Templates
 
 from app.admin.auth import DashboardUser, admin_state, set_cookie
 from app.admin.nav import NAV
-from app.api.routes.system import package_version
+from app.services.system import package_version
 
 TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
 FLASH_COOKIE = "im_admin_flash"

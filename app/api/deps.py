@@ -1,5 +1,5 @@
 """Dependencies of the routes, each with a named ``Annotated`` alias; the aliases chain
-(``ReadSessionDep`` → ``CurrentPrincipal`` → ``AdminPrincipal``), and some double as validators
+(``ReadDbSessionDep`` → ``CurrentPrincipal`` → ``AdminPrincipal``), and some double as validators
 (``MapDep`` is a map that exists, or a 404).
 
 Authentication: ``Authorization: Bearer <key>`` on every ``/v1`` endpoint. A missing, unknown,
@@ -73,21 +73,21 @@ async def get_db(request: Request) -> Database:
 DbDep = Annotated[Database, Depends(get_db)]
 
 
-def read_session(db: DbDep) -> Iterator[Session]:
+def read_db_session(db: DbDep) -> Iterator[Session]:
     """One read-only transaction for the request."""
-    with db.read() as session:
-        yield session
+    with db.read() as db_session:
+        yield db_session
 
 
-def write_session(db: DbDep) -> Iterator[Session]:
+def write_db_session(db: DbDep) -> Iterator[Session]:
     """One read-write transaction for the request: committed when the route returns (before the
     response is sent), rolled back if it raises."""
-    with db.transaction() as session:
-        yield session
+    with db.transaction() as db_session:
+        yield db_session
 
 
-ReadSessionDep = Annotated[Session, Depends(read_session, scope="function")]
-WriteSessionDep = Annotated[Session, Depends(write_session, scope="function")]
+ReadDbSessionDep = Annotated[Session, Depends(read_db_session, scope="function")]
+WriteDbSessionDep = Annotated[Session, Depends(write_db_session, scope="function")]
 
 
 # --------------------------------------------------------------------------- authentication
@@ -129,9 +129,9 @@ def current_principal(
     connection is held while an upload's body streams in.)"""
     if credentials is None:
         raise unauthorized("missing API key: send Authorization: Bearer <key>")
-    with db.read() as session:
+    with db.read() as db_session:
         principal = keys.authenticate(
-            session, credentials.credentials, admin_key=settings.admin_key
+            db_session, credentials.credentials, admin_key=settings.admin_key
         )
     if principal is None:
         raise unauthorized("unknown, revoked or expired API key", invalid_token=True)
@@ -144,8 +144,8 @@ def current_principal(
 def _touch(db: Database, key_id: int) -> None:
     """Record a key's use; best effort (a busy database must not fail the request)."""
     try:
-        with db.transaction() as session:
-            keys.touch(session, key_id)
+        with db.transaction() as db_session:
+            keys.touch(db_session, key_id)
     except SQLAlchemyError as err:
         logger.warning("could not record use of key %d: %s", key_id, err)
 
@@ -175,8 +175,8 @@ def valid_map(map_id: int, db: DbDep) -> MapInfo:
     """The map ``map_id`` (with its current version), or 404."""
     if not 1 <= map_id <= MAX_ID:
         raise not_found(f"map {map_id}")
-    with db.read() as session:
-        return maps.get_map(session, map_id)
+    with db.read() as db_session:
+        return maps.get_map(db_session, map_id)
 
 
 MapDep = Annotated[MapInfo, Depends(valid_map)]
@@ -186,8 +186,8 @@ def valid_session(session_id: int, db: DbDep, principal: CurrentPrincipal) -> Se
     """The session ``session_id`` if the caller may see it (admin, or its uploader), or 404."""
     if not 1 <= session_id <= MAX_ID:
         raise not_found(f"session {session_id}")
-    with db.read() as session:
-        info = sessions.get_session(session, session_id)
+    with db.read() as db_session:
+        info = sessions.get_session(db_session, session_id)
     if not principal.is_admin and info.uploaded_by != principal.subject:
         raise not_found(f"session {session_id}")
     return info
@@ -200,11 +200,13 @@ def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
     """The job ``job_id`` if the caller may see it (admin, or the uploader of its session)."""
     if not 1 <= job_id <= MAX_ID:
         raise not_found(f"job {job_id}")
-    with db.read() as session:
-        job = queue.get_job(session, job_id)
+    with db.read() as db_session:
+        job = queue.get_job(db_session, job_id)
         if principal.is_admin:
             return job
-        uploader = None if job.session_id is None else sessions.uploader_of(session, job.session_id)
+        uploader = (
+            None if job.session_id is None else sessions.uploader_of(db_session, job.session_id)
+        )
     if uploader is None or uploader != principal.subject:
         raise not_found(f"job {job_id}")
     return job

@@ -1,13 +1,15 @@
 """One error body everywhere: ``{"detail": "…", "code": "invalid_session", "field": "…"}``.
 
-Routes raise :class:`ApiError` (or let a storage or domain error through); the handlers installed
-by :func:`install_error_handlers` turn each into that body with the right status. No stack trace,
-SQL or internal message ever reaches a client: anything unexpected is a 500 with a generic
-message (and a full log line on the server).
+Routes raise :class:`ApiError`, services a :class:`~app.services.errors.ServiceError`, and
+storage and domain errors pass through (``app.services.errors.STATUS_OF_ERROR`` says what each
+means); the handlers of :func:`install_error_handlers` turn each into that body and status. No
+stack trace, SQL or internal message ever reaches a client: anything unexpected is a 500 with a
+generic message (and a full log line on the server).
 
 What becomes what::
 
     ApiError(status, code, detail, field)      as raised (401 also sends WWW-Authenticate: Bearer)
+    ServiceError (NotFound, Conflict, …)       its class's status, its code, detail and field
     RequestValidationError                     422 validation_error, field = the parameter's path
     SessionFormatError                         422 invalid_session, field = the upload's JSON path
     ParameterError                             422 invalid_parameter
@@ -36,25 +38,10 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.api.schemas import ErrorBody
-from app.domain.errors import ParameterError, SessionFormatError
+from app.api.schemas.common import ErrorBody
+from app.domain.errors import SessionFormatError
+from app.services.errors import STATUS_OF_ERROR, ServiceError
 from app.storage.db import DatabaseFault, database_fault, first_line
-from app.storage.keys import KeyNotFound
-from app.storage.maps import MapNotFound
-from app.storage.navigation import LocalizationNotFound
-from app.storage.queue import InvalidTransition, JobNotFound
-from app.storage.sessions import IdempotencyConflict, SessionNotFound
-from app.storage.sweeps import SweepNotFound
-
-#: What the storage layer raises for an id that names nothing: a 404 in the API and the dashboard.
-NOT_FOUND_ERRORS: tuple[type[Exception], ...] = (
-    MapNotFound,
-    JobNotFound,
-    SessionNotFound,
-    KeyNotFound,
-    LocalizationNotFound,
-    SweepNotFound,
-)
 
 logger = logging.getLogger(__name__)
 
@@ -77,9 +64,9 @@ CODE_OF_STATUS = {
 BEARER_CHALLENGE = 'Bearer realm="invisible-map"'
 
 
-class ApiError(Exception):
-    """An error response: ``status_code``, a stable ``code``, a ``detail`` for people, and the
-    ``field`` at fault if there is one."""
+class ApiError(ServiceError):
+    """An error answer of the HTTP layer itself (a missing key, a body too large): like a
+    :class:`ServiceError`, with its ``status_code`` given."""
 
     def __init__(
         self,
@@ -90,12 +77,8 @@ class ApiError(Exception):
         field: str | None = None,
         headers: dict[str, str] | None = None,
     ) -> None:
-        super().__init__(detail)
+        super().__init__(code, detail, field=field, headers=headers)
         self.status_code = status_code
-        self.code = code
-        self.detail = detail
-        self.field = field
-        self.headers = headers or {}
 
 
 def unauthorized(detail: str, *, invalid_token: bool = False) -> ApiError:
@@ -129,22 +112,20 @@ def install_error_handlers(app: FastAPI) -> None:
 
         return handler
 
-    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_exception)
+    for types, status, code in STATUS_OF_ERROR:
+        for error_type in types:
+            app.add_exception_handler(error_type, handle(status, code))
     app.add_exception_handler(SessionFormatError, _session_format_error)
-    app.add_exception_handler(ParameterError, handle(422, "invalid_parameter"))
-    for missing in NOT_FOUND_ERRORS:
-        app.add_exception_handler(missing, handle(404, "not_found"))
-    app.add_exception_handler(InvalidTransition, handle(409, "invalid_transition"))
-    app.add_exception_handler(IdempotencyConflict, handle(409, "idempotency_conflict"))
     app.add_exception_handler(DBAPIError, _database_fault)
     app.add_exception_handler(PoolTimeout, _database_fault)
     app.add_exception_handler(Exception, _internal_error)
 
 
-async def _api_error(_request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, ApiError)
+async def _service_error(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ServiceError)
     return error_response(
         exc.status_code, exc.code, exc.detail, field=exc.field, headers=exc.headers
     )

@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import hashlib
 
+from fastapi import Response
+from sqlalchemy.orm import Session
+
+from app.storage import sessions as stored_sessions
+
 
 def strong_etag(*parts: object) -> str:
     """A strong entity tag (quoted) from the values the representation depends on."""
@@ -47,3 +52,20 @@ def accepts_gzip(accept_encoding: str | None) -> bool:
         if quality > 0:
             return True
     return False
+
+
+def raw_upload_response(
+    db_session: Session, session_id: int, accept_encoding: str | None
+) -> Response:
+    """The raw upload of ``session_id`` as a JSON attachment, gzip-encoded if the client accepts
+    it. Raises SessionNotFound."""
+    headers = {
+        "Content-Disposition": f'attachment; filename="session-{session_id}.json"',
+        "Vary": "Accept-Encoding",
+    }
+    if accepts_gzip(accept_encoding):
+        headers["Content-Encoding"] = "gzip"
+        content = stored_sessions.raw_upload_gzip(db_session, session_id)
+    else:
+        content = stored_sessions.raw_upload(db_session, session_id)
+    return Response(content=content, media_type="application/json", headers=headers)

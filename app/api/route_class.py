@@ -4,7 +4,7 @@
 
 Routes are plain ``def`` functions, so FastAPI runs each on a thread of anyio's pool (the
 dependencies on others, and the validation of the answer on yet another). A request's
-transaction (``ReadSessionDep``, ``WriteSessionDep``) would otherwise end only when its
+transaction (``ReadDbSessionDep``, ``WriteDbSessionDep``) would otherwise end only when its
 dependency exits, after the answer has been validated: in between, the request holds a pooled
 connection while it waits for a free thread. With more requests at once than threads plus
 connections, every thread then waits for a connection and every connection for a thread, and the

@@ -1,7 +1,7 @@
 """Errors raised by the domain core.
 
 InvisibleMapError            anything the core refuses, with a message fit for a person
-├── SessionFormatError       an upload that does not follow the app's format (DESIGN §2)
+├── SessionFormatError       an upload that does not follow the app's format (architecture §2)
 ├── GroundTruthFormatError   a ground-truth file in neither supported form
 ├── MapFormatError           a saved map file that cannot be read back
 └── ParameterError           an unknown or out-of-range SLAM parameter

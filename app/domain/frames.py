@@ -5,7 +5,7 @@ inner names match: ``world_T_tag = world_T_phone @ phone_T_tag``. Rotations are 
 translations ``A_t_B`` (3,). Quaternions carry their component order in their name: ``quat_xyzw``
 (the app's and ROS's order) or ``quat_wxyz`` (gtsam's constructor order).
 
-Conventions of the iPhone app (DESIGN §2):
+Conventions of the iPhone app (docs/architecture.md §2):
 
 - ARKit world: right-handed, +y up (gravity-aligned). Phone frame: x right, y up, looking along −z.
 - ``tag_pose`` is ``camera_T_tag`` in the OpenCV camera convention (x right, y down, z forward), so
@@ -213,7 +213,7 @@ def pose_from_xyz_quat_xyzw(values: npt.ArrayLike) -> FloatArray:
 
 # --------------------------------------------------------------------------- tags seen by a camera
 
-#: Tag-frame (x, y) signs of corners 0..3 (DESIGN §2): (−,−), (+,−), (+,+), (−,+) times s/2.
+#: Tag-frame (x, y) signs of corners 0..3 (architecture §2): (−,−), (+,−), (+,+), (−,+) times s/2.
 TAG_CORNER_SIGNS: FloatArray = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 #: Smallest depth divided by in a projection, m (a point on the image plane projects far away).
 MIN_PROJECTION_DEPTH_M = 1e-9

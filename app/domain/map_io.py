@@ -1,4 +1,4 @@
-"""Maps to and from JSON: our own lossless form, and the app's download format (DESIGN §7).
+"""Maps to and from JSON: our own lossless form, and the app's download format (architecture §7).
 
     document = map_to_json(result)          # ours: everything in MapResult, round-trips
     result = map_from_json(document)
@@ -175,7 +175,7 @@ def map_from_json(document: Any) -> MapResult:
 
 
 def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
-    """The app's download format (DESIGN §7).
+    """The app's download format (docs/architecture.md §7).
 
     ``adjChi2`` of a pose is the chi² of the odometry factors touching it (a pose between two
     keyframes: the factor spanning it); ``vizTags`` the number of

@@ -1,4 +1,4 @@
-"""Map quality metrics, exactly as DESIGN §4 defines them.
+"""Map quality metrics, exactly as docs/architecture.md §4 defines them.
 
     ground_truth_metric(map_T_tag, gt_T_tag)    # the authors' anchor metric, dimensionless
     tag_rmse_m(map_T_tag, gt_T_tag)             # anchor-free, m, after a best-fit rigid alignment
@@ -61,7 +61,7 @@ def compare_tag_sets(
 def ground_truth_metric(
     map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]
 ) -> float:
-    """The authors' ground-truth metric (DESIGN §4), dimensionless, lower is better.
+    """The authors' ground-truth metric (docs/architecture.md §4), dimensionless, lower is better.
 
     Over the tags common to map and ground truth: each tag ``a`` in turn is the anchor, the ground
     truth is aligned to the map by ``T = map_T_a · gt_T_a⁻¹`` (full SE(3)), and for every other tag
@@ -128,7 +128,7 @@ def umeyama_rigid(source_xyz: npt.ArrayLike, target_xyz: npt.ArrayLike) -> Float
 
 
 def tag_rmse_m(map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]) -> float:
-    """Anchor-free tag position error, m (DESIGN §4).
+    """Anchor-free tag position error, m (docs/architecture.md §4).
 
     The map's tag positions (of the tags common to map and ground truth) are aligned to the ground
     truth's by the best-fit rigid transform (:func:`umeyama_rigid`, no scale); the result is the
@@ -222,7 +222,7 @@ def shift_metric(
     *,
     detection_mask: BoolArray | None = None,
 ) -> float:
-    """The shift metric (DESIGN §4): how far the map "jumps" between consecutive tag sightings.
+    """The shift metric (§4): how far the map "jumps" between consecutive tag sightings.
 
     Only single-tag detections count (frames with exactly one detection), in upload order; with
     ``detection_mask`` ((M,) bool over ``session.detections``) only the masked ones, so

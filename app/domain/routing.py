@@ -1,5 +1,5 @@
 """Routes on a path graph: from a tag, a point of interest, a node or a position to another, with
-turn-by-turn steps a screen reader can speak (DESIGN §6).
+turn-by-turn steps a screen reader can speak (docs/architecture.md §6).
 
     route = plan_route(pg, TagEnd(300), PoiEnd("Room 209"), avoid=frozenset({"stairs"}))
     route.length_m                    # 23.4, m, along the polyline

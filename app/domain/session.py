@@ -1,4 +1,4 @@
-"""The app's upload format (DESIGN §2), parsed once into typed arrays.
+"""The app's upload format (docs/architecture.md §2), parsed once into typed arrays.
 
     session = parse_session(json.loads(text))      # or load_session(path), gzip or plain
     session.world_T_phone                          # (N, 4, 4) ARKit poses, world frame, y up
@@ -302,7 +302,7 @@ def parse_detection_fields(
     frame_size: int,
     known_pose_ids: Container[int] | None = None,
 ) -> dict[str, Any]:
-    """One detection of the upload's ``tag_data`` (DESIGN §2) as checked values, its ``pose_id``
+    """One detection of the upload's ``tag_data`` (§2) as checked values, its ``pose_id``
     as written (checked against ``known_pose_ids`` when given; else the caller resolves it). Also
     used for localization updates, whose detections have the same format. Fields are checked in
     order (tag_id, pose_id, tag_pose, …); the first fault raises :class:`SessionFormatError`

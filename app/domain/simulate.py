@@ -1,4 +1,4 @@
-"""Synthetic mapping sessions in the app's upload format (DESIGN §2), with known truth.
+"""Synthetic mapping sessions in the app's upload format (architecture §2), with known truth.
 
     sim = simulate_session(SimulationConfig(num_poses=1_000))          # realistic ARKit-like noise
     sim = simulate_session(SimulationConfig(num_poses=1_000).without_noise())
@@ -282,7 +282,7 @@ class Building:
 class SimulatedSession:
     """A simulated mapping session: the upload the app would send, and the truth behind it.
 
-    upload: the app's JSON object (DESIGN §2), ready for ``json.dumps`` or ``parse_session``.
+    upload: the app's JSON object (architecture §2), ready for ``json.dumps`` or ``parse_session``.
     world_T_phone_true: (N, 4, 4) true phone poses, world frame y up, m.
     world_T_phone_odometry: (N, 4, 4) the drifting odometry written to ``pose_data`` (same frame at
         the first pose).
@@ -1057,7 +1057,7 @@ def _upload(
     detections: _Measurements,
     pois: list[tuple[str, int, FloatArray]],
 ) -> dict[str, Any]:
-    """The app's JSON object (DESIGN §2) from the arrays; plain Python numbers throughout."""
+    """The app's JSON object (architecture §2) from the arrays; plain Python numbers throughout."""
     n = world_T_phone_odometry.shape[0]
     timestamp_s = START_TIME_S + np.arange(n) / config.rate_hz
     timestamps = timestamp_s.tolist()

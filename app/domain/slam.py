@@ -1,4 +1,4 @@
-"""Graph SLAM on a mapping session with gtsam (DESIGN §3). All gtsam calls of the project live here.
+"""Graph SLAM on a mapping session with gtsam (§3). All gtsam calls of the project live here.
 
     result = optimize_session(session, SlamParams())
 

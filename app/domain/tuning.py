@@ -1,4 +1,4 @@
-"""Hyperparameter tuning (DESIGN §5): search spaces, trials, the grid and a sampler.
+"""Hyperparameter tuning (docs/architecture.md §5): search spaces, trials, the grid and a sampler.
 
     space = SearchSpace.paper_grid()                       # 10 × 10 × 10 log grid, 1000 trials
     target = TuningTarget.prepare(session, SlamParams(), ground_truth)   # once per sweep

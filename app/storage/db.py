@@ -52,9 +52,9 @@ class Database:
     def transaction(self) -> Iterator[Session]:
         """One read-write transaction: commits if the block ends normally, else rolls back.
         (:func:`end_transaction` may commit it earlier.)"""
-        with self._sessions.begin() as session:
-            session.info[WRITES] = True
-            yield session
+        with self._sessions.begin() as db_session:
+            db_session.info[WRITES] = True
+            yield db_session
 
     @contextmanager
     def read(self) -> Iterator[Session]:
@@ -131,16 +131,16 @@ def database_fault(err: BaseException) -> DatabaseFault | None:
     return None
 
 
-def end_transaction(session: Session) -> None:
+def end_transaction(db_session: Session) -> None:
     """End ``session``'s transaction now and give its connection back to the pool: commit it if
     it came from :meth:`Database.transaction`, roll it back if from :meth:`Database.read`. The
     ``with`` block that made the session then has nothing left to do."""
-    if not session.in_transaction():
+    if not db_session.in_transaction():
         return
-    if session.info.get(WRITES):
-        session.commit()
+    if db_session.info.get(WRITES):
+        db_session.commit()
     else:
-        session.rollback()
+        db_session.rollback()
 
 
 def first_line(err: BaseException) -> str:

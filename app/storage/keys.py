@@ -70,7 +70,7 @@ class Principal:
 
 
 def create_key(
-    session: Session, *, name: str, role: Role, expires_at: datetime | None = None
+    db_session: Session, *, name: str, role: Role, expires_at: datetime | None = None
 ) -> tuple[KeyInfo, str]:
     """Store a new key; returns it and its secret (shown once, never stored)."""
     prefix = secrets.token_hex(4)
@@ -83,13 +83,13 @@ def create_key(
         created_at=utc_now(),
         expires_at=expires_at,
     )
-    session.add(row)
-    session.flush()
+    db_session.add(row)
+    db_session.flush()
     return KeyInfo.from_row(row), key
 
 
 def authenticate(
-    session: Session, key: str, *, admin_key: str | None = None, now: datetime | None = None
+    db_session: Session, key: str, *, admin_key: str | None = None, now: datetime | None = None
 ) -> Principal | None:
     """The principal a presented key stands for, or None if it is unknown, revoked or expired."""
     now = now or utc_now()
@@ -99,18 +99,18 @@ def authenticate(
     prefix, _, secret = rest.partition("_")
     if scheme != KEY_SCHEME or not prefix or not secret:
         return None
-    row = session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
+    row = db_session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
     if row is None or not hmac.compare_digest(row.secret_sha256, _digest(key)):
         return None
     return _principal_if_active(row, now)
 
 
 def active_principal(
-    session: Session, key_id: int, *, now: datetime | None = None
+    db_session: Session, key_id: int, *, now: datetime | None = None
 ) -> Principal | None:
     """The principal of key ``key_id`` if it still works (exists, not revoked, not expired), else
     None: how a login made with the key earlier (the admin dashboard's) is checked again."""
-    row = session.get(ApiKey, key_id)
+    row = db_session.get(ApiKey, key_id)
     return None if row is None else _principal_if_active(row, now or utc_now())
 
 
@@ -120,33 +120,33 @@ def _principal_if_active(row: ApiKey, now: datetime) -> Principal | None:
     return Principal(subject=f"key:{row.id}", role=Role(row.role), key_id=row.id)
 
 
-def touch(session: Session, key_id: int, *, now: datetime | None = None) -> None:
+def touch(db_session: Session, key_id: int, *, now: datetime | None = None) -> None:
     """Record that a key was used."""
-    row = session.get(ApiKey, key_id)
+    row = db_session.get(ApiKey, key_id)
     if row is not None:
         row.last_used_at = now or utc_now()
 
 
-def get_key(session: Session, key_id: int) -> KeyInfo:
+def get_key(db_session: Session, key_id: int) -> KeyInfo:
     """One key (without its secret). Raises :class:`KeyNotFound`."""
-    row = session.get(ApiKey, key_id)
+    row = db_session.get(ApiKey, key_id)
     if row is None:
         raise KeyNotFound(key_id)
     return KeyInfo.from_row(row)
 
 
-def list_keys(session: Session) -> list[KeyInfo]:
-    return [KeyInfo.from_row(row) for row in session.scalars(select(ApiKey).order_by(ApiKey.id))]
+def list_keys(db_session: Session) -> list[KeyInfo]:
+    return [KeyInfo.from_row(row) for row in db_session.scalars(select(ApiKey).order_by(ApiKey.id))]
 
 
-def revoke_key(session: Session, key_id: int, *, now: datetime | None = None) -> KeyInfo:
+def revoke_key(db_session: Session, key_id: int, *, now: datetime | None = None) -> KeyInfo:
     """Revoke a key (idempotent: revoking a revoked key keeps its first revocation time)."""
-    row = session.get(ApiKey, key_id)
+    row = db_session.get(ApiKey, key_id)
     if row is None:
         raise KeyNotFound(key_id)
     if row.revoked_at is None:
         row.revoked_at = now or utc_now()
-    session.flush()
+    db_session.flush()
     return KeyInfo.from_row(row)
 
 

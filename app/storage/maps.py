@@ -108,15 +108,15 @@ class TagPose:
 # --------------------------------------------------------------------------- writing
 
 
-def create_map(session: Session, *, name: str, session_id: int) -> int:
+def create_map(db_session: Session, *, name: str, session_id: int) -> int:
     row = MapRow(name=name, session_id=session_id, created_at=utc_now())
-    session.add(row)
-    session.flush()
+    db_session.add(row)
+    db_session.flush()
     return row.id
 
 
 def store_version(
-    session: Session,
+    db_session: Session,
     *,
     map_id: int,
     job_id: int | None,
@@ -129,7 +129,8 @@ def store_version(
     """Add the next version of ``map_id`` in the caller's transaction; ``path_graph`` is
     ``app.domain.path_graph.path_graph_to_json`` of it."""
     number = 1 + (
-        session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id)) or 0
+        db_session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id))
+        or 0
     )
     document = map_to_json(result)
     encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
@@ -172,12 +173,12 @@ def store_version(
         content_sha256=hashlib.sha256(encoded).hexdigest(),
         path_graph_gzip=None if path_graph is None else _gzip_json(path_graph),
     )
-    session.add(row)
-    session.flush()
+    db_session.add(row)
+    db_session.flush()
     for k, tag_id in enumerate(result.tag_ids):
         x, y, z, qx, qy, qz, qw = pose_to_xyz_quat_xyzw(result.world_T_tag[k])
         covariance = result.tag_covariance[k]
-        session.add(
+        db_session.add(
             MapTag(
                 map_version_id=row.id,
                 tag_id=int(tag_id),
@@ -194,7 +195,7 @@ def store_version(
                 else [float(v) for v in covariance.ravel()],
             )
         )
-    session.flush()
+    db_session.flush()
     return VersionInfo.from_row(row)
 
 
@@ -203,40 +204,40 @@ def _gzip_json(document: Any) -> bytes:
     return gzip.compress(encoded, compresslevel=6, mtime=0)
 
 
-def delete_map(session: Session, map_id: int) -> None:
+def delete_map(db_session: Session, map_id: int) -> None:
     """Delete a map and its versions (the session and its raw upload stay)."""
-    if session.get(MapRow, map_id) is None:
+    if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
-    session.execute(delete(MapRow).where(MapRow.id == map_id))
+    db_session.execute(delete(MapRow).where(MapRow.id == map_id))
 
 
 # --------------------------------------------------------------------------- reading
 
 
-def get_map(session: Session, map_id: int) -> MapInfo:
-    row = session.get(MapRow, map_id)
+def get_map(db_session: Session, map_id: int) -> MapInfo:
+    row = db_session.get(MapRow, map_id)
     if row is None:
         raise MapNotFound(map_id)
-    return _map_info(session, row)
+    return _map_info(db_session, row)
 
 
 def list_maps(
-    session: Session, *, limit: int = 50, offset: int = 0, tag_id: int | None = None
+    db_session: Session, *, limit: int = 50, offset: int = 0, tag_id: int | None = None
 ) -> tuple[list[MapInfo], int]:
     """Maps, newest first, and how many there are; with ``tag_id``, only maps whose current
     version contains that tag."""
     query = select(MapRow)
     if tag_id is not None:
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
-    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset))
-    return [_map_info(session, row) for row in rows], total
+    total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset))
+    return [_map_info(db_session, row) for row in rows], total
 
 
-def list_versions(session: Session, map_id: int) -> list[VersionInfo]:
-    if session.get(MapRow, map_id) is None:
+def list_versions(db_session: Session, map_id: int) -> list[VersionInfo]:
+    if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
-    rows = session.scalars(
+    rows = db_session.scalars(
         select(MapVersion)
         .options(*_WITHOUT_BLOBS)
         .where(MapVersion.map_id == map_id)
@@ -245,24 +246,24 @@ def list_versions(session: Session, map_id: int) -> list[VersionInfo]:
     return [VersionInfo.from_row(row) for row in rows]
 
 
-def get_version(session: Session, map_id: int, number: int | None = None) -> VersionInfo:
+def get_version(db_session: Session, map_id: int, number: int | None = None) -> VersionInfo:
     """A version of a map; the current one when ``number`` is None. Raises MapNotFound."""
-    return VersionInfo.from_row(_version_row(session, map_id, number, blobs=False))
+    return VersionInfo.from_row(_version_row(db_session, map_id, number, blobs=False))
 
 
-def map_document(session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
+def map_document(db_session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
     """The version's map document (``app.domain.map_io`` format)."""
-    row = _version_row(session, map_id, number)
+    row = _version_row(db_session, map_id, number)
     document: dict[str, Any] = json.loads(gzip.decompress(row.map_json_gzip))
     return document
 
 
-def plot_png(session: Session, map_id: int, number: int | None = None) -> bytes | None:
-    return _version_row(session, map_id, number).plot_png
+def plot_png(db_session: Session, map_id: int, number: int | None = None) -> bytes | None:
+    return _version_row(db_session, map_id, number).plot_png
 
 
-def tag_poses(session: Session, version_id: int) -> list[TagPose]:
-    rows = session.scalars(
+def tag_poses(db_session: Session, version_id: int) -> list[TagPose]:
+    rows = db_session.scalars(
         select(MapTag).where(MapTag.map_version_id == version_id).order_by(MapTag.tag_id)
     )
     return [
@@ -278,9 +279,9 @@ def tag_poses(session: Session, version_id: int) -> list[TagPose]:
 
 
 def _version_row(
-    session: Session, map_id: int, number: int | None, *, blobs: bool = True
+    db_session: Session, map_id: int, number: int | None, *, blobs: bool = True
 ) -> MapVersion:
-    if session.get(MapRow, map_id) is None:
+    if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     query = select(MapVersion).where(MapVersion.map_id == map_id)
     if not blobs:
@@ -289,17 +290,17 @@ def _version_row(
         query = query.order_by(MapVersion.number.desc()).limit(1)
     else:
         query = query.where(MapVersion.number == number)
-    row = session.scalar(query)
+    row = db_session.scalar(query)
     if row is None:
         raise MapNotFound(map_id, number)
     return row
 
 
-def _map_info(session: Session, row: MapRow) -> MapInfo:
-    count = session.scalar(
+def _map_info(db_session: Session, row: MapRow) -> MapInfo:
+    count = db_session.scalar(
         select(func.count()).select_from(MapVersion).where(MapVersion.map_id == row.id)
     )
-    current = session.scalar(
+    current = db_session.scalar(
         select(MapVersion)
         .options(*_WITHOUT_BLOBS)
         .where(MapVersion.map_id == row.id)

@@ -55,9 +55,9 @@ class LocalizationInfo:
     state: dict[str, Any]
 
 
-def path_graph_document(session: Session, version_id: int) -> dict[str, Any] | None:
+def path_graph_document(db_session: Session, version_id: int) -> dict[str, Any] | None:
     """The version's path graph JSON, or None if the version has none."""
-    blob = session.scalar(select(MapVersion.path_graph_gzip).where(MapVersion.id == version_id))
+    blob = db_session.scalar(select(MapVersion.path_graph_gzip).where(MapVersion.id == version_id))
     if blob is None:
         return None
     document: dict[str, Any] = json.loads(gzip.decompress(blob))
@@ -65,7 +65,7 @@ def path_graph_document(session: Session, version_id: int) -> dict[str, Any] | N
 
 
 def create_localization(
-    session: Session,
+    db_session: Session,
     *,
     map_id: int,
     map_version_id: int,
@@ -73,7 +73,7 @@ def create_localization(
     status: str,
     state: dict[str, Any],
 ) -> LocalizationInfo:
-    if session.get(MapRow, map_id) is None:
+    if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     now = utc_now()
     row = Localization(
@@ -87,20 +87,20 @@ def create_localization(
         update_count=0,
         state=state,
     )
-    session.add(row)
-    session.flush()
-    return _info(session, row)
+    db_session.add(row)
+    db_session.flush()
+    return _info(db_session, row)
 
 
-def get_localization(session: Session, localization_id: int) -> LocalizationInfo:
-    row = session.get(Localization, localization_id)
+def get_localization(db_session: Session, localization_id: int) -> LocalizationInfo:
+    row = db_session.get(Localization, localization_id)
     if row is None:
         raise LocalizationNotFound(localization_id)
-    return _info(session, row)
+    return _info(db_session, row)
 
 
 def save_update(
-    session: Session,
+    db_session: Session,
     localization_id: int,
     *,
     expected_revision: int,
@@ -108,7 +108,7 @@ def save_update(
     state: dict[str, Any],
 ) -> LocalizationInfo:
     """Store a new state if the session is still at ``expected_revision``."""
-    updated = session.execute(
+    updated = db_session.execute(
         update(Localization)
         .where(Localization.id == localization_id, Localization.revision == expected_revision)
         .values(
@@ -121,15 +121,15 @@ def save_update(
         .returning(Localization.id)
     ).scalar_one_or_none()
     if updated is None:
-        if session.get(Localization, localization_id) is None:
+        if db_session.get(Localization, localization_id) is None:
             raise LocalizationNotFound(localization_id)
         raise LocalizationConflict(localization_id)
-    session.expire_all()
-    return get_localization(session, localization_id)
+    db_session.expire_all()
+    return get_localization(db_session, localization_id)
 
 
-def _info(session: Session, row: Localization) -> LocalizationInfo:
-    number = session.scalar(select(MapVersion.number).where(MapVersion.id == row.map_version_id))
+def _info(db_session: Session, row: Localization) -> LocalizationInfo:
+    number = db_session.scalar(select(MapVersion.number).where(MapVersion.id == row.map_version_id))
     return LocalizationInfo(
         id=row.id,
         map_id=row.map_id,

@@ -132,7 +132,7 @@ class Lease:
 
 
 def enqueue(
-    session: Session,
+    db_session: Session,
     *,
     kind: str,
     map_id: int | None,
@@ -159,20 +159,20 @@ def enqueue(
         updated_at=now,
         log_tail=_log_line(now, "queued"),
     )
-    session.add(job)
-    session.flush()
+    db_session.add(job)
+    db_session.flush()
     return job.id
 
 
-def get_job(session: Session, job_id: int) -> JobInfo:
-    row = session.get(Job, job_id)
+def get_job(db_session: Session, job_id: int) -> JobInfo:
+    row = db_session.get(Job, job_id)
     if row is None:
         raise JobNotFound(job_id)
     return JobInfo.from_row(row)
 
 
 def list_jobs(
-    session: Session,
+    db_session: Session,
     *,
     state: JobState | None = None,
     map_id: int | None = None,
@@ -193,24 +193,24 @@ def list_jobs(
     if finished_after is not None:
         conditions.append(Job.finished_at > finished_after)
     where = and_(*conditions) if conditions else and_(True)
-    total = session.scalar(select(func.count()).select_from(Job).where(where)) or 0
-    rows = session.scalars(
+    total = db_session.scalar(select(func.count()).select_from(Job).where(where)) or 0
+    rows = db_session.scalars(
         select(Job).where(where).order_by(Job.id.desc()).limit(limit).offset(offset)
     )
     return [JobInfo.from_row(row) for row in rows], total
 
 
-def count_by_state(session: Session) -> dict[str, int]:
+def count_by_state(db_session: Session) -> dict[str, int]:
     counts = {state.value: 0 for state in JobState}
-    for state, count in session.execute(select(Job.state, func.count()).group_by(Job.state)):
+    for state, count in db_session.execute(select(Job.state, func.count()).group_by(Job.state)):
         counts[state] = count
     return counts
 
 
-def request_cancel(session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
+def request_cancel(db_session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
     """Cancel a queued job now; ask a running one to stop at its next stage boundary."""
     now = now or utc_now()
-    row = _locked(session, job_id)
+    row = _locked(db_session, job_id)
     if row.state == JobState.QUEUED:
         row.state = JobState.CANCELED.value
         row.finished_at = now
@@ -222,14 +222,14 @@ def request_cancel(session: Session, job_id: int, *, now: datetime | None = None
     else:
         raise InvalidTransition(job_id, row.state, "cancel")
     row.updated_at = now
-    session.flush()
+    db_session.flush()
     return JobInfo.from_row(row)
 
 
-def retry(session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
+def retry(db_session: Session, job_id: int, *, now: datetime | None = None) -> JobInfo:
     """Queue a failed or canceled job again, with a fresh count of attempts."""
     now = now or utc_now()
-    row = _locked(session, job_id)
+    row = _locked(db_session, job_id)
     if row.state not in (JobState.FAILED, JobState.CANCELED):
         raise InvalidTransition(job_id, row.state, "retry")
     row.state = JobState.QUEUED.value
@@ -243,21 +243,23 @@ def retry(session: Session, job_id: int, *, now: datetime | None = None) -> JobI
     row.run_after = now
     row.updated_at = now
     row.log_tail = _append(row.log_tail, now, "retry requested")
-    session.flush()
+    db_session.flush()
     return JobInfo.from_row(row)
 
 
-def cancel_unfinished_for_map(session: Session, map_id: int, *, now: datetime | None = None) -> int:
+def cancel_unfinished_for_map(
+    db_session: Session, map_id: int, *, now: datetime | None = None
+) -> int:
     """Cancel a map's queued jobs and ask its running ones to stop; returns how many."""
     now = now or utc_now()
     queued = _rowcount(
-        session,
+        db_session,
         update(Job)
         .where(Job.map_id == map_id, Job.state == JobState.QUEUED.value)
         .values(state=JobState.CANCELED.value, finished_at=now, updated_at=now),
     )
     running = _rowcount(
-        session,
+        db_session,
         update(Job)
         .where(Job.map_id == map_id, Job.state == JobState.RUNNING.value)
         .values(cancel_requested=True, updated_at=now),
@@ -265,13 +267,13 @@ def cancel_unfinished_for_map(session: Session, map_id: int, *, now: datetime | 
     return queued + running
 
 
-def _rowcount(session: Session, statement: Update) -> int:
+def _rowcount(db_session: Session, statement: Update) -> int:
     """How many rows an UPDATE changed (via RETURNING, which both backends support)."""
-    return len(session.execute(statement.returning(Job.id)).all())
+    return len(db_session.execute(statement.returning(Job.id)).all())
 
 
-def _locked(session: Session, job_id: int) -> Job:
-    row = session.scalar(select(Job).where(Job.id == job_id).with_for_update())
+def _locked(db_session: Session, job_id: int) -> Job:
+    row = db_session.scalar(select(Job).where(Job.id == job_id).with_for_update())
     if row is None:
         raise JobNotFound(job_id)
     return row
@@ -325,13 +327,13 @@ def claim(
             Job.log_tail,
         )
     )
-    with db.transaction() as session:
-        row = session.execute(statement).one_or_none()
+    with db.transaction() as db_session:
+        row = db_session.execute(statement).one_or_none()
         if row is None:
             return None
         line = f"attempt {row.attempts} of {row.max_attempts} started by {worker_id}"
         log_tail = _append(row.log_tail, now, line)
-        session.execute(update(Job).where(Job.id == row.id).values(log_tail=log_tail))
+        db_session.execute(update(Job).where(Job.id == row.id).values(log_tail=log_tail))
     return Lease(
         job_id=row.id,
         token=row.lease_token,
@@ -359,8 +361,8 @@ def _fenced(lease: Lease, now: datetime) -> ColumnElement[bool]:
 def heartbeat(db: Database, lease: Lease, *, lease_s: float, now: datetime | None = None) -> bool:
     """Extend the lease; returns whether a cancel was requested. Raises LeaseLost."""
     now = now or utc_now()
-    with db.transaction() as session:
-        cancel = session.execute(
+    with db.transaction() as db_session:
+        cancel = db_session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(lease_expires_at=now + timedelta(seconds=lease_s), updated_at=now)
@@ -383,8 +385,8 @@ def report_progress(
     """Write progress (0–1), the stage and the log tail; returns whether a cancel was requested.
     Raises LeaseLost."""
     now = now or utc_now()
-    with db.transaction() as session:
-        cancel = session.execute(
+    with db.transaction() as db_session:
+        cancel = db_session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(
@@ -400,11 +402,13 @@ def report_progress(
     return bool(cancel)
 
 
-def finish(session: Session, lease: Lease, *, log_tail: str, now: datetime | None = None) -> None:
+def finish(
+    db_session: Session, lease: Lease, *, log_tail: str, now: datetime | None = None
+) -> None:
     """Mark the job succeeded inside the caller's transaction (the one storing its result), so
     the result commits only if the lease still holds. Raises LeaseLost (roll back then)."""
     now = now or utc_now()
-    updated = session.execute(
+    updated = db_session.execute(
         update(Job)
         .where(_fenced(lease, now))
         .values(
@@ -472,8 +476,8 @@ def release(db: Database, lease: Lease, *, log_tail: str, now: datetime | None =
 def _end_attempt(
     db: Database, lease: Lease, state: JobState, now: datetime, **values: Any
 ) -> JobState:
-    with db.transaction() as session:
-        updated = session.execute(
+    with db.transaction() as db_session:
+        updated = db_session.execute(
             update(Job)
             .where(_fenced(lease, now))
             .values(
@@ -496,8 +500,8 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
     was requested. Returns how many jobs were reaped."""
     now = now or utc_now()
     lost = "lease expired (worker lost)"
-    with db.transaction() as session:
-        rows = session.scalars(
+    with db.transaction() as db_session:
+        rows = db_session.scalars(
             select(Job)
             .where(Job.state == JobState.RUNNING.value, Job.lease_expires_at <= now)
             .order_by(Job.id)
@@ -531,8 +535,8 @@ def register_worker(
     db: Database, *, worker_id: str, hostname: str, pid: int, now: datetime | None = None
 ) -> None:
     now = now or utc_now()
-    with db.transaction() as session:
-        session.merge(
+    with db.transaction() as db_session:
+        db_session.merge(
             WorkerRow(
                 id=worker_id,
                 hostname=hostname,
@@ -556,8 +560,8 @@ def worker_heartbeat(
     now: datetime | None = None,
 ) -> None:
     now = now or utc_now()
-    with db.transaction() as session:
-        session.execute(
+    with db.transaction() as db_session:
+        db_session.execute(
             update(WorkerRow)
             .where(WorkerRow.id == worker_id)
             .values(
@@ -567,10 +571,10 @@ def worker_heartbeat(
 
 
 def unregister_worker(db: Database, *, worker_id: str) -> None:
-    with db.transaction() as session:
-        row = session.get(WorkerRow, worker_id)
+    with db.transaction() as db_session:
+        row = db_session.get(WorkerRow, worker_id)
         if row is not None:
-            session.delete(row)
+            db_session.delete(row)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -586,11 +590,11 @@ class WorkerInfo:
 
 
 def alive_workers(
-    session: Session, *, within_s: float, now: datetime | None = None
+    db_session: Session, *, within_s: float, now: datetime | None = None
 ) -> list[WorkerInfo]:
     """Workers that reported in the last ``within_s`` seconds."""
     now = now or utc_now()
-    rows = session.scalars(
+    rows = db_session.scalars(
         select(WorkerRow)
         .where(WorkerRow.heartbeat_at >= now - timedelta(seconds=within_s))
         .order_by(WorkerRow.id)

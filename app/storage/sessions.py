@@ -164,7 +164,7 @@ class UploadResult:
 
 
 def create_session(
-    session: Session,
+    db_session: Session,
     *,
     parsed: ParsedSession,
     upload: StoredUpload,
@@ -183,9 +183,9 @@ def create_session(
         raise ValueError(f"map_id longer than {MAX_MAP_NAME_LENGTH} characters")
     sha256 = upload.sha256
     if idempotency_key is not None:
-        earlier = find_by_idempotency_key(session, uploaded_by, idempotency_key)
+        earlier = find_by_idempotency_key(db_session, uploaded_by, idempotency_key)
         if earlier is not None:
-            return replay_upload(session, earlier, sha256)
+            return replay_upload(db_session, earlier, sha256)
     now = now or utc_now()
     statistics = SessionStatistics.of(parsed)
     row = SessionRow(
@@ -206,21 +206,21 @@ def create_session(
         warnings=statistics.warnings,
     )
     try:
-        with session.begin_nested():
-            session.add(row)
-            session.flush()
+        with db_session.begin_nested():
+            db_session.add(row)
+            db_session.flush()
     except IntegrityError:
         # A concurrent upload with the same key committed first (PostgreSQL waited for it).
         if idempotency_key is None:
             raise
-        earlier = find_by_idempotency_key(session, uploaded_by, idempotency_key)
+        earlier = find_by_idempotency_key(db_session, uploaded_by, idempotency_key)
         if earlier is None:
             raise
-        return replay_upload(session, earlier, sha256)
-    session.add(SessionUpload(session_id=row.id, raw_gzip=upload.json_gzip))
-    map_id = maps.create_map(session, name=parsed.map_id, session_id=row.id)
+        return replay_upload(db_session, earlier, sha256)
+    db_session.add(SessionUpload(session_id=row.id, raw_gzip=upload.json_gzip))
+    map_id = maps.create_map(db_session, name=parsed.map_id, session_id=row.id)
     job_id = queue.enqueue(
-        session,
+        db_session,
         kind=BUILD_MAP,
         map_id=map_id,
         session_id=row.id,
@@ -238,19 +238,19 @@ def create_session(
     )
 
 
-def find_by_idempotency_key(session: Session, uploaded_by: str, key: str) -> int | None:
+def find_by_idempotency_key(db_session: Session, uploaded_by: str, key: str) -> int | None:
     """The id of the session ``uploaded_by`` uploaded with ``key``, if any."""
-    return session.scalar(
+    return db_session.scalar(
         select(SessionRow.id).where(
             SessionRow.uploaded_by == uploaded_by, SessionRow.idempotency_key == key
         )
     )
 
 
-def replay_upload(session: Session, session_id: int, sha256: str) -> UploadResult:
+def replay_upload(db_session: Session, session_id: int, sha256: str) -> UploadResult:
     """The result of the earlier upload ``session_id``, if its bytes hash to ``sha256``.
     Raises :class:`IdempotencyConflict` otherwise (or when its map was deleted)."""
-    row = session.get(SessionRow, session_id)
+    row = db_session.get(SessionRow, session_id)
     if row is None:
         raise SessionNotFound(session_id)
     key = row.idempotency_key or ""
@@ -258,8 +258,8 @@ def replay_upload(session: Session, session_id: int, sha256: str) -> UploadResul
         raise IdempotencyConflict(
             key, row.id, "the body differs from that upload; use a new key for a new upload"
         )
-    map_id = session.scalar(select(func.min(MapRow.id)).where(MapRow.session_id == row.id))
-    job_id = session.scalar(
+    map_id = db_session.scalar(select(func.min(MapRow.id)).where(MapRow.session_id == row.id))
+    job_id = db_session.scalar(
         select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
     )
     if map_id is None or job_id is None:
@@ -279,16 +279,16 @@ def replay_upload(session: Session, session_id: int, sha256: str) -> UploadResul
 # --------------------------------------------------------------------------- reading
 
 
-def get_session(session: Session, session_id: int) -> SessionInfo:
+def get_session(db_session: Session, session_id: int) -> SessionInfo:
     """A stored session. Raises :class:`SessionNotFound`."""
-    row = session.get(SessionRow, session_id)
+    row = db_session.get(SessionRow, session_id)
     if row is None:
         raise SessionNotFound(session_id)
-    return _infos(session, [row])[0]
+    return _infos(db_session, [row])[0]
 
 
 def list_sessions(
-    session: Session,
+    db_session: Session,
     *,
     limit: int = 50,
     offset: int = 0,
@@ -304,9 +304,9 @@ def list_sessions(
         pattern = "%" + _escape_like(name_contains) + "%"
         conditions.append(SessionRow.map_name.ilike(pattern, escape="\\"))
     where = and_(*conditions) if conditions else and_(True)
-    total = session.scalar(select(func.count()).select_from(SessionRow).where(where)) or 0
+    total = db_session.scalar(select(func.count()).select_from(SessionRow).where(where)) or 0
     rows = list(
-        session.scalars(
+        db_session.scalars(
             select(SessionRow)
             .where(where)
             .order_by(SessionRow.id.desc())
@@ -314,7 +314,7 @@ def list_sessions(
             .offset(offset)
         )
     )
-    return _infos(session, rows), total
+    return _infos(db_session, rows), total
 
 
 def _escape_like(text: str) -> str:
@@ -322,37 +322,37 @@ def _escape_like(text: str) -> str:
     return text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
 
 
-def uploader_of(session: Session, session_id: int) -> str | None:
+def uploader_of(db_session: Session, session_id: int) -> str | None:
     """Who uploaded ``session_id`` (None if there is no such session)."""
-    return session.scalar(select(SessionRow.uploaded_by).where(SessionRow.id == session_id))
+    return db_session.scalar(select(SessionRow.uploaded_by).where(SessionRow.id == session_id))
 
 
-def raw_upload(session: Session, session_id: int) -> bytes:
+def raw_upload(db_session: Session, session_id: int) -> bytes:
     """The upload exactly as the client sent it (after undoing any ``Content-Encoding``)."""
-    return gzip.decompress(raw_upload_gzip(session, session_id))
+    return gzip.decompress(raw_upload_gzip(db_session, session_id))
 
 
-def raw_upload_gzip(session: Session, session_id: int) -> bytes:
+def raw_upload_gzip(db_session: Session, session_id: int) -> bytes:
     """The stored upload: one gzip member of the bytes :func:`raw_upload` returns."""
-    row = session.get(SessionUpload, session_id)
+    row = db_session.get(SessionUpload, session_id)
     if row is None:
         raise SessionNotFound(session_id)
     return row.raw_gzip
 
 
-def _infos(session: Session, rows: list[SessionRow]) -> list[SessionInfo]:
+def _infos(db_session: Session, rows: list[SessionRow]) -> list[SessionInfo]:
     """Rows as :class:`SessionInfo`, with their maps and jobs looked up in two queries."""
     ids = [row.id for row in rows]
     map_of: dict[int, int] = {}
     jobs_of: dict[int, list[int]] = {session_id: [] for session_id in ids}
     if ids:
-        for map_id, session_id in session.execute(
+        for map_id, session_id in db_session.execute(
             select(MapRow.id, MapRow.session_id)
             .where(MapRow.session_id.in_(ids))
             .order_by(MapRow.id)
         ):
             map_of.setdefault(session_id, map_id)
-        for job_id, job_session_id in session.execute(
+        for job_id, job_session_id in db_session.execute(
             select(Job.id, Job.session_id).where(Job.session_id.in_(ids)).order_by(Job.id)
         ):
             if job_session_id is not None:

@@ -22,10 +22,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.domain.ground_truth import parse_ground_truth_json
+from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
 from app.domain.tuning import SearchSpace, SweepSummary, Trial, summarize
 from app.storage import queue
 from app.storage.orm import Job, JobState, Sweep, SweepTrial, utc_now
-from app.sweep_runner import GRID_CHUNK, SweepPlan
 
 #: The job kind that runs some trials of a sweep.
 SWEEP_TRIALS = "sweep_trials"
@@ -75,7 +75,7 @@ class SweepInfo:
 
 
 def create_sweep(
-    session: Session,
+    db_session: Session,
     *,
     map_id: int,
     session_id: int,
@@ -101,22 +101,22 @@ def create_sweep(
         state="running",
         created_at=utc_now(),
     )
-    session.add(row)
-    session.flush()
+    db_session.add(row)
+    db_session.flush()
     first = plan.next_batch([], 0)
-    _enqueue_trials(session, row, first, max_attempts=max_attempts)
+    _enqueue_trials(db_session, row, first, max_attempts=max_attempts)
     return row.id
 
 
 def _enqueue_trials(
-    session: Session, row: Sweep, values: list[dict[str, float]], *, max_attempts: int
+    db_session: Session, row: Sweep, values: list[dict[str, float]], *, max_attempts: int
 ) -> None:
     """Jobs for trials ``row.trials_started`` … of ``values``, ``GRID_CHUNK`` (grid) or one
     half-batch (sampler, so two workers share a batch) per job."""
     size = GRID_CHUNK if row.method == "grid" else max(1, math.ceil(len(values) / 2))
     for start in range(0, len(values), size):
         queue.enqueue(
-            session,
+            db_session,
             kind=SWEEP_TRIALS,
             map_id=row.map_id,
             session_id=row.session_id,
@@ -132,7 +132,7 @@ def _enqueue_trials(
 
 
 def store_trials(
-    session: Session,
+    db_session: Session,
     sweep_id: int,
     *,
     first_number: int,
@@ -142,12 +142,14 @@ def store_trials(
 ) -> None:
     """Record a job's trials (in the transaction that finishes the job), then propose the next
     sampler batch if this completed one, or end the sweep if every trial is in."""
-    row = session.scalars(select(Sweep).where(Sweep.id == sweep_id).with_for_update()).one_or_none()
+    row = db_session.scalars(
+        select(Sweep).where(Sweep.id == sweep_id).with_for_update()
+    ).one_or_none()
     if row is None:
         raise SweepNotFound(sweep_id)
     now = utc_now()
     for offset, trial in enumerate(trials):
-        session.add(
+        db_session.add(
             SweepTrial(
                 sweep_id=sweep_id,
                 number=first_number + offset,
@@ -163,19 +165,19 @@ def store_trials(
                 created_at=now,
             )
         )
-    session.flush()
-    done = _count_trials(session, sweep_id)
+    db_session.flush()
+    done = _count_trials(db_session, sweep_id)
     if done >= row.trials_total:
         row.state, row.finished_at = "succeeded", now
     elif done == row.trials_started and row.method == "sampler":
-        info = _info(session, row)
-        values = info.plan().next_batch(list_trials(session, sweep_id), row.trials_started)
-        _enqueue_trials(session, row, values, max_attempts=max_attempts)
+        info = _info(db_session, row)
+        values = info.plan().next_batch(list_trials(db_session, sweep_id), row.trials_started)
+        _enqueue_trials(db_session, row, values, max_attempts=max_attempts)
 
 
-def set_baseline(session: Session, sweep_id: int, baseline: tuple[float, float, float]) -> None:
+def set_baseline(db_session: Session, sweep_id: int, baseline: tuple[float, float, float]) -> None:
     """Record the pre-optimized map's (shift, ground-truth metric, tag RMSE m), once."""
-    row = session.get(Sweep, sweep_id)
+    row = db_session.get(Sweep, sweep_id)
     if row is not None and row.baseline is None:
         shift, gt_metric, rmse_m = baseline
         row.baseline = {
@@ -185,74 +187,74 @@ def set_baseline(session: Session, sweep_id: int, baseline: tuple[float, float, 
         }
 
 
-def cancel_sweep(session: Session, sweep_id: int) -> SweepInfo:
+def cancel_sweep(db_session: Session, sweep_id: int) -> SweepInfo:
     """Request the cancel of every unfinished job of the sweep and end it as canceled."""
-    row = session.get(Sweep, sweep_id)
+    row = db_session.get(Sweep, sweep_id)
     if row is None:
         raise SweepNotFound(sweep_id)
-    job_ids = session.scalars(
+    job_ids = db_session.scalars(
         select(Job.id).where(
             Job.sweep_id == sweep_id,
             Job.state.in_([JobState.QUEUED.value, JobState.RUNNING.value]),
         )
     ).all()
     for job_id in job_ids:
-        queue.request_cancel(session, job_id)
+        queue.request_cancel(db_session, job_id)
     if row.state == "running":
         row.state, row.finished_at = "canceled", utc_now()
-    session.flush()
-    return _info(session, row)
+    db_session.flush()
+    return _info(db_session, row)
 
 
-def set_applied(session: Session, sweep_id: int, job_id: int) -> None:
-    row = session.get(Sweep, sweep_id)
+def set_applied(db_session: Session, sweep_id: int, job_id: int) -> None:
+    row = db_session.get(Sweep, sweep_id)
     if row is None:
         raise SweepNotFound(sweep_id)
     row.applied_job_id = job_id
 
 
-def get_sweep(session: Session, sweep_id: int) -> SweepInfo:
-    row = session.get(Sweep, sweep_id)
+def get_sweep(db_session: Session, sweep_id: int) -> SweepInfo:
+    row = db_session.get(Sweep, sweep_id)
     if row is None:
         raise SweepNotFound(sweep_id)
-    return _info(session, row)
+    return _info(db_session, row)
 
 
-def ground_truth_of(session: Session, sweep_id: int) -> dict[str, Any] | None:
-    row = session.get(Sweep, sweep_id)
+def ground_truth_of(db_session: Session, sweep_id: int) -> dict[str, Any] | None:
+    row = db_session.get(Sweep, sweep_id)
     if row is None:
         raise SweepNotFound(sweep_id)
     return row.ground_truth
 
 
 def list_sweeps(
-    session: Session, *, map_id: int | None = None, limit: int = 50, offset: int = 0
+    db_session: Session, *, map_id: int | None = None, limit: int = 50, offset: int = 0
 ) -> tuple[list[SweepInfo], int]:
     query = select(Sweep)
     count = select(func.count()).select_from(Sweep)
     if map_id is not None:
         query, count = query.where(Sweep.map_id == map_id), count.where(Sweep.map_id == map_id)
-    rows = session.scalars(query.order_by(Sweep.id.desc()).limit(limit).offset(offset)).all()
-    return [_info(session, row) for row in rows], int(session.scalar(count) or 0)
+    rows = db_session.scalars(query.order_by(Sweep.id.desc()).limit(limit).offset(offset)).all()
+    return [_info(db_session, row) for row in rows], int(db_session.scalar(count) or 0)
 
 
-def list_trials(session: Session, sweep_id: int) -> list[Trial]:
+def list_trials(db_session: Session, sweep_id: int) -> list[Trial]:
     """The finished trials, by number."""
-    return [trial for _, trial in numbered_trials(session, sweep_id)]
+    return [trial for _, trial in numbered_trials(db_session, sweep_id)]
 
 
-def numbered_trials(session: Session, sweep_id: int) -> list[tuple[int, Trial]]:
+def numbered_trials(db_session: Session, sweep_id: int) -> list[tuple[int, Trial]]:
     """The finished trials with their numbers (a trial still running leaves a gap)."""
-    rows = session.scalars(
+    rows = db_session.scalars(
         select(SweepTrial).where(SweepTrial.sweep_id == sweep_id).order_by(SweepTrial.number)
     ).all()
     return [(row.number, _trial(row)) for row in rows]
 
 
-def summary(session: Session, info: SweepInfo) -> SweepSummary:
+def summary(db_session: Session, info: SweepInfo) -> SweepSummary:
     baseline = info.baseline or {}
     return summarize(
-        list_trials(session, info.id),
+        list_trials(db_session, info.id),
         info.objective,
         (
             _nan_if_none(baseline.get("shift")),
@@ -262,9 +264,9 @@ def summary(session: Session, info: SweepInfo) -> SweepSummary:
     )
 
 
-def _count_trials(session: Session, sweep_id: int) -> int:
+def _count_trials(db_session: Session, sweep_id: int) -> int:
     count = select(func.count()).select_from(SweepTrial).where(SweepTrial.sweep_id == sweep_id)
-    return int(session.scalar(count) or 0)
+    return int(db_session.scalar(count) or 0)
 
 
 def _trial(row: SweepTrial) -> Trial:
@@ -279,10 +281,10 @@ def _trial(row: SweepTrial) -> Trial:
     )
 
 
-def _info(session: Session, row: Sweep) -> SweepInfo:
+def _info(db_session: Session, row: Sweep) -> SweepInfo:
     state, error = row.state, row.error
     if state == "running":  # a job that ended without storing its trials ends the sweep
-        ended = session.execute(
+        ended = db_session.execute(
             select(Job.state, Job.error)
             .where(
                 Job.sweep_id == row.id,
@@ -303,7 +305,7 @@ def _info(session: Session, row: Sweep) -> SweepInfo:
         base_params=row.base_params,
         trials_total=row.trials_total,
         trials_started=row.trials_started,
-        trials_done=_count_trials(session, row.id),
+        trials_done=_count_trials(db_session, row.id),
         batch=row.batch,
         seed=row.seed,
         has_ground_truth=row.ground_truth is not None,

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from dashboard_support import TIMEOUT_MS, log_in
 
+from app.cli.server_process import ServerProcess, WorkerProcess
 from app.client import Client
-from app.server_process import ServerProcess, WorkerProcess
 
 CHROMIUM = Path("/usr/bin/chromium")
 REQUIRE_BROWSER = os.environ.get("INVISIBLE_MAP_REQUIRE_BROWSER") == "1"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from app.server_process import ServerProcess
+from app.cli.server_process import ServerProcess
 
 #: How long a browser test waits for something to appear, ms.
 TIMEOUT_MS = 30_000

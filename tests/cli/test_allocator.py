@@ -1,4 +1,4 @@
-"""jemalloc for the processes that optimize (``app/allocator.py``): the setting, the environment
+"""jemalloc for the processes that optimize (``workers/allocator.py``): the setting, the environment
 of the processes started inside ``preloading_jemalloc``, and the two places that start them (a
 sweep's pool, the worker supervisor). Where the machine has no jemalloc, the tests that need one
 skip, saying so, unless ``INVISIBLE_MAP_REQUIRE_JEMALLOC=1`` (CI sets it), which makes that a
@@ -14,13 +14,14 @@ from pathlib import Path
 import pytest
 from cli_support import assert_one_line_error
 
-from app import allocator, cli
-from app.allocator import AllocatorError, jemalloc_path, preloading_jemalloc
+from app import cli
 from app.config import Settings
 from app.domain.params import SlamParams
 from app.domain.session import load_session
-from app.sweep_runner import trial_pool
+from workers import allocator
+from workers.allocator import AllocatorError, jemalloc_path, preloading_jemalloc
 from workers.main import start_worker_processes, stop_worker_processes
+from workers.sweep_pool import trial_pool
 
 ONETAG = Path(__file__).resolve().parents[2] / "data" / "sessions" / "onetag.json"
 MACHINE_JEMALLOC = jemalloc_path("auto")

@@ -1,4 +1,4 @@
-"""``invisible-map export`` and ``invisible-map import`` (``app/backup_cli.py``), run as a user runs
+"""``invisible-map export`` and ``invisible-map import`` (``app/cli/backup.py``), run as a user runs
 them: ``main([...])`` in this process with a monkeypatched environment, and once as real
 processes. Every failure is one line on stderr, ``invisible-map: error: …``, exit status 1.
 """

@@ -26,7 +26,8 @@ import pytest
 from cli_support import ERROR_PREFIX, assert_one_line_error
 
 from app import cli
-from app.server_process import ServerProcess, free_port
+from app.cli.common import DEMO_SESSIONS
+from app.cli.server_process import ServerProcess, free_port
 from app.storage import keys
 from app.storage.db import Database
 from app.storage.migrate import current_revision, head_revision, is_current
@@ -117,8 +118,8 @@ def empty_sqlite_url(tmp_path: Path) -> str:
 
 
 def authenticate(database: Database, key: str, **kwargs: Any) -> keys.Principal | None:
-    with database.read() as session:
-        return keys.authenticate(session, key, **kwargs)
+    with database.read() as db_session:
+        return keys.authenticate(db_session, key, **kwargs)
 
 
 def create_key(run_main: RunMain, *args: Any) -> str:
@@ -209,8 +210,8 @@ def test_keys_create_rejects_a_bad_expiry(db: Database, run_main: RunMain, days:
     status, out, err = run_main("keys", "create", "--role", "device", f"--expires-in-days={days}")
     assert_one_line_error(status, err, "--expires-in-days must be > 0")
     assert out == ""
-    with db.read() as session:
-        assert keys.list_keys(session) == []
+    with db.read() as db_session:
+        assert keys.list_keys(db_session) == []
 
 
 def test_keys_create_rejects_an_unknown_role(
@@ -220,8 +221,8 @@ def test_keys_create_rejects_an_unknown_role(
         run_main("keys", "create", "--role", "root")
     assert exit_info.value.code == 2
     assert "invalid choice: 'root'" in capsys.readouterr().err
-    with db.read() as session:
-        assert keys.list_keys(session) == []
+    with db.read() as db_session:
+        assert keys.list_keys(db_session) == []
 
 
 def test_keys_list_shows_ids_roles_and_prefixes_never_secrets(
@@ -235,8 +236,8 @@ def test_keys_list_shows_ids_roles_and_prefixes_never_secrets(
     admin = create_key(run_main, "--role", "admin")
     status, out, _ = run_main("keys", "list")
     assert status == 0
-    with db.read() as session:
-        infos = keys.list_keys(session)
+    with db.read() as db_session:
+        infos = keys.list_keys(db_session)
     assert [info.role for info in infos] == [Role.DEVICE, Role.ADMIN]
     rows = [line.split("\t") for line in out.splitlines()]
     assert rows == [
@@ -550,7 +551,7 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
         first.close()
     log = first.log()
     uploads = demo_uploads(log)
-    assert sorted(uploads) == sorted(name for name, _ in cli.DEMO_SESSIONS)
+    assert sorted(uploads) == sorted(name for name, _ in DEMO_SESSIONS)
     assert "not uploaded" not in log
     assert "Traceback" not in log
 

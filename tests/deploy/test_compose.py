@@ -10,8 +10,9 @@ from typing import Any
 import pytest
 import yaml
 
-from app import allocator, cli
+from app.cli import program as cli_program
 from app.config import Settings
+from workers import allocator
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -62,7 +63,7 @@ def test_worker_can_be_scaled(services):
 
 def test_api_does_not_start_its_own_workers_or_migrate(services):
     command = services["api"]["command"]
-    args = cli._parser().parse_args(command[1:])
+    args = cli_program._parser().parse_args(command[1:])
     assert args.command == "serve"
     assert args.workers == 0
     assert args.no_migrate
@@ -74,7 +75,7 @@ def test_api_does_not_start_its_own_workers_or_migrate(services):
 def test_commands_parse_with_our_command_line(services, name):
     command = services[name]["command"]
     assert command[0] == "invisible-map"
-    cli._parser().parse_args(command[1:])  # exits (SystemExit) if not
+    cli_program._parser().parse_args(command[1:])  # exits (SystemExit) if not
 
 
 @pytest.mark.parametrize("name", ["migrate", "api", "worker"])
@@ -124,8 +125,8 @@ def test_dockerfile_installs_the_project_and_runs_unprivileged():
 
 def test_the_worker_preloads_the_jemalloc_the_image_links():
     """The compose worker runs one process, which cannot preload jemalloc itself
-    (``app/allocator.py``): the image installs it and links it where the worker's LD_PRELOAD
-    points, and where ``app.allocator`` looks for it."""
+    (``workers/allocator.py``): the image installs it and links it where the worker's LD_PRELOAD
+    points, and where ``workers.allocator`` looks for it."""
     dockerfile = (REPO_ROOT / "Dockerfile").read_text()
     worker = yaml.safe_load((REPO_ROOT / "docker-compose.yml").read_text())["services"]["worker"]
     preload = worker["environment"]["LD_PRELOAD"]

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from app.server_process import free_port
+from app.cli.server_process import free_port
 
 REQUIRE_FAULTS = os.environ.get("INVISIBLE_MAP_REQUIRE_FAULTS") == "1"
 

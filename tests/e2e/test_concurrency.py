@@ -25,7 +25,7 @@ from collections import Counter
 import httpx
 import pytest
 
-from app.server_process import ServerProcess
+from app.cli.server_process import ServerProcess
 
 pytestmark = [pytest.mark.db, pytest.mark.slow]
 

@@ -23,8 +23,8 @@ from typing import Any
 import pytest
 from sqlalchemy import func, select
 
+from app.cli.server_process import ServerProcess, WorkerProcess, free_port
 from app.client import ApiError, Client
-from app.server_process import ServerProcess, WorkerProcess, free_port
 from app.storage.db import Database
 from app.storage.migrate import upgrade_to_head
 from app.storage.orm import Job, MapVersion, SessionRow

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from app.cli.server_process import ServerProcess, WorkerProcess
 from app.client import Client
-from app.server_process import ServerProcess, WorkerProcess
 
 pytestmark = [pytest.mark.db, pytest.mark.slow]
 

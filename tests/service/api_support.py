@@ -56,8 +56,8 @@ class Api:
         self, role: Role = Role.DEVICE, *, name: str = "test", expires_at: datetime | None = None
     ) -> tuple[int, str]:
         """A new key straight in the database: (id, secret)."""
-        with self.db.transaction() as session:
-            info, secret = keys.create_key(session, name=name, role=role, expires_at=expires_at)
+        with self.db.transaction() as db_session:
+            info, secret = keys.create_key(db_session, name=name, role=role, expires_at=expires_at)
         return info.id, secret
 
     def device(self) -> dict[str, str]:
@@ -91,8 +91,8 @@ class Api:
         return result
 
     def count(self, table: type[Base]) -> int:
-        with self.db.read() as session:
-            return session.scalar(select(func.count()).select_from(table)) or 0
+        with self.db.read() as db_session:
+            return db_session.scalar(select(func.count()).select_from(table)) or 0
 
 
 @contextmanager
@@ -119,19 +119,19 @@ def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) 
         return None
     assert lease.session_id is not None
     assert lease.map_id is not None
-    with db.read() as session:
-        raw = sessions.raw_upload(session, lease.session_id)
+    with db.read() as db_session:
+        raw = sessions.raw_upload(db_session, lease.session_id)
     parsed = parse_session(decode_json_bytes(raw))
     result = optimize_session(parsed, SlamParams().with_overrides(lease.params))
     evaluation = evaluate_map(parsed, result)
     png = None
     if plot:
-        from app.plot import render_map_png
+        from app.render.map_plot import render_map_png
 
         png = render_map_png(result, parsed)
-    with db.transaction() as session:
+    with db.transaction() as db_session:
         maps.store_version(
-            session,
+            db_session,
             map_id=lease.map_id,
             job_id=lease.job_id,
             result=result,
@@ -140,5 +140,5 @@ def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) 
             plot_png=png,
             path_graph=path_graph_to_json(build_path_graph(result)) if path_graph else None,
         )
-        queue.finish(session, lease, log_tail=lease.log_tail)
+        queue.finish(db_session, lease, log_tail=lease.log_tail)
     return lease.job_id

@@ -182,8 +182,10 @@ def test_a_device_key_reaches_no_dashboard_page_or_form(api: Api) -> None:
 
 def test_an_expired_key_cannot_log_in(api: Api) -> None:
     _, secret = api.create_key(Role.ADMIN, expires_at=datetime.now(UTC) + timedelta(seconds=1))
-    with api.db.transaction() as session:
-        session.execute(update(ApiKey).values(expires_at=datetime.now(UTC) - timedelta(seconds=1)))
+    with api.db.transaction() as db_session:
+        db_session.execute(
+            update(ApiKey).values(expires_at=datetime.now(UTC) - timedelta(seconds=1))
+        )
     assert log_in(api.client, secret).status_code == 401
 
 

@@ -150,8 +150,8 @@ def test_cancel_then_retry_a_job_from_its_page(api: Api, upload: dict[str, Any])
     assert f"Job {job_id} is canceled: cannot cancel it." in again.text
 
     assert post(api, f"/admin/jobs/{job_id}/retry").status_code == 303
-    with api.db.read() as session:
-        assert queue.get_job(session, job_id).state is JobState.QUEUED
+    with api.db.read() as db_session:
+        assert queue.get_job(db_session, job_id).state is JobState.QUEUED
 
 
 def test_jobs_are_listed_by_state(api: Api, upload: dict[str, Any]) -> None:

@@ -407,8 +407,8 @@ def test_cancel_a_running_sweep(api: Api, map_id: int) -> None:
     assert 'data-sweep-state="canceled"' in page
     assert f"Cancel sweep {sweep_id}" not in page
     assert sweep_json(api, sweep_id)["state"] == "canceled"
-    with api.db.read() as session:
-        states = session.scalars(select(Job.state).where(Job.sweep_id == sweep_id)).all()
+    with api.db.read() as db_session:
+        states = db_session.scalars(select(Job.state).where(Job.sweep_id == sweep_id)).all()
     assert states == ["canceled"]
     again = post(api, f"/admin/sweeps/{sweep_id}/cancel")
     assert again.status_code == 303

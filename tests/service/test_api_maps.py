@@ -28,7 +28,7 @@ PROCESSED_EXAMPLES = sorted(
     (Path(__file__).resolve().parents[3] / "shared/data/processed_examples").glob("*.json")
 )
 
-#: The app's download format, DESIGN §7.
+#: The app's download format, docs/architecture.md §7.
 APP_MAP_KEYS = {"tag_vertices", "odometry_vertices", "waypoints_vertices"}
 TAG_VERTEX_KEYS = {"id", "translation", "rotation"}
 ODOMETRY_VERTEX_KEYS = {"poseId", "translation", "rotation", "adjChi2", "vizTags", "neighbors"}

@@ -307,8 +307,8 @@ def test_malformed_updates_are_refused_and_change_nothing(nav, kind, field):
     updates = desnat_updates()
     for document in updates[:3]:
         api.client.post(f"/v1/localizations/{sid}/updates", json=document, headers=ADMIN)
-    with api.db.read() as session:
-        before = navigation.get_localization(session, sid)
+    with api.db.read() as db_session:
+        before = navigation.get_localization(db_session, sid)
 
     response = api.client.post(
         f"/v1/localizations/{sid}/updates", json=_broken(kind, updates[3]), headers=ADMIN
@@ -317,8 +317,8 @@ def test_malformed_updates_are_refused_and_change_nothing(nav, kind, field):
     assert response.status_code == 422, response.text
     assert response.json()["code"] == "invalid_update"
     assert (response.json()["field"] or "").startswith(field)
-    with api.db.read() as session:
-        after = navigation.get_localization(session, sid)
+    with api.db.read() as db_session:
+        after = navigation.get_localization(db_session, sid)
     assert (after.revision, after.state) == (before.revision, before.state)
     good = api.client.post(f"/v1/localizations/{sid}/updates", json=updates[3], headers=ADMIN)
     assert good.status_code == 200, good.text
@@ -341,11 +341,11 @@ def test_a_stale_revision_cannot_overwrite_a_newer_state(nav):
     api, map_id = nav
     sid = start_localization(api, map_id)
     api.client.post(f"/v1/localizations/{sid}/updates", json=desnat_updates()[0], headers=ADMIN)
-    with api.db.read() as session:
-        info = navigation.get_localization(session, sid)
-    with pytest.raises(LocalizationConflict), api.db.transaction() as session:
+    with api.db.read() as db_session:
+        info = navigation.get_localization(db_session, sid)
+    with pytest.raises(LocalizationConflict), api.db.transaction() as db_session:
         navigation.save_update(
-            session, sid, expected_revision=info.revision - 1, status="x", state={}
+            db_session, sid, expected_revision=info.revision - 1, status="x", state={}
         )
-    with api.db.read() as session:
-        assert navigation.get_localization(session, sid).state == info.state
+    with api.db.read() as db_session:
+        assert navigation.get_localization(db_session, sid).state == info.state

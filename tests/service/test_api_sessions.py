@@ -479,9 +479,9 @@ def test_a_race_lost_at_the_unique_constraint_replays_the_winner(
     real_lookup = sessions.find_by_idempotency_key
     calls: list[str] = []
 
-    def not_yet_visible(session: Session, uploaded_by: str, key: str) -> int | None:
+    def not_yet_visible(db_session: Session, uploaded_by: str, key: str) -> int | None:
         calls.append(key)
-        return None if len(calls) <= 2 else real_lookup(session, uploaded_by, key)
+        return None if len(calls) <= 2 else real_lookup(db_session, uploaded_by, key)
 
     monkeypatch.setattr(sessions, "find_by_idempotency_key", not_yet_visible)
 

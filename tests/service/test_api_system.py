@@ -13,7 +13,7 @@ import pytest
 from api_support import ADMIN, ONETAG, Api, running_api
 from fastapi.testclient import TestClient
 
-from app.api.deps import read_session
+from app.api.deps import read_db_session
 from app.config import Settings
 from app.main import create_app
 from app.storage import queue
@@ -133,7 +133,7 @@ def test_an_unexpected_error_is_500_with_a_generic_body(database_url: str) -> No
         yield  # pragma: no cover
 
     with running_api(database_url) as api:
-        api.app.dependency_overrides[read_session] = broken
+        api.app.dependency_overrides[read_db_session] = broken
         client = TestClient(api.app, raise_server_exceptions=False)
         response = client.get("/v1/maps", headers=ADMIN)
 

@@ -24,13 +24,13 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from app.domain.session import decode_json_bytes, parse_session
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import Axis, SearchSpace, Trial
 from app.storage import backup, keys, maps, queue, sessions, sweeps
 from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefused
 from app.storage.db import Database
 from app.storage.migrate import head_revision
 from app.storage.orm import Base, Job, JobState, Role
-from app.sweep_runner import SweepPlan
 from tests.service.api_support import ADMIN, run_next_job, running_api
 from tests.service.helpers import session_bytes
 

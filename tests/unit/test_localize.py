@@ -1,4 +1,4 @@
-"""Live localization against a fixed map (DESIGN §6): convergence, warm start, the JSON state,
+"""Live localization against a fixed map (architecture §6): convergence, warm start, the JSON state,
 bounded cost, validation that leaves the state alone, and the real cross-session replay."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Map quality metrics (DESIGN §4): hand-worked cases, invariants, and the reference numbers."""
+"""Map quality metrics (§4): hand-worked cases, invariants, and the reference numbers."""
 
 from __future__ import annotations
 
@@ -133,7 +133,7 @@ def test_coincident_ground_truth_tags_give_no_ratio():
 
 
 def ground_truth_metric_by_loops(map_T_tag, gt_T_tag):
-    """DESIGN §4 written out literally: per anchor the mean over the others, then the mean."""
+    """architecture §4 written out literally: per anchor the mean over the others, then the mean."""
     common = sorted(set(map_T_tag) & set(gt_T_tag))
     anchor_means = []
     for a in common:
@@ -333,7 +333,7 @@ def test_shift_metric_rejects_a_bad_mask(mask):
 
 
 def shift_metric_by_loops(session, map_T_tag):
-    """DESIGN §4 written out literally, with matrix inverses."""
+    """docs/architecture.md §4 written out literally, with matrix inverses."""
     world_T_tag_obs = session.world_T_tag_observed()
     singles = [k for k in range(len(session.detections)) if session.detections.frame_size[k] == 1]
     ratios = []

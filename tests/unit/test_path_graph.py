@@ -1,4 +1,4 @@
-"""The path graph (DESIGN §6, issue 5 item 1): junctions only where the walk really crosses itself,
+"""The path graph (§6, issue 5 item 1): junctions only where the walk really crosses itself,
 merged passes, closed loops, floors with stairs and elevators, simplification within tolerance,
 anchors, and the JSON, GeoJSON and app exports.
 

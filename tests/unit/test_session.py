@@ -1,4 +1,4 @@
-"""The upload parser (DESIGN §2): typed arrays, the app's quirks, precise errors on bad input."""
+"""The upload parser (§2): typed arrays, the app's quirks, precise errors on bad input."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Simulated sessions: the upload format, the frame conventions, and the truth behind them.
 
-The noiseless frame-convention test here is THE check of the app's conventions (DESIGN §2) across
+The noiseless frame-convention test here is THE check of the app's conventions (§2) across
 the project: column-major ``pose``, row-major OpenCV ``tag_pose`` and the diag(1, −1, −1, 1) flip.
 """
 
@@ -28,7 +28,7 @@ TAG_SIZE_M = 0.173
 
 
 def tag_corners_px(camera_T_tag: FloatArray, intrinsics: FloatArray) -> FloatArray:
-    """(M, 4, 2) the DESIGN §2 corner pixels, written out independently of the simulator."""
+    """(M, 4, 2) the architecture §2 corner pixels, written out independently of the simulator."""
     h = TAG_SIZE_M / 2
     corners_tag = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]]).T
     points = camera_T_tag @ corners_tag  # (M, 4, 4): rows x, y, z, 1 per corner column

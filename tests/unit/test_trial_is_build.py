@@ -1,4 +1,4 @@
-"""A sweep trial is the map a build with its parameters makes (DESIGN §5), bit for bit.
+"""A sweep trial is the map a build with its parameters makes (architecture §5), bit for bit.
 
 A trial takes shortcuts a build does not: it reuses the session's screening, factor kinds and
 COLAMD ordering, starts Levenberg–Marquardt from the optimum with the default variances (computed

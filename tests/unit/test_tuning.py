@@ -1,4 +1,4 @@
-"""Hyperparameter tuning (DESIGN §5): search spaces, trials on simulated and real sessions, the
+"""Hyperparameter tuning (§5): search spaces, trials on simulated and real sessions, the
 sampler, the summary and the plots."""
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from app.domain.simulate import (
     simulate_session,
 )
 from app.domain.slam import optimize_session
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import (
     MAX_TRIALS,
     PAPER_GRID_AXES,
@@ -39,12 +40,11 @@ from app.domain.tuning import (
     summarize,
     sweep_result,
 )
-from app.sweep_plots import heatmap_png, shift_vs_gt_png
-from app.sweep_runner import SweepPlan
+from app.render.sweep_plots import heatmap_png, shift_vs_gt_png
 
 DATA_DIR = Path(__file__).parents[2] / "data"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-#: The sweep plots' marker colours (app/sweep_plots.py): shift-chosen / best ★, GT-chosen ★.
+#: The sweep plots' marker colours (app/render/sweep_plots.py): shift-chosen / best ★, GT-chosen ★.
 RED_RGB = (0xD5, 0x00, 0x00)
 GREEN_RGB = (0x2E, 0x7D, 0x32)
 
@@ -900,7 +900,7 @@ def test_unknown_objectives_and_non_integer_counts_are_refused() -> None:
 
 
 def test_run_sweep_refuses_zero_processes() -> None:
-    from app.sweep_runner import run_sweep
+    from workers.sweep_pool import run_sweep
 
     session = load_session(DATA_DIR / "sessions" / "onetag.json")
     plan = SweepPlan(method="grid", space=SearchSpace((Axis("gravity_var_rad2", 1e-4, 1e-2, 2),)))

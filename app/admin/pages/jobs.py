@@ -15,7 +15,7 @@ from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, ReadSessionDep, valid_id
+from app.api.deps import DbDep, ReadDbSessionDep, valid_id
 from app.storage import queue
 from app.storage.orm import JobState
 
@@ -26,12 +26,12 @@ router = admin_router()
 def job_list(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     state: Annotated[JobState | None, Query(description="only jobs in this state")] = None,
     page: PageNumber = 1,
 ) -> Response:
     jobs, total = queue.list_jobs(
-        session, state=state, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
+        db_session, state=state, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
     )
     return render(
         request,
@@ -53,24 +53,24 @@ def job_list(
 
 @router.get("/jobs/{job_id}")
 def job_detail(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, job_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, job_id: int
 ) -> Response:
-    job = queue.get_job(session, valid_id(job_id, "job"))
+    job = queue.get_job(db_session, valid_id(job_id, "job"))
     return render(request, "job.html", section="jobs", title=f"Job {job.id}", job=job)
 
 
 @router.get("/live/jobs/{job_id}")
 def job_live(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, job_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, job_id: int
 ) -> Response:
-    job = queue.get_job(session, valid_id(job_id, "job"))
+    job = queue.get_job(db_session, valid_id(job_id, "job"))
     return render(request, "_job_live.html", job=job)
 
 
 @router.post("/jobs/{job_id}/cancel")
 def cancel_job(request: Request, _form: CheckedFormDep, db: DbDep, job_id: int) -> Response:
-    with db.transaction() as session:
-        job = queue.request_cancel(session, valid_id(job_id, "job"))
+    with db.transaction() as db_session:
+        job = queue.request_cancel(db_session, valid_id(job_id, "job"))
     message = (
         f"Job {job.id} canceled."
         if job.state is JobState.CANCELED
@@ -81,6 +81,6 @@ def cancel_job(request: Request, _form: CheckedFormDep, db: DbDep, job_id: int) 
 
 @router.post("/jobs/{job_id}/retry")
 def retry_job(request: Request, _form: CheckedFormDep, db: DbDep, job_id: int) -> Response:
-    with db.transaction() as session:
-        job = queue.retry(session, valid_id(job_id, "job"))
+    with db.transaction() as db_session:
+        job = queue.retry(db_session, valid_id(job_id, "job"))
     return redirect(request, f"/admin/jobs/{job.id}", flash=f"Job {job.id} is queued again.")

@@ -12,9 +12,9 @@ from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, valid_id
-from app.api.errors import ApiError
-from app.api.routes.keys import create_checked_key
-from app.api.schemas import KeyCreate
+from app.api.schemas.keys import KeyCreate
+from app.services.errors import InvalidInput, ServiceError
+from app.services.keys import create_checked_key
 from app.storage import keys
 from app.storage.orm import Role
 
@@ -30,8 +30,8 @@ def _keys_page(
     submitted: dict[str, str] | None = None,
     status_code: int = 200,
 ) -> Response:
-    with db.read() as session:
-        infos = keys.list_keys(session)
+    with db.read() as db_session:
+        infos = keys.list_keys(db_session)
     now = datetime.now(UTC)
     return render(
         request,
@@ -54,7 +54,7 @@ def key_list(request: Request, _user: DashboardUserDep, db: DbDep) -> Response:
 
 
 def _key_create(form: dict[str, str]) -> KeyCreate:
-    """The form as a :class:`KeyCreate` (the API's schema); ApiError 422 with a readable reason."""
+    """The form as a :class:`KeyCreate` (the API's schema); InvalidInput with a readable reason."""
     expires = form.get("expires_on", "")
     try:
         expires_at = (
@@ -63,8 +63,8 @@ def _key_create(form: dict[str, str]) -> KeyCreate:
             else None
         )
     except ValueError as err:
-        raise ApiError(
-            422, "validation_error", "Expires on: not a date", field="expires_on"
+        raise InvalidInput(
+            "validation_error", "Expires on: not a date", field="expires_on"
         ) from err
     try:
         return KeyCreate(
@@ -73,7 +73,7 @@ def _key_create(form: dict[str, str]) -> KeyCreate:
     except ValidationError as err:
         first = err.errors()[0]
         where = ".".join(str(part) for part in first["loc"]) or "form"
-        raise ApiError(422, "validation_error", f"{where}: {first['msg']}", field=where) from err
+        raise InvalidInput("validation_error", f"{where}: {first['msg']}", field=where) from err
 
 
 @router.post("/keys")
@@ -81,9 +81,11 @@ def create_key(request: Request, form: CheckedFormDep, db: DbDep) -> Response:
     submitted = {name: str(value).strip() for name, value in form.items() if isinstance(value, str)}
     try:
         new = _key_create(submitted)
-        with db.transaction() as session:
-            created = create_checked_key(session, new)
-    except ApiError as err:
+        with db.transaction() as db_session:
+            created = create_checked_key(
+                db_session, name=new.name, role=new.role, expires_at=new.expires_at
+            )
+    except ServiceError as err:
         return _keys_page(
             request, db, error=err.detail, submitted=submitted, status_code=err.status_code
         )
@@ -92,6 +94,6 @@ def create_key(request: Request, form: CheckedFormDep, db: DbDep) -> Response:
 
 @router.post("/keys/{key_id}/revoke")
 def revoke_key(request: Request, _form: CheckedFormDep, db: DbDep, key_id: int) -> Response:
-    with db.transaction() as session:
-        info = keys.revoke_key(session, valid_id(key_id, "API key"))
+    with db.transaction() as db_session:
+        info = keys.revoke_key(db_session, valid_id(key_id, "API key"))
     return redirect(request, "/admin/keys", flash=f"Key {info.id} ({info.name}) is revoked.")

@@ -93,8 +93,8 @@ def log_in(
         return _login_page(
             request, state, next_url=next_url, error="Enter an admin API key.", status_code=422
         )
-    with db.read() as session:
-        principal = keys.authenticate(session, key, admin_key=settings.admin_key)
+    with db.read() as db_session:
+        principal = keys.authenticate(db_session, key, admin_key=settings.admin_key)
     if principal is None:
         return _login_page(
             request,
@@ -114,8 +114,8 @@ def log_in(
     if principal.key_id is not None:
         usage: KeyUsage = request.app.state.key_usage
         if usage.due(principal.key_id):
-            with db.transaction() as session:
-                keys.touch(session, principal.key_id)
+            with db.transaction() as db_session:
+                keys.touch(db_session, principal.key_id)
     response = redirect(request, safe_next(next_url), flash="You are logged in.")
     start_login(response, request, state, principal, key)
     return response

@@ -20,20 +20,15 @@ from app.admin.map_figure import map_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, ReadSessionDep, SettingsDep, valid_id
-from app.api.errors import ApiError
-from app.api.routes.maps import (
-    app_map_content,
-    chosen_version,
-    delete_map_and_jobs,
-    enqueue_rebuild,
-)
-from app.api.routes.navigation import geojson_content, version_path_graph
-from app.api.version_cache import VersionCache
+from app.api.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import PathGraph
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
+from app.services.errors import ServiceError
+from app.services.maps import app_map_content, chosen_version, delete_map_and_jobs, enqueue_rebuild
+from app.services.navigation import geojson_content, version_path_graph
+from app.services.version_cache import VersionCache
 from app.storage import maps, queue, sessions
 from app.storage.maps import MapInfo, VersionInfo
 
@@ -46,12 +41,12 @@ VersionNumber = Annotated[
 
 @router.get("/maps")
 def map_list(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, page: PageNumber = 1
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, page: PageNumber = 1
 ) -> Response:
-    infos, total = maps.list_maps(session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
+    infos, total = maps.list_maps(db_session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
     latest_jobs = {}
     for info in infos:
-        jobs, _ = queue.list_jobs(session, map_id=info.id, limit=1)
+        jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=1)
         latest_jobs[info.id] = jobs[0] if jobs else None
     return render(
         request,
@@ -64,32 +59,32 @@ def map_list(
     )
 
 
-def raw_session(session: Session, session_id: int) -> ParsedSession:
+def raw_session(db_session: Session, session_id: int) -> ParsedSession:
     """The parsed raw upload of a session (for its raw trajectory)."""
-    return parse_session(decode_json_bytes(sessions.raw_upload(session, session_id)))
+    return parse_session(decode_json_bytes(sessions.raw_upload(db_session, session_id)))
 
 
 def path_graph_or_none(
-    request: Request, session: Session, version: VersionInfo
+    request: Request, db_session: Session, version: VersionInfo
 ) -> PathGraph | None:
     """The version's path graph, or None for a version built before path graphs existed."""
     try:
-        return version_path_graph(request, session, version)
-    except ApiError:
+        return version_path_graph(request.app.state.version_cache, db_session, version)
+    except ServiceError:
         return None
 
 
 def version_figure(
-    request: Request, session: Session, info: MapInfo, version: VersionInfo
+    request: Request, db_session: Session, info: MapInfo, version: VersionInfo
 ) -> dict[str, Any]:
     """The plot data of a map version (cached per process: versions never change)."""
 
     def build() -> dict[str, Any]:
-        result = map_from_json(maps.map_document(session, info.id, version.number))
+        result = map_from_json(maps.map_document(db_session, info.id, version.number))
         return map_figure(
             result,
-            raw_session(session, info.session_id),
-            path_graph_or_none(request, session, version),
+            raw_session(db_session, info.session_id),
+            path_graph_or_none(request, db_session, version),
         )
 
     cache: VersionCache = request.app.state.version_cache
@@ -98,17 +93,17 @@ def version_figure(
 
 def map_page(
     request: Request,
-    session: Session,
+    db_session: Session,
     map_id: int,
     number: int | None,
     *,
     submitted: dict[str, str] | None = None,
-    rebuild_error: ApiError | None = None,
+    rebuild_error: ServiceError | None = None,
 ) -> Response:
     """The map page (with the rebuild form's error and values after a refused rebuild)."""
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    version = chosen_version(session, info, number) if info.current or number else None
-    jobs, _ = queue.list_jobs(session, map_id=info.id, limit=10)
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    version = chosen_version(db_session, info, number) if info.current or number else None
+    jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=10)
     error_field = None
     if rebuild_error is not None and rebuild_error.field:
         error_field = rebuild_error.field.removeprefix("params.")
@@ -120,11 +115,11 @@ def map_page(
         title=f"Map {info.id}: {info.name}",
         info=info,
         version=version,
-        versions=maps.list_versions(session, info.id),
+        versions=maps.list_versions(db_session, info.id),
         jobs=jobs,
-        figure=version_figure(request, session, info, version) if version else None,
+        figure=version_figure(request, db_session, info, version) if version else None,
         has_path_graph=version is not None
-        and path_graph_or_none(request, session, version) is not None,
+        and path_graph_or_none(request, db_session, version) is not None,
         fields=rebuild_fields(info.current.params if info.current else None, submitted),
         rebuild_error=rebuild_error.detail if rebuild_error else None,
         error_field=error_field,
@@ -137,11 +132,11 @@ def map_page(
 def map_detail(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: int,
     version: VersionNumber = None,
 ) -> Response:
-    return map_page(request, session, map_id, version)
+    return map_page(request, db_session, map_id, version)
 
 
 @router.post("/maps/{map_id}/rebuild")
@@ -151,19 +146,19 @@ def rebuild(
     map_id = valid_id(map_id, "map")
     try:
         overrides, _ = rebuild_overrides(form)
-    except ApiError as err:
-        with db.read() as session:
+    except ServiceError as err:
+        with db.read() as db_session:
             return map_page(
                 request,
-                session,
+                db_session,
                 map_id,
                 None,
                 submitted={k: str(v) for k, v in form.items() if isinstance(v, str)},
                 rebuild_error=err,
             )
-    with db.transaction() as session:
+    with db.transaction() as db_session:
         info, job_id = enqueue_rebuild(
-            session, map_id, overrides, max_attempts=settings.max_attempts
+            db_session, map_id, overrides, max_attempts=settings.max_attempts
         )
     changed = ", ".join(f"{name} = {value}" for name, value in overrides.items()) or "defaults"
     return redirect(
@@ -176,19 +171,22 @@ def rebuild(
 @router.post("/maps/{map_id}/delete")
 def delete(request: Request, _form: CheckedFormDep, db: DbDep, map_id: int) -> Response:
     map_id = valid_id(map_id, "map")
-    with db.transaction() as session:
-        delete_map_and_jobs(session, map_id)
+    with db.transaction() as db_session:
+        delete_map_and_jobs(db_session, map_id)
     return redirect(request, "/admin/maps", flash=f"Map {map_id} deleted (its session stays).")
 
 
 @router.get("/maps/{map_id}/app-map")
 def download_app_map(
-    _user: DashboardUserDep, session: ReadSessionDep, map_id: int, version: VersionNumber = None
+    _user: DashboardUserDep,
+    db_session: ReadDbSessionDep,
+    map_id: int,
+    version: VersionNumber = None,
 ) -> Response:
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    chosen = chosen_version(session, info, version)
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    chosen = chosen_version(db_session, info, version)
     return Response(
-        content=app_map_content(session, chosen),
+        content=app_map_content(db_session, chosen),
         media_type="application/json",
         headers={
             "Content-Disposition": f'attachment; filename="map-{info.id}-v{chosen.number}.json"'
@@ -200,14 +198,16 @@ def download_app_map(
 def download_geojson(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: int,
     version: VersionNumber = None,
 ) -> Response:
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    chosen = chosen_version(session, info, version)
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    chosen = chosen_version(db_session, info, version)
     return Response(
-        content=geojson_content(version_path_graph(request, session, chosen)),
+        content=geojson_content(
+            version_path_graph(request.app.state.version_cache, db_session, chosen)
+        ),
         media_type="application/geo+json",
         headers={
             "Content-Disposition": (
@@ -221,22 +221,22 @@ def download_geojson(
 def map_live(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: int,
     version: VersionNumber = None,
     current: Annotated[int, Query(ge=0, le=2**31, description="the page's current version")] = 0,
 ) -> Response:
     """The map page's live part: versions (with a notice when one newer than the page's
     ``current`` is ready) and jobs."""
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    jobs, _ = queue.list_jobs(session, map_id=info.id, limit=10)
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=10)
     return render(
         request,
         "_map_live.html",
         shown_current=current,
         info=info,
-        version=chosen_version(session, info, version) if info.current or version else None,
-        versions=maps.list_versions(session, info.id),
+        version=chosen_version(db_session, info, version) if info.current or version else None,
+        versions=maps.list_versions(db_session, info.id),
         jobs=jobs,
         changed_params=changed_params,
     )

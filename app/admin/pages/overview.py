@@ -16,9 +16,9 @@ from sqlalchemy.orm import Session
 from app.admin.auth import DashboardUserDep
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadSessionDep, SettingsDep
-from app.api.routes.system import ALIVE_HEARTBEATS
+from app.api.deps import ReadDbSessionDep, SettingsDep
 from app.config import Settings
+from app.services.system import ALIVE_HEARTBEATS
 from app.storage import queue
 from app.storage.orm import JobState, utc_now
 
@@ -29,11 +29,11 @@ RECENT_FAILURES = 10
 FAILURE_WINDOW = timedelta(days=1)
 
 
-def _overview(session: Session, settings: Settings) -> dict[str, Any]:
-    counts = queue.count_by_state(session)
-    recent, _ = queue.list_jobs(session, limit=RECENT_JOBS)
+def _overview(db_session: Session, settings: Settings) -> dict[str, Any]:
+    counts = queue.count_by_state(db_session)
+    recent, _ = queue.list_jobs(db_session, limit=RECENT_JOBS)
     failures, failure_count = queue.list_jobs(
-        session,
+        db_session,
         state=JobState.FAILED,
         finished_after=utc_now() - FAILURE_WINDOW,
         limit=RECENT_FAILURES,
@@ -41,7 +41,9 @@ def _overview(session: Session, settings: Settings) -> dict[str, Any]:
     return {
         "counts": counts,
         "queue_depth": counts.get(JobState.QUEUED.value, 0),
-        "workers": queue.alive_workers(session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s),
+        "workers": queue.alive_workers(
+            db_session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s
+        ),
         "recent": recent,
         "failures": failures,
         "failure_count": failure_count,
@@ -50,19 +52,19 @@ def _overview(session: Session, settings: Settings) -> dict[str, Any]:
 
 @router.get("")
 def overview(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, settings: SettingsDep
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, settings: SettingsDep
 ) -> Response:
     return render(
         request,
         "overview.html",
         section="overview",
         title="Overview",
-        **_overview(session, settings),
+        **_overview(db_session, settings),
     )
 
 
 @router.get("/live/overview")
 def overview_live(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, settings: SettingsDep
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, settings: SettingsDep
 ) -> Response:
-    return render(request, "_overview_live.html", **_overview(session, settings))
+    return render(request, "_overview_live.html", **_overview(db_session, settings))

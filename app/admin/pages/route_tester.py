@@ -18,10 +18,10 @@ from app.admin.pages.maps import version_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadSessionDep, valid_id
-from app.api.errors import ApiError
-from app.api.routes.navigation import current_path_graph, planned_route
+from app.api.deps import ReadDbSessionDep, valid_id
 from app.domain.routing import AVOIDABLE, Route
+from app.services.errors import ServiceError
+from app.services.navigation import current_path_graph, planned_route
 from app.storage import maps
 
 router = admin_router()
@@ -31,9 +31,9 @@ EndText = Annotated[str, Query(max_length=300)]
 
 @router.get("/routes")
 def route_maps(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, page: PageNumber = 1
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, page: PageNumber = 1
 ) -> Response:
-    infos, total = maps.list_maps(session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
+    infos, total = maps.list_maps(db_session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
     return render(
         request,
         "routes.html",
@@ -48,18 +48,20 @@ def route_maps(
 def route_tester(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: int,
     from_: Annotated[str, Query(alias="from", max_length=300)] = "",
     to: EndText = "",
     avoid: Annotated[list[str] | None, Query(max_length=2)] = None,
 ) -> Response:
-    info = maps.get_map(session, valid_id(map_id, "map"))
-    version, graph = current_path_graph(request, session, info)  # 409 without one
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    version, graph = current_path_graph(
+        request.app.state.version_cache, db_session, info
+    )  # 409 without one
     avoided = frozenset(avoid or ()) & AVOIDABLE
-    figure = version_figure(request, session, info, version)
+    figure = version_figure(request, db_session, info, version)
     route: Route | None = None
-    error: ApiError | None = None
+    error: ServiceError | None = None
     if from_ and to:
         try:
             route = planned_route(
@@ -69,7 +71,7 @@ def route_tester(
                 avoid=avoided,
             )
             figure = with_route(figure, route)
-        except ApiError as err:
+        except ServiceError as err:
             error = err
     tags = sorted(graph.tags)
     pois = sorted(poi.name for poi in graph.pois)

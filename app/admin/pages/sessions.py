@@ -13,10 +13,10 @@ from app.admin.auth import DashboardUserDep
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadSessionDep, valid_id
-from app.api.routes.sessions import raw_upload_response
-from app.api.version_cache import VersionCache
+from app.api.deps import ReadDbSessionDep, valid_id
+from app.api.http import raw_upload_response
 from app.domain.session import decode_json_bytes, parse_session
+from app.services.version_cache import VersionCache
 from app.storage import queue, sessions
 
 router = admin_router()
@@ -28,13 +28,13 @@ Search = Annotated[str, Query(max_length=200, description="part of the map name"
 def session_list(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     q: Search = "",
     page: PageNumber = 1,
 ) -> Response:
     query = q.strip()
     infos, total = sessions.list_sessions(
-        session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE, name_contains=query or None
+        db_session, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE, name_contains=query or None
     )
     return render(
         request,
@@ -50,13 +50,13 @@ def session_list(
 
 
 def detections_per_tag(
-    request: Request, session: Session, session_id: int
+    request: Request, db_session: Session, session_id: int
 ) -> list[tuple[int, int]]:
     """(tag id, detections) of a session's raw upload, by tag id (uploads never change, so the
     count is kept in the process's cache)."""
 
     def count() -> list[tuple[int, int]]:
-        parsed = parse_session(decode_json_bytes(sessions.raw_upload(session, session_id)))
+        parsed = parse_session(decode_json_bytes(sessions.raw_upload(db_session, session_id)))
         counts = Counter(int(tag_id) for tag_id in parsed.detections.tag_id)
         return sorted(counts.items())
 
@@ -66,10 +66,10 @@ def detections_per_tag(
 
 @router.get("/sessions/{session_id}")
 def session_detail(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, session_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, session_id: int
 ) -> Response:
-    info = sessions.get_session(session, valid_id(session_id, "session"))
-    jobs, _ = queue.list_jobs(session, session_id=info.id, limit=100)
+    info = sessions.get_session(db_session, valid_id(session_id, "session"))
+    jobs, _ = queue.list_jobs(db_session, session_id=info.id, limit=100)
     return render(
         request,
         "session.html",
@@ -77,15 +77,15 @@ def session_detail(
         title=f"Session {info.id}",
         info=info,
         jobs=jobs,
-        detections=detections_per_tag(request, session, info.id),
+        detections=detections_per_tag(request, db_session, info.id),
     )
 
 
 @router.get("/sessions/{session_id}/raw")
 def session_raw(
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     session_id: int,
     accept_encoding: Annotated[str | None, Header()] = None,
 ) -> Response:
-    return raw_upload_response(session, valid_id(session_id, "session"), accept_encoding)
+    return raw_upload_response(db_session, valid_id(session_id, "session"), accept_encoding)

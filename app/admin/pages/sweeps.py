@@ -32,14 +32,8 @@ from app.admin.forms import REBUILD_PARAMS, changed_params
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router, sentence
 from app.admin.templating import redirect, render
-from app.api.deps import MAX_ID, DbDep, ReadSessionDep, SettingsDep, valid_id
-from app.api.errors import ApiError
-from app.api.routes.sweeps import (
-    apply_best,
-    checked_plan,
-    heatmap_content,
-    shift_vs_gt_content,
-)
+from app.api.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, valid_id
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import (
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
@@ -48,11 +42,12 @@ from app.domain.tuning import (
     Trial,
     best_trial,
 )
+from app.services.errors import InvalidInput, NotFound, ServiceError
+from app.services.sweeps import apply_best, checked_plan, heatmap_content, shift_vs_gt_content
 from app.storage import maps, queue, sweeps
 from app.storage.maps import MapInfo, MapNotFound
 from app.storage.queue import JobInfo, JobNotFound
 from app.storage.sweeps import SweepInfo
-from app.sweep_runner import SweepPlan
 
 router = admin_router()
 
@@ -157,9 +152,10 @@ class StartRequest:
     ground_truth: dict[str, Any] | None
 
 
-def _form_error(element_id: str, detail: str, status_code: int = 422) -> ApiError:
+def _form_error(element_id: str, detail: str, status_code: int = 422) -> ServiceError:
     """An error of the start form; ``field`` is the id of the element to focus."""
-    return ApiError(status_code, "invalid_sweep", detail, field=element_id)
+    error_type = NotFound if status_code == 404 else InvalidInput
+    return error_type("invalid_sweep", detail, field=element_id)
 
 
 def _number(text: str, element_id: str, what: str) -> float:
@@ -213,7 +209,7 @@ def _ground_truth(form: FormData, submitted: StartForm) -> dict[str, Any] | None
 
 
 def start_request(form: FormData, submitted: StartForm) -> StartRequest:
-    """The start form read (numbers parsed, ground truth decoded); ApiError naming the element
+    """The start form read (numbers parsed, ground truth decoded); ServiceError naming the element
     at fault. What the numbers mean is checked by :func:`checked_plan`."""
     if submitted.map_id is None:
         raise _form_error("start-map", "Map: choose the map whose session to sweep")
@@ -241,7 +237,7 @@ def start_request(form: FormData, submitted: StartForm) -> StartRequest:
     )
 
 
-def _plan_error(err: ApiError, submitted: StartForm) -> ApiError:
+def _plan_error(err: ServiceError, submitted: StartForm) -> ServiceError:
     """:func:`checked_plan`'s error (named by its API field) as the start form's: about the
     form element at fault, a parameter named by its label."""
     detail = err.detail
@@ -269,35 +265,35 @@ def _plan_error(err: ApiError, submitted: StartForm) -> ApiError:
 # --------------------------------------------------------------------------- the list
 
 
-def _map_choices(session: Session, chosen: int | None) -> list[MapInfo]:
+def _map_choices(db_session: Session, chosen: int | None) -> list[MapInfo]:
     """The maps offered in the lists: the newest, and the chosen one if it is older."""
-    infos, _ = maps.list_maps(session, limit=MAP_CHOICES)
+    infos, _ = maps.list_maps(db_session, limit=MAP_CHOICES)
     if chosen is not None and all(info.id != chosen for info in infos):
         with contextlib.suppress(MapNotFound):  # a refused form's map may be gone
-            infos.append(maps.get_map(session, chosen))
+            infos.append(maps.get_map(db_session, chosen))
     return infos
 
 
 def _sweeps_page(
     request: Request,
-    session: Session,
+    db_session: Session,
     *,
     map_id: int | None,
     page: int = 1,
     form: StartForm | None = None,
-    error: ApiError | None = None,
+    error: ServiceError | None = None,
 ) -> Response:
     if map_id is not None:
-        maps.get_map(session, valid_id(map_id, "map"))  # 404 for an unknown map
+        maps.get_map(db_session, valid_id(map_id, "map"))  # 404 for an unknown map
     infos, total = sweeps.list_sweeps(
-        session, map_id=map_id, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
+        db_session, map_id=map_id, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
     )
     start = form or StartForm(map_id=map_id)
-    choices = _map_choices(session, start.map_id)
+    choices = _map_choices(db_session, start.map_id)
     names = {info.id: info.name for info in choices}
     for info in infos:
         if info.map_id not in names:
-            names[info.map_id] = maps.get_map(session, info.map_id).name
+            names[info.map_id] = maps.get_map(db_session, info.map_id).name
     return render(
         request,
         "sweeps.html",
@@ -305,7 +301,7 @@ def _sweeps_page(
         section="sweeps",
         title="Sweeps",
         sweeps=infos,
-        summaries={info.id: sweeps.summary(session, info) for info in infos},
+        summaries={info.id: sweeps.summary(db_session, info) for info in infos},
         map_names=names,
         map_id=map_id,
         map_choices=choices,
@@ -326,11 +322,11 @@ def _sweeps_page(
 def sweep_list(
     request: Request,
     _user: DashboardUserDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: MapFilter = None,
     page: PageNumber = 1,
 ) -> Response:
-    return _sweeps_page(request, session, map_id=map_id, page=page)
+    return _sweeps_page(request, db_session, map_id=map_id, page=page)
 
 
 def _plan(asked: StartRequest, submitted: StartForm) -> SweepPlan:
@@ -344,14 +340,14 @@ def _plan(asked: StartRequest, submitted: StartForm) -> SweepPlan:
             space=asked.space,
             ground_truth=asked.ground_truth,
         )
-    except ApiError as err:
+    except ServiceError as err:
         raise _plan_error(err, submitted) from None
 
 
-def _chosen_map(session: Session, map_id: int) -> MapInfo:
+def _chosen_map(db_session: Session, map_id: int) -> MapInfo:
     try:
-        return maps.get_map(session, valid_id(map_id, "map"))
-    except (MapNotFound, ApiError):
+        return maps.get_map(db_session, valid_id(map_id, "map"))
+    except (MapNotFound, ServiceError):
         raise _form_error("start-map", f"Map {map_id} not found", 404) from None
 
 
@@ -363,10 +359,10 @@ def start_sweep(
     try:
         asked = start_request(form, submitted)
         plan = _plan(asked, submitted)
-        with db.transaction() as session:
-            info = _chosen_map(session, asked.map_id)
+        with db.transaction() as db_session:
+            info = _chosen_map(db_session, asked.map_id)
             sweep_id = sweeps.create_sweep(
-                session,
+                db_session,
                 map_id=info.id,
                 session_id=info.session_id,
                 plan=plan,
@@ -374,9 +370,9 @@ def start_sweep(
                 ground_truth=asked.ground_truth,
                 max_attempts=settings.max_attempts,
             )
-    except ApiError as err:
-        with db.read() as session:
-            return _sweeps_page(request, session, map_id=None, form=submitted, error=err)
+    except ServiceError as err:
+        with db.read() as db_session:
+            return _sweeps_page(request, db_session, map_id=None, form=submitted, error=err)
     finally:  # the uploaded file, read or not
         for value in form.values():
             if isinstance(value, UploadFile):
@@ -408,22 +404,22 @@ class RankedTrial:
     trial: Trial
 
 
-def _applied(session: Session, info: SweepInfo) -> tuple[JobInfo | None, int | None]:
+def _applied(db_session: Session, info: SweepInfo) -> tuple[JobInfo | None, int | None]:
     """The rebuild job that applied the sweep's best parameters, and the version it made."""
     if info.applied_job_id is None:
         return None, None
     try:
-        job = queue.get_job(session, info.applied_job_id)
+        job = queue.get_job(db_session, info.applied_job_id)
     except JobNotFound:
         return None, None
-    made = [v.number for v in maps.list_versions(session, info.map_id) if v.job_id == job.id]
+    made = [v.number for v in maps.list_versions(db_session, info.map_id) if v.job_id == job.id]
     return job, made[-1] if made else None
 
 
-def _live_context(session: Session, info: SweepInfo) -> dict[str, Any]:
+def _live_context(db_session: Session, info: SweepInfo) -> dict[str, Any]:
     """What the sweep's live part shows: state, progress, the best values and metrics."""
-    trials = sweeps.list_trials(session, info.id)
-    summary = sweeps.summary(session, info)
+    trials = sweeps.list_trials(db_session, info.id)
+    summary = sweeps.summary(db_session, info)
     by_shift = best_trial(trials, "shift")
     by_gt = best_trial(trials, "ground_truth") if info.has_ground_truth else None
     nan = math.nan
@@ -450,7 +446,7 @@ def _live_context(session: Session, info: SweepInfo) -> dict[str, Any]:
                 tag_rmse_m=summary.tag_rmse_at_best_gt_m,
             )
         )
-    applied_job, applied_version = _applied(session, info)
+    applied_job, applied_version = _applied(db_session, info)
     return {
         "info": info,
         "summary": summary,
@@ -464,9 +460,9 @@ def _live_context(session: Session, info: SweepInfo) -> dict[str, Any]:
     }
 
 
-def _results_context(session: Session, info: SweepInfo) -> dict[str, Any]:
+def _results_context(db_session: Session, info: SweepInfo) -> dict[str, Any]:
     """What the sweep's results part shows: the plots and the best trials."""
-    numbered = sweeps.numbered_trials(session, info.id)
+    numbered = sweeps.numbered_trials(db_session, info.id)
     ranked = sorted(numbered, key=lambda pair: (pair[1].score(info.objective), pair[0]))
     trials = [trial for _, trial in numbered]
     usable = [
@@ -476,7 +472,7 @@ def _results_context(session: Session, info: SweepInfo) -> dict[str, Any]:
     by_gt = best_trial(usable, "ground_truth")
     return {
         "info": info,
-        "summary": sweeps.summary(session, info),
+        "summary": sweeps.summary(db_session, info),
         "best_trials": [
             RankedTrial(rank=k + 1, number=number, trial=trial)
             for k, (number, trial) in enumerate(ranked[:BEST_SHOWN])
@@ -491,15 +487,15 @@ def _results_context(session: Session, info: SweepInfo) -> dict[str, Any]:
     }
 
 
-def _sweep(session: Session, sweep_id: int) -> SweepInfo:
-    return sweeps.get_sweep(session, valid_id(sweep_id, "sweep"))
+def _sweep(db_session: Session, sweep_id: int) -> SweepInfo:
+    return sweeps.get_sweep(db_session, valid_id(sweep_id, "sweep"))
 
 
 def _sweep_page(
-    request: Request, session: Session, sweep_id: int, *, apply_error: ApiError | None = None
+    request: Request, db_session: Session, sweep_id: int, *, apply_error: ServiceError | None = None
 ) -> Response:
-    info = _sweep(session, sweep_id)
-    map_info = maps.get_map(session, info.map_id)
+    info = _sweep(db_session, sweep_id)
+    map_info = maps.get_map(db_session, info.map_id)
     return render(
         request,
         "sweep.html",
@@ -509,47 +505,47 @@ def _sweep_page(
         map_info=map_info,
         base_changes=changed_params(info.base_params),
         apply_error=sentence(apply_error.detail) if apply_error else None,
-        **_live_context(session, info),
-        results=_results_context(session, info),
+        **_live_context(db_session, info),
+        results=_results_context(db_session, info),
     )
 
 
 @router.get("/sweeps/{sweep_id}")
 def sweep_detail(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, sweep_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, sweep_id: int
 ) -> Response:
-    return _sweep_page(request, session, sweep_id)
+    return _sweep_page(request, db_session, sweep_id)
 
 
 @router.get("/live/sweeps/{sweep_id}")
 def sweep_live(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, sweep_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, sweep_id: int
 ) -> Response:
     """The sweep page's live part: state, progress, best values and metrics, the buttons."""
-    info = _sweep(session, sweep_id)
-    return render(request, "_sweep_live.html", **_live_context(session, info))
+    info = _sweep(db_session, sweep_id)
+    return render(request, "_sweep_live.html", **_live_context(db_session, info))
 
 
 @router.get("/live/sweeps/{sweep_id}/results")
 def sweep_results_live(
-    request: Request, _user: DashboardUserDep, session: ReadSessionDep, sweep_id: int
+    request: Request, _user: DashboardUserDep, db_session: ReadDbSessionDep, sweep_id: int
 ) -> Response:
     """The sweep page's plots and best trials (their image URLs change with the trial count, so
     the images are fetched again only when there are new trials)."""
-    info = _sweep(session, sweep_id)
-    return render(request, "_sweep_results.html", results=_results_context(session, info))
+    info = _sweep(db_session, sweep_id)
+    return render(request, "_sweep_results.html", results=_results_context(db_session, info))
 
 
 @router.get("/sweeps/{sweep_id}/heatmap.png")
-def heatmap(_user: DashboardUserDep, session: ReadSessionDep, sweep_id: int) -> Response:
-    info = _sweep(session, sweep_id)
-    return Response(content=heatmap_content(session, info), media_type="image/png")
+def heatmap(_user: DashboardUserDep, db_session: ReadDbSessionDep, sweep_id: int) -> Response:
+    info = _sweep(db_session, sweep_id)
+    return Response(content=heatmap_content(db_session, info), media_type="image/png")
 
 
 @router.get("/sweeps/{sweep_id}/shift-vs-gt.png")
-def shift_vs_gt(_user: DashboardUserDep, session: ReadSessionDep, sweep_id: int) -> Response:
-    info = _sweep(session, sweep_id)
-    return Response(content=shift_vs_gt_content(session, info), media_type="image/png")
+def shift_vs_gt(_user: DashboardUserDep, db_session: ReadDbSessionDep, sweep_id: int) -> Response:
+    info = _sweep(db_session, sweep_id)
+    return Response(content=shift_vs_gt_content(db_session, info), media_type="image/png")
 
 
 @router.post("/sweeps/{sweep_id}/apply")
@@ -557,14 +553,14 @@ def apply(
     request: Request, _form: CheckedFormDep, db: DbDep, settings: SettingsDep, sweep_id: int
 ) -> Response:
     try:
-        with db.transaction() as session:
-            info = _sweep(session, sweep_id)
+        with db.transaction() as db_session:
+            info = _sweep(db_session, sweep_id)
             map_info, job_id, overrides = apply_best(
-                session, info, max_attempts=settings.max_attempts
+                db_session, info, max_attempts=settings.max_attempts
             )
-    except ApiError as err:
-        with db.read() as session:
-            return _sweep_page(request, session, sweep_id, apply_error=err)
+    except ServiceError as err:
+        with db.read() as db_session:
+            return _sweep_page(request, db_session, sweep_id, apply_error=err)
     values = ", ".join(f"{name} = {value:g}" for name, value in overrides.items())
     return redirect(
         request,
@@ -577,9 +573,9 @@ def apply(
 
 @router.post("/sweeps/{sweep_id}/cancel")
 def cancel(request: Request, _form: CheckedFormDep, db: DbDep, sweep_id: int) -> Response:
-    with db.transaction() as session:
-        before = _sweep(session, sweep_id)
-        info = sweeps.cancel_sweep(session, before.id)
+    with db.transaction() as db_session:
+        before = _sweep(db_session, sweep_id)
+        info = sweeps.cancel_sweep(db_session, before.id)
     message = (
         f"Sweep {info.id} canceled: its queued trials will not run; the "
         f"{info.trials_done} trials stored are kept."

@@ -13,10 +13,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from app.api.deps import AdminPrincipal, JobDep, ReadSessionDep, WriteSessionDep, valid_id
+from app.api.deps import AdminPrincipal, JobDep, ReadDbSessionDep, WriteDbSessionDep, valid_id
 from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import JobPublic, JobsPublic
+from app.api.schemas.jobs import JobPublic, JobsPublic
 from app.storage import queue
 from app.storage.orm import JobState
 
@@ -34,13 +34,15 @@ Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]
 )
 def list_jobs(
     _admin: AdminPrincipal,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     state: Annotated[JobState | None, Query(description="only jobs in this state")] = None,
     map_id: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="only this map's")] = None,
     limit: Limit = 50,
     offset: Offset = 0,
 ) -> JobsPublic:
-    jobs, total = queue.list_jobs(session, state=state, map_id=map_id, limit=limit, offset=offset)
+    jobs, total = queue.list_jobs(
+        db_session, state=state, map_id=map_id, limit=limit, offset=offset
+    )
     return JobsPublic(
         data=[JobPublic.from_domain(job) for job in jobs], count=total, limit=limit, offset=offset
     )
@@ -65,8 +67,8 @@ def get_job(job: JobDep) -> JobPublic:
     "for a job that has finished (admin).",
     responses=error_responses(401, 403, 404, 409, 422),
 )
-def cancel_job(job_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> JobPublic:
-    return JobPublic.from_domain(queue.request_cancel(session, valid_id(job_id, "job")))
+def cancel_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
+    return JobPublic.from_domain(queue.request_cancel(db_session, valid_id(job_id, "job")))
 
 
 @router.post(
@@ -76,5 +78,5 @@ def cancel_job(job_id: int, _admin: AdminPrincipal, session: WriteSessionDep) ->
     "a job in any other state (admin).",
     responses=error_responses(401, 403, 404, 409, 422),
 )
-def retry_job(job_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> JobPublic:
-    return JobPublic.from_domain(queue.retry(session, valid_id(job_id, "job")))
+def retry_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
+    return JobPublic.from_domain(queue.retry(db_session, valid_id(job_id, "job")))

@@ -3,15 +3,13 @@ its SHA-256 is stored. Revoking (DELETE) keeps the key's record, with ``revoked_
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
-
 from fastapi import APIRouter, Response
-from sqlalchemy.orm import Session
 
-from app.api.deps import AdminPrincipal, ReadSessionDep, WriteSessionDep, valid_id
-from app.api.errors import ApiError, error_responses
+from app.api.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import KeyCreate, KeyCreated, KeyPublic, KeysPublic
+from app.api.schemas.keys import KeyCreate, KeyCreated, KeyPublic, KeysPublic
+from app.services.keys import create_checked_key
 from app.storage import keys
 
 router = APIRouter(prefix="/keys", tags=["keys"], route_class=SessionEndingRoute)
@@ -26,19 +24,13 @@ router = APIRouter(prefix="/keys", tags=["keys"], route_class=SessionEndingRoute
     responses=error_responses(401, 403, 422),
 )
 def create_key(
-    new: KeyCreate, _admin: AdminPrincipal, session: WriteSessionDep, response: Response
+    new: KeyCreate, _admin: AdminPrincipal, db_session: WriteDbSessionDep, response: Response
 ) -> KeyCreated:
-    info, secret = create_checked_key(session, new)
+    info, secret = create_checked_key(
+        db_session, name=new.name, role=new.role, expires_at=new.expires_at
+    )
     response.headers["Location"] = f"/v1/keys/{info.id}"
     return KeyCreated(**KeyPublic.from_domain(info).model_dump(), key=secret)
-
-
-def create_checked_key(session: Session, new: KeyCreate) -> tuple[keys.KeyInfo, str]:
-    """Store the key ``new`` describes (422 if it would already have expired); returns it and its
-    secret."""
-    if new.expires_at is not None and new.expires_at <= datetime.now(UTC):
-        raise ApiError(422, "validation_error", "expires_at is in the past", field="expires_at")
-    return keys.create_key(session, name=new.name, role=new.role, expires_at=new.expires_at)
 
 
 @router.get(
@@ -47,8 +39,8 @@ def create_checked_key(session: Session, new: KeyCreate) -> tuple[keys.KeyInfo, 
     description="Every key, oldest first, revoked and expired ones included; never secrets.",
     responses=error_responses(401, 403),
 )
-def list_keys(_admin: AdminPrincipal, session: ReadSessionDep) -> KeysPublic:
-    infos = keys.list_keys(session)
+def list_keys(_admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeysPublic:
+    infos = keys.list_keys(db_session)
     return KeysPublic(data=[KeyPublic.from_domain(info) for info in infos], count=len(infos))
 
 
@@ -58,8 +50,8 @@ def list_keys(_admin: AdminPrincipal, session: ReadSessionDep) -> KeysPublic:
     description="One key's record (never its secret).",
     responses=error_responses(401, 403, 404, 422),
 )
-def get_key(key_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> KeyPublic:
-    return KeyPublic.from_domain(keys.get_key(session, valid_id(key_id, "API key")))
+def get_key(key_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeyPublic:
+    return KeyPublic.from_domain(keys.get_key(db_session, valid_id(key_id, "API key")))
 
 
 @router.delete(
@@ -69,5 +61,5 @@ def get_key(key_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> Key
     "a revoked key changes nothing.",
     responses=error_responses(401, 403, 404, 422),
 )
-def revoke_key(key_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> KeyPublic:
-    return KeyPublic.from_domain(keys.revoke_key(session, valid_id(key_id, "API key")))
+def revoke_key(key_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> KeyPublic:
+    return KeyPublic.from_domain(keys.revoke_key(db_session, valid_id(key_id, "API key")))

@@ -20,16 +20,10 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Body, Request, Response
 
-from app.api.deps import CurrentPrincipal, DbDep, ReadSessionDep, valid_id
+from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
 from app.api.errors import ApiError, error_responses
-from app.api.navigation_schemas import (
-    LocalizationEstimate,
-    LocalizationPublic,
-    LocalizationUpdate,
-)
 from app.api.route_class import SessionEndingRoute
-from app.api.routes.maps import chosen_version
-from app.api.version_cache import VersionCache
+from app.api.schemas.navigation import LocalizationEstimate, LocalizationPublic, LocalizationUpdate
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
 from app.domain.localize import (
     LocalizationUpdateError,
@@ -37,6 +31,8 @@ from app.domain.localize import (
     parse_update,
     update,
 )
+from app.services.maps import chosen_version
+from app.services.version_cache import VersionCache
 from app.storage import maps, navigation
 from app.storage.db import Database
 from app.storage.keys import Principal
@@ -66,8 +62,8 @@ def _owned(info: LocalizationInfo, principal: Principal) -> LocalizationInfo:
 
 def _map_tags(request: Request, db: Database, version_id: int) -> dict[int, FloatArray]:
     def load() -> dict[int, FloatArray]:
-        with db.read() as session:
-            rows = maps.tag_poses(session, version_id)
+        with db.read() as db_session:
+            rows = maps.tag_poses(db_session, version_id)
         return {
             row.tag_id: pose_from_xyz_quat_xyzw([*row.position_m, *row.quat_xyzw]) for row in rows
         }
@@ -89,11 +85,11 @@ def start(
 ) -> LocalizationPublic:
     # Committed here, in the route's own thread (not by a dependency after the answer is
     # validated on another thread): SQLite's write lock is never held while waiting for a thread.
-    with db.transaction() as session:
-        info = maps.get_map(session, valid_id(map_id, "map"))
-        current = chosen_version(session, info, None)  # 409 map_not_ready without a version
+    with db.transaction() as db_session:
+        info = maps.get_map(db_session, valid_id(map_id, "map"))
+        current = chosen_version(db_session, info, None)  # 409 map_not_ready without a version
         created = navigation.create_localization(
-            session,
+            db_session,
             map_id=info.id,
             map_version_id=current.id,
             created_by=principal.subject,
@@ -111,9 +107,11 @@ def start(
     responses=error_responses(401, 404, 422),
 )
 def get(
-    localization_id: int, principal: CurrentPrincipal, session: ReadSessionDep
+    localization_id: int, principal: CurrentPrincipal, db_session: ReadDbSessionDep
 ) -> LocalizationPublic:
-    info = navigation.get_localization(session, valid_id(localization_id, "localization session"))
+    info = navigation.get_localization(
+        db_session, valid_id(localization_id, "localization session")
+    )
     return _public(_owned(info, principal))
 
 
@@ -144,8 +142,8 @@ def post_update(
 ) -> LocalizationEstimate:
     db: Database = request.app.state.db
     localization_id = valid_id(localization_id, "localization session")
-    with db.read() as session:
-        info = _owned(navigation.get_localization(session, localization_id), principal)
+    with db.read() as db_session:
+        info = _owned(navigation.get_localization(db_session, localization_id), principal)
     map_tags = _map_tags(request, db, info.map_version_id)
     document: dict[str, Any] = body.model_dump()
     try:
@@ -155,9 +153,9 @@ def post_update(
         raise ApiError(422, "invalid_update", str(err), field=err.field or None) from err
     result_json = _finite(result.to_json())
     try:
-        with db.transaction() as session:
+        with db.transaction() as db_session:
             navigation.save_update(
-                session,
+                db_session,
                 info.id,
                 expected_revision=info.revision,
                 status=result.status,

@@ -16,24 +16,22 @@ Choices:
 
 from __future__ import annotations
 
-import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Header, Query, Response
-from sqlalchemy.orm import Session
 
 from app.api.deps import (
     AdminPrincipal,
     MapDep,
-    ReadSessionDep,
+    ReadDbSessionDep,
     SettingsDep,
-    WriteSessionDep,
+    WriteDbSessionDep,
     valid_id,
 )
 from app.api.errors import ApiError, error_responses
 from app.api.http import if_none_match_hits, strong_etag
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import (
+from app.api.schemas.maps import (
     AppMap,
     MapPublic,
     MapsPublic,
@@ -44,14 +42,15 @@ from app.api.schemas import (
     VersionsPublic,
     VersionSummary,
 )
-from app.domain.errors import ParameterError
-from app.domain.map_io import map_from_json, map_to_app_format
-from app.domain.params import SlamParams
-from app.domain.path_graph import path_graph_from_json
+from app.services.maps import (
+    app_map_content,
+    checked_overrides,
+    chosen_version,
+    delete_map_and_jobs,
+    enqueue_rebuild,
+)
 from app.storage import maps, queue
-from app.storage.maps import MapInfo, VersionInfo
-from app.storage.navigation import path_graph_document
-from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP
+from app.storage.sessions import AUTO_TUNE_TRIALS
 
 router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute)
 
@@ -85,14 +84,14 @@ NOT_READY_EXAMPLE = (
     responses=error_responses(401, 422),
 )
 def list_maps(
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     limit: Limit = 50,
     offset: Offset = 0,
     tag_id: Annotated[
         int | None, Query(ge=0, le=2**53, description="only maps containing this tag")
     ] = None,
 ) -> MapsPublic:
-    infos, total = maps.list_maps(session, limit=limit, offset=offset, tag_id=tag_id)
+    infos, total = maps.list_maps(db_session, limit=limit, offset=offset, tag_id=tag_id)
     return MapsPublic(
         data=[MapSummary.from_domain(info) for info in infos],
         count=total,
@@ -111,11 +110,11 @@ def list_maps(
 )
 def get_map(
     info: MapDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     response: Response,
     if_none_match: IfNoneMatch = None,
 ) -> MapPublic | Response:
-    jobs, _ = queue.list_jobs(session, map_id=info.id, limit=1)
+    jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=1)
     latest_job = jobs[0] if jobs else None
     current = info.current
     etag = strong_etag(
@@ -127,7 +126,7 @@ def get_map(
     )
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
-    tags = maps.tag_poses(session, current.id) if current else []
+    tags = maps.tag_poses(db_session, current.id) if current else []
     response.headers["ETag"] = etag
     return MapPublic.from_domain(info, tags=tags, latest_job=latest_job)
 
@@ -138,8 +137,8 @@ def get_map(
     description="Every version, oldest first: parameters, statistics and metrics of each.",
     responses=error_responses(401, 404, 422),
 )
-def list_versions(info: MapDep, session: ReadSessionDep) -> VersionsPublic:
-    versions = maps.list_versions(session, info.id)
+def list_versions(info: MapDep, db_session: ReadDbSessionDep) -> VersionsPublic:
+    versions = maps.list_versions(db_session, info.id)
     return VersionsPublic(
         data=[VersionSummary.from_domain(version) for version in versions], count=len(versions)
     )
@@ -151,9 +150,9 @@ def list_versions(info: MapDep, session: ReadSessionDep) -> VersionsPublic:
     description="One version with its tag poses and the detections it left out (and why).",
     responses=error_responses(401, 404, 422),
 )
-def get_version(info: MapDep, number: int, session: ReadSessionDep) -> VersionDetail:
-    version = maps.get_version(session, info.id, valid_id(number, f"version of map {info.id}"))
-    return VersionDetail.with_details(version, maps.tag_poses(session, version.id))
+def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> VersionDetail:
+    version = maps.get_version(db_session, info.id, valid_id(number, f"version of map {info.id}"))
+    return VersionDetail.with_details(version, maps.tag_poses(db_session, version.id))
 
 
 @router.post(
@@ -169,7 +168,7 @@ def get_version(info: MapDep, number: int, session: ReadSessionDep) -> VersionDe
 def rebuild_map(
     map_id: int,
     _admin: AdminPrincipal,
-    session: WriteSessionDep,
+    db_session: WriteDbSessionDep,
     settings: SettingsDep,
     response: Response,
     body: Annotated[RebuildRequest | None, Body()] = None,
@@ -178,50 +177,17 @@ def rebuild_map(
     if body and body.auto_tune_trials:
         overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
     info, job_id = enqueue_rebuild(
-        session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
+        db_session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
     )
     accepted = RebuildAccepted.queued(info, job_id, overrides)
     response.headers["Location"] = accepted.job_url
     return accepted
 
 
-def enqueue_rebuild(
-    session: Session, map_id: int, overrides: dict[str, Any], *, max_attempts: int
-) -> tuple[MapInfo, int]:
-    """Queue a build of map ``map_id``'s session with ``overrides`` (already checked, see
-    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound."""
-    info = maps.get_map(session, map_id)
-    job_id = queue.enqueue(
-        session,
-        kind=BUILD_MAP,
-        map_id=info.id,
-        session_id=info.session_id,
-        params=overrides,
-        max_attempts=max_attempts,
-    )
-    return info, job_id
-
-
-def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
-    """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), or a 422
-    naming the first bad parameter."""
-    defaults = SlamParams()
-    for name, value in overrides.items():
-        try:
-            defaults.with_overrides({name: value})
-        except ParameterError as err:
-            raise ApiError(422, "invalid_parameter", str(err), field=f"params.{name}") from err
-    try:
-        params = defaults.with_overrides(overrides).to_dict()
-    except ParameterError as err:
-        raise ApiError(422, "invalid_parameter", str(err), field="params") from err
-    return {name: params[name] for name in overrides}
-
-
 @router.get(
     "/{map_id}/app-map",  # noqa: FAST003 (map_id is read by MapDep)
     summary="Download the map in the app's format",
-    description="`{tag_vertices, odometry_vertices, waypoints_vertices}` (DESIGN §7) of the "
+    description="`{tag_vertices, odometry_vertices, waypoints_vertices}` (architecture §7) of the "
     "current version, or of `?version=N`; `neighbors` are the path graph's links (junctions are "
     "extra odometry vertices numbered after the last pose). 409 map_not_ready while the map has "
     "no version.",
@@ -233,26 +199,16 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
 )
 def get_app_map(
     info: MapDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
-    chosen = chosen_version(session, info, version)
+    chosen = chosen_version(db_session, info, version)
     etag = strong_etag("app-map", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
-    content = app_map_content(session, chosen)
+    content = app_map_content(db_session, chosen)
     return Response(content=content, media_type="application/json", headers={"ETag": etag})
-
-
-def app_map_content(session: Session, version: VersionInfo) -> bytes:
-    """The app's map file (DESIGN §7) of ``version``, as compact JSON bytes."""
-    graph_document = path_graph_document(session, version.id)
-    app_map = map_to_app_format(
-        map_from_json(maps.map_document(session, version.map_id, version.number)),
-        path_graph=None if graph_document is None else path_graph_from_json(graph_document),
-    )
-    return json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
 
 
 @router.get(
@@ -273,15 +229,15 @@ def app_map_content(session: Session, version: VersionInfo) -> bytes:
 )  # fmt: skip
 def get_plot(
     info: MapDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
-    chosen = chosen_version(session, info, version)
+    chosen = chosen_version(db_session, info, version)
     etag = strong_etag("plot", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag})
-    png = maps.plot_png(session, info.id, chosen.number)
+    png = maps.plot_png(db_session, info.id, chosen.number)
     if png is None:
         raise ApiError(404, "not_found", f"version {chosen.number} of map {info.id} has no plot")
     return Response(content=png, media_type="image/png", headers={"ETag": etag})
@@ -296,28 +252,5 @@ def get_plot(
     response_class=Response,
     responses=error_responses(401, 403, 404, 422),
 )
-def delete_map(map_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> None:
-    delete_map_and_jobs(session, valid_id(map_id, "map"))
-
-
-def delete_map_and_jobs(session: Session, map_id: int) -> None:
-    """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel)."""
-    queue.cancel_unfinished_for_map(session, map_id)
-    maps.delete_map(session, map_id)
-
-
-def chosen_version(session: Session, info: MapInfo, number: int | None) -> VersionInfo:
-    """The asked-for version (404 if there is none with that number), or the current one
-    (409 while there is none)."""
-    if number is not None:
-        return maps.get_version(session, info.id, number)
-    if info.current is not None:
-        return info.current
-    jobs, _ = queue.list_jobs(session, map_id=info.id, limit=1)
-    building = (
-        f": its build job {jobs[0].id} is {jobs[0].state}; follow /v1/jobs/{jobs[0].id}"
-        if jobs
-        else ": rebuild it to make one"
-    )
-    raise ApiError(409, "map_not_ready", f"map {info.id} has no version yet{building}")
+def delete_map(map_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> None:
+    delete_map_and_jobs(db_session, valid_id(map_id, "map"))

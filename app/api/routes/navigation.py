@@ -8,82 +8,21 @@ version built before path graphs existed is a 409 ``no_path_graph`` (rebuild the
 
 from __future__ import annotations
 
-import json
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
-from sqlalchemy.orm import Session
 
-from app.api.deps import MapDep, ReadSessionDep
-from app.api.errors import ApiError, error_responses
+from app.api.deps import MapDep, ReadDbSessionDep
+from app.api.errors import error_responses
 from app.api.http import strong_etag
-from app.api.navigation_schemas import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.api.route_class import SessionEndingRoute
-from app.api.routes.maps import chosen_version
-from app.api.version_cache import VersionCache
-from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
+from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.domain.routing import (
-    AmbiguousEndpoint,
-    Endpoint,
-    Route,
-    RouteError,
-    UnknownEndpoint,
-    Unreachable,
-    plan_route,
     search_pois,
 )
-from app.storage.maps import MapInfo, VersionInfo
-from app.storage.navigation import path_graph_document
+from app.services.navigation import current_path_graph, geojson_content, planned_route
 
 router = APIRouter(prefix="/maps", tags=["navigation"], route_class=SessionEndingRoute)
-
-
-def current_path_graph(
-    request: Request, session: Session, info: MapInfo
-) -> tuple[VersionInfo, PathGraph]:
-    """The map's current version and its path graph (409 if either does not exist yet)."""
-    version = chosen_version(session, info, None)
-    return version, version_path_graph(request, session, version)
-
-
-def version_path_graph(request: Request, session: Session, version: VersionInfo) -> PathGraph:
-    """The path graph of ``version`` (cached per process; 409 if the version has none)."""
-
-    def load() -> PathGraph:
-        document = path_graph_document(session, version.id)
-        if document is None:
-            raise ApiError(
-                409,
-                "no_path_graph",
-                f"version {version.number} of map {version.map_id} has no path graph (it was "
-                "built before path graphs existed): rebuild the map",
-            )
-        return path_graph_from_json(document)
-
-    cache: VersionCache = request.app.state.version_cache
-    return cache.get(("path_graph", version.id), load)
-
-
-def planned_route(
-    graph: PathGraph, start: Endpoint, goal: Endpoint, *, avoid: frozenset[str]
-) -> Route:
-    """:func:`plan_route`, its refusals as API errors: an unknown end 404, an unreachable goal
-    409, an ambiguous name or another bad request 422."""
-    try:
-        return plan_route(graph, start, goal, avoid=avoid)
-    except UnknownEndpoint as err:
-        raise ApiError(404, "not_found", str(err), field=None) from err
-    except Unreachable as err:
-        raise ApiError(409, "unreachable", str(err)) from err
-    except AmbiguousEndpoint as err:
-        raise ApiError(422, "ambiguous_endpoint", str(err)) from err
-    except RouteError as err:
-        raise ApiError(422, "invalid_route", str(err)) from err
-
-
-def geojson_content(graph: PathGraph) -> str:
-    """The path graph as a GeoJSON FeatureCollection, compact JSON."""
-    return json.dumps(path_graph_to_geojson(graph), separators=(",", ":"), allow_nan=False)
 
 
 NOT_READY = (
@@ -102,11 +41,11 @@ NOT_READY = (
 )
 def list_pois(
     info: MapDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     request: Request,
     q: Annotated[str, Query(max_length=200, description="part of a name")] = "",
 ) -> PoisPublic:
-    version, graph = current_path_graph(request, session, info)
+    version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
     found = search_pois(graph, q)
     return PoisPublic(
         data=[PoiPublic.from_domain(anchor) for anchor in found],
@@ -141,10 +80,10 @@ def list_pois(
 def plan(
     info: MapDep,
     body: RouteRequest,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     request: Request,
 ) -> RoutePublic:
-    version, graph = current_path_graph(request, session, info)
+    version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
     route = planned_route(
         graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
     )
@@ -180,8 +119,8 @@ def plan(
         **error_responses(401, 404, 409, 422, examples={409: NOT_READY}),
     },
 )
-def geojson(info: MapDep, session: ReadSessionDep, request: Request) -> Response:
-    version, graph = current_path_graph(request, session, info)
+def geojson(info: MapDep, db_session: ReadDbSessionDep, request: Request) -> Response:
+    version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
     return Response(
         content=geojson_content(graph),
         media_type="application/geo+json",

@@ -1,6 +1,6 @@
 """``/v1/sessions``: upload a mapping session, list and read sessions, download the raw upload.
 
-An upload is validated completely before anything is stored (DESIGN §2); then the session, its
+An upload is validated completely before anything is stored (architecture §2); then the session, its
 raw bytes, its map and its build job are written in one transaction, and the answer is 202 with
 the ids and ``Location: /v1/jobs/{job_id}``.
 
@@ -15,20 +15,19 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Response
-from sqlalchemy.orm import Session
 
 from app.api.deps import (
     CurrentPrincipal,
     DbDep,
-    ReadSessionDep,
+    ReadDbSessionDep,
     SessionDep,
     SettingsDep,
     UploadBodyDep,
 )
 from app.api.errors import error_responses
-from app.api.http import accepts_gzip
+from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import SessionCreated, SessionPublic, SessionsPublic
+from app.api.schemas.sessions import SessionCreated, SessionPublic, SessionsPublic
 from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
@@ -92,7 +91,7 @@ UPLOAD_EXAMPLE: dict[str, Any] = {
 }
 UPLOAD_REQUEST_BODY: dict[str, Any] = {
     "required": True,
-    "description": "The app's mapping session (DESIGN §2), as JSON; may be sent with "
+    "description": "The app's mapping session (docs/architecture.md §2), as JSON; may be sent with "
     "Content-Encoding: gzip. Unknown keys are accepted and kept in the raw upload.",
     "content": {
         "application/json": {
@@ -179,9 +178,9 @@ def upload_session(
     if result is None:
         parsed = _parse(upload.json_bytes)
         # The write transaction starts only now: parsing never holds SQLite's write lock.
-        with db.transaction() as session:
+        with db.transaction() as db_session:
             result = sessions.create_session(
-                session,
+                db_session,
                 parsed=parsed,
                 upload=upload,
                 uploaded_by=principal.subject,
@@ -202,9 +201,9 @@ def _replayed(
     ``create_session`` checks again in its transaction, for retries that race)."""
     if idempotency_key is None:
         return None
-    with db.read() as session:
-        earlier = sessions.find_by_idempotency_key(session, principal.subject, idempotency_key)
-        return None if earlier is None else sessions.replay_upload(session, earlier, sha256)
+    with db.read() as db_session:
+        earlier = sessions.find_by_idempotency_key(db_session, principal.subject, idempotency_key)
+        return None if earlier is None else sessions.replay_upload(db_session, earlier, sha256)
 
 
 def _parse(json_bytes: bytes) -> ParsedSession:
@@ -224,10 +223,10 @@ def _parse(json_bytes: bytes) -> ParsedSession:
     responses=error_responses(401, 422),
 )
 def list_sessions(
-    session: ReadSessionDep, principal: CurrentPrincipal, limit: Limit = 50, offset: Offset = 0
+    db_session: ReadDbSessionDep, principal: CurrentPrincipal, limit: Limit = 50, offset: Offset = 0
 ) -> SessionsPublic:
     infos, total = sessions.list_sessions(
-        session,
+        db_session,
         limit=limit,
         offset=offset,
         uploaded_by=None if principal.is_admin else principal.subject,
@@ -267,22 +266,7 @@ def get_session(info: SessionDep) -> SessionPublic:
 )
 def get_raw_session(
     info: SessionDep,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
-    return raw_upload_response(session, info.id, accept_encoding)
-
-
-def raw_upload_response(session: Session, session_id: int, accept_encoding: str | None) -> Response:
-    """The raw upload of ``session_id`` as a JSON attachment, gzip-encoded if the client accepts
-    it. Raises SessionNotFound."""
-    headers = {
-        "Content-Disposition": f'attachment; filename="session-{session_id}.json"',
-        "Vary": "Accept-Encoding",
-    }
-    if accepts_gzip(accept_encoding):
-        headers["Content-Encoding"] = "gzip"
-        content = sessions.raw_upload_gzip(session, session_id)
-    else:
-        content = sessions.raw_upload(session, session_id)
-    return Response(content=content, media_type="application/json", headers=headers)
+    return raw_upload_response(db_session, info.id, accept_encoding)

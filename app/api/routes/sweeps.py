@@ -10,32 +10,33 @@ parameter, a non-positive variance, ``objective: ground_truth`` without ground t
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response
-from sqlalchemy.orm import Session
 
 from app.api.deps import (
     AdminPrincipal,
     MapDep,
-    ReadSessionDep,
+    ReadDbSessionDep,
     SettingsDep,
-    WriteSessionDep,
+    WriteDbSessionDep,
     valid_id,
 )
-from app.api.errors import ApiError, error_responses
+from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.routes.maps import checked_overrides, enqueue_rebuild
-from app.api.schemas import RebuildAccepted
-from app.api.sweep_schemas import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
-from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.ground_truth import parse_ground_truth_json
-from app.domain.tuning import SearchSpace, best_trial, check_objective
+from app.api.schemas.maps import RebuildAccepted
+from app.api.schemas.sweeps import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
+from app.services.maps import checked_overrides
+from app.services.sweeps import (
+    NO_BEST,
+    NO_GROUND_TRUTH,
+    apply_best,
+    checked_plan,
+    heatmap_content,
+    shift_vs_gt_content,
+)
 from app.storage import sweeps
-from app.storage.maps import MapInfo
 from app.storage.sweeps import SweepInfo
-from app.sweep_runner import SweepPlan
 
 router = APIRouter(tags=["sweeps"], route_class=SessionEndingRoute)
 
@@ -47,71 +48,6 @@ PNG: dict[int | str, dict[str, Any]] = {
         },
     }
 }
-NO_GROUND_TRUTH = ("no_ground_truth", "sweep 4 has no ground truth to plot against")
-NO_BEST = ("no_best_trial", "sweep 4 has no converged trial yet: nothing to apply")
-
-
-def checked_plan(
-    *,
-    method: str,
-    trials: int,
-    objective: str,
-    seed: int,
-    space: Mapping[str, Mapping[str, Any]] | None,
-    ground_truth: dict[str, Any] | None,
-) -> SweepPlan:
-    """The sweep a request asks for (``space`` None: the paper grid), checked: ApiError 422
-    naming the field at fault (``space``, which also covers the method and trial count,
-    ``ground_truth`` or ``objective``)."""
-    try:
-        search = SearchSpace.paper_grid() if space is None else SearchSpace.from_dict(space)
-        plan = SweepPlan(method=method, space=search, trials=trials, objective=objective, seed=seed)
-    except ParameterError as err:
-        raise ApiError(422, "invalid_sweep", str(err), field="space") from err
-    if ground_truth is not None:
-        try:
-            parse_ground_truth_json(ground_truth)
-        except InvisibleMapError as err:
-            raise ApiError(422, "invalid_ground_truth", str(err), field="ground_truth") from err
-    try:
-        check_objective(plan.objective, has_ground_truth=ground_truth is not None)
-    except ParameterError as err:
-        raise ApiError(422, "invalid_sweep", str(err), field="objective") from err
-    return plan
-
-
-def heatmap_content(session: Session, info: SweepInfo) -> bytes:
-    """The sweep's heat map, PNG."""
-    from app.sweep_plots import heatmap_png  # matplotlib: imported when a plot is asked for
-
-    trials = sweeps.list_trials(session, info.id)
-    return heatmap_png(SearchSpace.from_dict(info.space), trials, objective=info.objective)
-
-
-def shift_vs_gt_content(session: Session, info: SweepInfo) -> bytes:
-    """The sweep's shift-vs-ground-truth scatter, PNG; ApiError 409 without ground truth."""
-    from app.sweep_plots import shift_vs_gt_png
-
-    if not info.has_ground_truth:
-        raise ApiError(409, NO_GROUND_TRUTH[0], f"sweep {info.id} has no ground truth")
-    gt_metric_pre = (info.baseline or {}).get("gt_metric")
-    trials = sweeps.list_trials(session, info.id)
-    return shift_vs_gt_png(trials, gt_metric_pre=gt_metric_pre)
-
-
-def apply_best(
-    session: Session, info: SweepInfo, *, max_attempts: int
-) -> tuple[MapInfo, int, dict[str, Any]]:
-    """Queue a rebuild of the sweep's map with its base parameters and its best trial's values,
-    and record it on the sweep: (the map, the job id, the parameters). ApiError 409 while no
-    trial has converged."""
-    best = best_trial(sweeps.list_trials(session, info.id), info.objective)
-    if best is None:
-        raise ApiError(409, NO_BEST[0], f"sweep {info.id} has no converged trial yet")
-    overrides = checked_overrides({**info.base_params, **best.values})
-    map_info, job_id = enqueue_rebuild(session, info.map_id, overrides, max_attempts=max_attempts)
-    sweeps.set_applied(session, info.id, job_id)
-    return map_info, job_id, overrides
 
 
 @router.post(
@@ -127,7 +63,7 @@ def start_sweep(
     info: MapDep,
     body: SweepRequest,
     _admin: AdminPrincipal,
-    session: WriteSessionDep,
+    db_session: WriteDbSessionDep,
     settings: SettingsDep,
     response: Response,
 ) -> SweepAccepted:
@@ -141,7 +77,7 @@ def start_sweep(
         ground_truth=body.ground_truth,
     )
     sweep_id = sweeps.create_sweep(
-        session,
+        db_session,
         map_id=info.id,
         session_id=info.session_id,
         plan=plan,
@@ -166,22 +102,22 @@ def start_sweep(
 )
 def list_sweeps(
     _admin: AdminPrincipal,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     map_id: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="only this map's")] = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 50,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> SweepsPublic:
-    infos, total = sweeps.list_sweeps(session, map_id=map_id, limit=limit, offset=offset)
+    infos, total = sweeps.list_sweeps(db_session, map_id=map_id, limit=limit, offset=offset)
     return SweepsPublic(
-        data=[SweepPublic.from_domain(i, sweeps.summary(session, i), None) for i in infos],
+        data=[SweepPublic.from_domain(i, sweeps.summary(db_session, i), None) for i in infos],
         count=total,
         limit=limit,
         offset=offset,
     )
 
 
-def _sweep(session: ReadSessionDep, sweep_id: int) -> SweepInfo:
-    return sweeps.get_sweep(session, valid_id(sweep_id, "sweep"))
+def _sweep(db_session: ReadDbSessionDep, sweep_id: int) -> SweepInfo:
+    return sweeps.get_sweep(db_session, valid_id(sweep_id, "sweep"))
 
 
 @router.get(
@@ -194,12 +130,12 @@ def _sweep(session: ReadSessionDep, sweep_id: int) -> SweepInfo:
 def get_sweep(
     sweep_id: int,
     _admin: AdminPrincipal,
-    session: ReadSessionDep,
+    db_session: ReadDbSessionDep,
     runs: Annotated[bool, Query(description="include every finished trial")] = False,
 ) -> SweepPublic:
-    info = _sweep(session, sweep_id)
-    trials = sweeps.numbered_trials(session, info.id) if runs else None
-    return SweepPublic.from_domain(info, sweeps.summary(session, info), trials)
+    info = _sweep(db_session, sweep_id)
+    trials = sweeps.numbered_trials(db_session, info.id) if runs else None
+    return SweepPublic.from_domain(info, sweeps.summary(db_session, info), trials)
 
 
 @router.get(
@@ -210,9 +146,9 @@ def get_sweep(
     response_class=Response,
     responses={**PNG, **error_responses(401, 403, 404, 422)},
 )
-def get_heatmap(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> Response:
-    info = _sweep(session, sweep_id)
-    return Response(content=heatmap_content(session, info), media_type="image/png")
+def get_heatmap(sweep_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> Response:
+    info = _sweep(db_session, sweep_id)
+    return Response(content=heatmap_content(db_session, info), media_type="image/png")
 
 
 @router.get(
@@ -223,9 +159,11 @@ def get_heatmap(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) 
     response_class=Response,
     responses={**PNG, **error_responses(401, 403, 404, 409, 422, examples={409: NO_GROUND_TRUTH})},
 )
-def get_shift_vs_gt(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionDep) -> Response:
-    info = _sweep(session, sweep_id)
-    return Response(content=shift_vs_gt_content(session, info), media_type="image/png")
+def get_shift_vs_gt(
+    sweep_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep
+) -> Response:
+    info = _sweep(db_session, sweep_id)
+    return Response(content=shift_vs_gt_content(db_session, info), media_type="image/png")
 
 
 @router.post(
@@ -240,12 +178,12 @@ def get_shift_vs_gt(sweep_id: int, _admin: AdminPrincipal, session: ReadSessionD
 def apply_sweep(
     sweep_id: int,
     _admin: AdminPrincipal,
-    session: WriteSessionDep,
+    db_session: WriteDbSessionDep,
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info = _sweep(session, sweep_id)
-    map_info, job_id, overrides = apply_best(session, info, max_attempts=settings.max_attempts)
+    info = _sweep(db_session, sweep_id)
+    map_info, job_id, overrides = apply_best(db_session, info, max_attempts=settings.max_attempts)
     accepted = RebuildAccepted.queued(map_info, job_id, overrides)
     response.headers["Location"] = accepted.job_url
     return accepted
@@ -258,6 +196,8 @@ def apply_sweep(
     "far are kept (admin).",
     responses=error_responses(401, 403, 404, 422),
 )
-def cancel_sweep(sweep_id: int, _admin: AdminPrincipal, session: WriteSessionDep) -> SweepPublic:
-    info = sweeps.cancel_sweep(session, valid_id(sweep_id, "sweep"))
-    return SweepPublic.from_domain(info, sweeps.summary(session, info), None)
+def cancel_sweep(
+    sweep_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep
+) -> SweepPublic:
+    info = sweeps.cancel_sweep(db_session, valid_id(sweep_id, "sweep"))
+    return SweepPublic.from_domain(info, sweeps.summary(db_session, info), None)

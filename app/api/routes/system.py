@@ -3,33 +3,18 @@ both without a key, for load balancers and orchestrators) and ``/v1/info`` (any 
 
 from __future__ import annotations
 
-from functools import lru_cache
-from importlib.metadata import PackageNotFoundError, version
-
 from fastapi import APIRouter, Request
 from sqlalchemy.exc import SQLAlchemyError
 
-from app.api.deps import CurrentPrincipal, DbDep, ReadSessionDep, SettingsDep
+from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, SettingsDep
 from app.api.errors import ApiError, error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas import Health, Info, Ready, WorkerPublic
+from app.api.schemas.system import Health, Info, Ready, WorkerPublic
+from app.services.system import ALIVE_HEARTBEATS, package_version
 from app.storage import migrate, queue
 from app.storage.orm import JobState
 
 router = APIRouter(tags=["system"], route_class=SessionEndingRoute)
-
-
-@lru_cache
-def package_version() -> str:
-    """The installed ``invisible-map`` version."""
-    try:
-        return version("invisible-map")
-    except PackageNotFoundError:
-        return "0+unknown"
-
-
-#: A worker counts as alive if it reported within this many heartbeat periods.
-ALIVE_HEARTBEATS = 3
 
 
 @router.get("/healthz", summary="Liveness", description="The process is up (no key needed).")
@@ -70,10 +55,10 @@ def readyz(request: Request, db: DbDep) -> Ready:
     responses=error_responses(401),
 )
 def info(
-    principal: CurrentPrincipal, session: ReadSessionDep, db: DbDep, settings: SettingsDep
+    principal: CurrentPrincipal, db_session: ReadDbSessionDep, db: DbDep, settings: SettingsDep
 ) -> Info:
-    counts = queue.count_by_state(session)
-    workers = queue.alive_workers(session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s)
+    counts = queue.count_by_state(db_session)
+    workers = queue.alive_workers(db_session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s)
     return Info(
         version=package_version(),
         database=db.backend,

@@ -1,30 +1,4 @@
-"""The path graph: where a pedestrian can walk in a map — the walked path, with junctions where it
-crosses itself, floors, and stairs/elevators where it changes floor.
-
-Data model (the builder and the serializers are filled in below this block):
-
-- ``graph``: an undirected ``networkx.Graph`` with integer node ids.
-  Node attributes: ``position_m`` (x, y, z) in the map frame (y up), ``floor`` (int, 0 = lowest),
-  ``kind`` (``"node"`` for a kept pose, ``"junction"`` for a crossing), ``pose_index`` (int, the
-  row of the pose in the map's trajectory; None for junctions).
-  Edge attributes: ``length_m`` (3-D length, m), ``kind`` (``"walk"``, ``"stairs"`` or
-  ``"elevator"``), ``floor`` (the floor of a walk edge; for a floor change, the lower floor).
-- ``floor_levels_m``: height of each floor, m, lowest first (``app.domain.floors``).
-- ``tags``: tag id → :class:`Anchor` (the node the tag is reached from).
-- ``pois``: the points of interest, each an :class:`Anchor` with its name.
-
-Building, storing and exporting it:
-
-    pg = build_path_graph(result)                       # from an optimized MapResult
-    pg = build_path_graph_from_arrays(positions_m, tag_ids=…, tag_positions_m=…)
-    document = path_graph_to_json(pg)                   # lossless, JSON-safe
-    pg = path_graph_from_json(document)
-    feature_collection = path_graph_to_geojson(pg)      # nodes, junctions, tags, POIs, edges
-    map_to_app_format(result, path_graph=pg)            # app.domain.map_io: ``neighbors``
-
-Node ids: a pose node's id is its row in the trajectory (``pose_index``, 0 … N−1); junctions get
-ids from N up, in the order they were made. Ids are not contiguous: poses simplified away, merged
-into an earlier pass or erased with a small loop, and junctions merged into a knot, leave gaps.
+"""Building a path graph from an optimized trajectory.
 
 How the graph is built (:func:`build_path_graph_from_arrays`; every threshold is a field of
 :class:`PathGraphParams`):
@@ -86,49 +60,29 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from typing import Any, TypeAlias
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import TypeAlias
 
 import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
-from app.domain.errors import MapFormatError, ParameterError
+from app.domain.errors import ParameterError
 from app.domain.floors import assign_floors, find_floor_levels
 from app.domain.frames import FloatArray
 from app.domain.map_result import MapResult
-
-NODE = "node"
-JUNCTION = "junction"
-WALK = "walk"
-STAIRS = "stairs"
-ELEVATOR = "elevator"
-EDGE_KINDS = (WALK, STAIRS, ELEVATOR)
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Anchor:
-    """A tag or point of interest and the graph node it is reached from.
-
-    position_m: where the thing itself is (map frame, m); ``node``: its nearest reachable node.
-    """
-
-    name: str
-    node: int
-    position_m: tuple[float, float, float]
-    floor: int
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class PathGraph:
-    """A map version's path graph (see the module docstring for the attributes)."""
-
-    graph: nx.Graph[int] = field(default_factory=nx.Graph)
-    floor_levels_m: tuple[float, ...] = ()
-    tags: dict[int, Anchor] = field(default_factory=dict)
-    pois: tuple[Anchor, ...] = ()
-
+from app.domain.path_graph.geometry import cross_2d, node_position, project_to_segments, tuple3
+from app.domain.path_graph.model import (
+    EDGE_KINDS,
+    ELEVATOR,
+    JUNCTION,
+    NODE,
+    STAIRS,
+    WALK,
+    Anchor,
+    PathGraph,
+)
 
 # =========================================================================== building
 
@@ -645,7 +599,7 @@ def _close_loops(
             and float(np.linalg.norm(closed_near - p_xz[end])) <= params.close_ends_within_m
         ):
             continue  # the other end already closed the loop here
-        t, distance_m = _project(p_xz[end][None, :], p_xz[:-1], p_xz[1:])
+        t, distance_m = project_to_segments(p_xz[end][None, :], p_xz[:-1], p_xz[1:])
         arc_at_m = walk.arc_m[:-1] + t * walk.segment_length_m
         ok = (
             segment_ok
@@ -671,7 +625,7 @@ def _chain_graph(walk: _Walk, merged: _Merged, *, first_junction_id: int) -> nx.
     for k in np.flatnonzero(merged.pose_kept).tolist():
         G.add_node(
             rows[k],
-            position_m=_tuple3(walk.position_m[k]),
+            position_m=tuple3(walk.position_m[k]),
             floor=int(walk.pose_floor[k]),
             kind=NODE,
             pose_index=rows[k],
@@ -700,7 +654,7 @@ def _chain_graph(walk: _Walk, merged: _Merged, *, first_junction_id: int) -> nx.
                 position = walk.position_m[j] + t * (walk.position_m[j + 1] - walk.position_m[j])
                 G.add_node(
                     next_id,
-                    position_m=_tuple3(position),
+                    position_m=tuple3(position),
                     floor=int(walk.segment_floor[j]),
                     kind=JUNCTION,
                     pose_index=None,
@@ -725,7 +679,7 @@ def _chain_graph(walk: _Walk, merged: _Merged, *, first_junction_id: int) -> nx.
 
     for a, b in merged.links:
         u, v = node_of(a), node_of(b)
-        length_m = float(np.linalg.norm(_position(G, u) - _position(G, v)))
+        length_m = float(np.linalg.norm(node_position(G, u) - node_position(G, v)))
         _add_edge(G, u, v, length_m=length_m, kind=WALK, floor=int(G.nodes[u]["floor"]))
     return G
 
@@ -737,15 +691,6 @@ def _add_edge(G: nx.Graph[int], u: int, v: int, *, length_m: float, kind: str, f
     if G.has_edge(u, v) and G.edges[u, v]["length_m"] <= length_m:
         return
     G.add_edge(u, v, length_m=float(length_m), kind=kind, floor=int(floor))
-
-
-def _position(G: nx.Graph[int], node: int) -> FloatArray:
-    return np.asarray(G.nodes[node]["position_m"], dtype=np.float64)
-
-
-def _tuple3(values: npt.ArrayLike) -> tuple[float, float, float]:
-    x, y, z = (float(v) for v in np.asarray(values, dtype=np.float64).reshape(3))
-    return (x, y, z)
 
 
 # --------------------------------------------------------------------------- crossings
@@ -887,11 +832,11 @@ def _touches(
     r_len = np.linalg.norm(r, axis=1)
     s_len = np.linalg.norm(s, axis=1)
     usable = (r_len > COINCIDENT_M) & (s_len > COINCIDENT_M)
-    denominator = _cross(r, s)
+    denominator = cross_2d(r, s)
     parallel = np.abs(denominator) <= 1e-12 * np.maximum(r_len * s_len, 1e-300)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = _cross(qp, s) / denominator
-        u = _cross(qp, r) / denominator
+        t = cross_2d(qp, s) / denominator
+        u = cross_2d(qp, r) / denominator
     tol_t = COINCIDENT_M / np.maximum(r_len, 1e-300)
     tol_u = COINCIDENT_M / np.maximum(s_len, 1e-300)
     meets = usable & ~parallel & (t >= -tol_t) & (t <= 1 + tol_t) & (u >= -tol_u) & (u <= 1 + tol_u)
@@ -901,14 +846,16 @@ def _touches(
         out.append((int(first[k]), tk, int(second[k]), uk, point))
 
     # Collinear pairs: each end of one segment lying on the other is a touch.
-    line_distance = np.abs(_cross(qp, r)) / np.maximum(r_len, 1e-300)
+    line_distance = np.abs(cross_2d(qp, r)) / np.maximum(r_len, 1e-300)
     overlapping = usable & parallel & (line_distance <= COINCIDENT_M) & collinear
     for k in np.flatnonzero(overlapping).tolist():
         e1, e2 = int(first[k]), int(second[k])
         seen: list[FloatArray] = []
         for this, other in ((e1, e2), (e2, e1)):
             for end_t, end in ((0.0, a[this]), (1.0, b[this])):
-                (t_other,), (distance,) = _project(end[None, :], a[other][None], b[other][None])
+                (t_other,), (distance,) = project_to_segments(
+                    end[None, :], a[other][None], b[other][None]
+                )
                 if distance > COINCIDENT_M or any(
                     np.linalg.norm(end - q) <= COINCIDENT_M for q in seen
                 ):
@@ -919,21 +866,6 @@ def _touches(
                 else:
                     out.append((e1, float(t_other), e2, end_t, end))
     return out
-
-
-def _cross(p: FloatArray, q: FloatArray) -> FloatArray:
-    return np.asarray(p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0], dtype=np.float64)
-
-
-def _project(points: FloatArray, a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """(t, distance) of the nearest point a + t (b − a), t in [0, 1], to each point (broadcast)."""
-    d = b - a
-    length2 = np.sum(d * d, axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(length2 > 0, np.sum((points - a) * d, axis=-1) / length2, 0.0)
-    t = np.clip(t, 0.0, 1.0)
-    nearest = a + t[..., None] * d
-    return t, np.linalg.norm(points - nearest, axis=-1)
 
 
 # --------------------------------------------------------------------------- uniform grid
@@ -1050,7 +982,7 @@ def _contract_junctions(G: nx.Graph[int], within_m: float) -> None:
     for u, v, d in G.edges(data=True):
         if d["kind"] != WALK or G.nodes[u]["kind"] != JUNCTION or G.nodes[v]["kind"] != JUNCTION:
             continue
-        a, b = _position(G, u), _position(G, v)
+        a, b = node_position(G, u), node_position(G, v)
         distance_m = float(np.hypot(*(a - b)[[0, 2]]))
         if distance_m <= within_m:
             short.append((distance_m, u, v))
@@ -1078,14 +1010,14 @@ def _contract_junctions(G: nx.Graph[int], within_m: float) -> None:
         group.pop(gone, None)
 
     for keep, members in group.items():
-        old = {m: _position(G, m) for m in members}
+        old = {m: node_position(G, m) for m in members}
         centroid = np.mean(list(old.values()), axis=0)
-        G.nodes[keep]["position_m"] = _tuple3(centroid)
+        G.nodes[keep]["position_m"] = tuple3(centroid)
         for m in sorted(members, key=lambda member: member != keep):  # keep first
             for _, other, d in list(G.edges(m, data=True)):
                 if other in old:
                     continue  # inside the group: disappears
-                far = _position(G, other)
+                far = node_position(G, other)
                 straight_m = float(np.linalg.norm(centroid - far))
                 length_m = max(
                     d["length_m"] + straight_m - float(np.linalg.norm(old[m] - far)), straight_m
@@ -1122,7 +1054,7 @@ def _attach(
         best = int(pool[np.argmin(distance_m[pool])])
         anchors.append(
             Anchor(
-                name=name, node=node_ids[best], position_m=_tuple3(p), floor=int(node_floor[best])
+                name=name, node=node_ids[best], position_m=tuple3(p), floor=int(node_floor[best])
             )
         )
     return anchors
@@ -1206,292 +1138,4 @@ def _douglas_peucker(points: FloatArray, tolerance_m: float) -> BoolArray:
 
 def _segment_distance(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
     """(M,) 3-D distance of each point to the segment a–b (a point when a = b)."""
-    return _project(points, a[None, :], b[None, :])[1]
-
-
-# =========================================================================== JSON
-
-PATH_GRAPH_FORMAT = "invisible-map/path-graph"
-PATH_GRAPH_FORMAT_VERSION = 1
-
-
-def path_graph_to_json(pg: PathGraph) -> dict[str, Any]:
-    """Our lossless document: plain lists, ints, floats, strings and None; see
-    :func:`path_graph_from_json`. Nodes and edges keep the graph's order."""
-    G = pg.graph
-    return {
-        "format": PATH_GRAPH_FORMAT,
-        "format_version": PATH_GRAPH_FORMAT_VERSION,
-        "floor_levels_m": [float(v) for v in pg.floor_levels_m],
-        "nodes": [
-            {
-                "id": int(n),
-                "position_m": [float(v) for v in d["position_m"]],
-                "floor": int(d["floor"]),
-                "kind": str(d["kind"]),
-                "pose_index": None if d["pose_index"] is None else int(d["pose_index"]),
-            }
-            for n, d in G.nodes(data=True)
-        ],
-        "edges": [
-            {
-                "from": int(u),
-                "to": int(v),
-                "length_m": float(d["length_m"]),
-                "kind": str(d["kind"]),
-                "floor": int(d["floor"]),
-            }
-            for u, v, d in G.edges(data=True)
-        ],
-        "tags": [{"tag_id": int(t), **_anchor_to_json(a)} for t, a in pg.tags.items()],
-        "pois": [_anchor_to_json(a) for a in pg.pois],
-    }
-
-
-def path_graph_from_json(document: Any) -> PathGraph:
-    """Read back a document written by :func:`path_graph_to_json`; MapFormatError if malformed."""
-    if not isinstance(document, Mapping) or document.get("format") != PATH_GRAPH_FORMAT:
-        raise MapFormatError(f"not an {PATH_GRAPH_FORMAT} document")
-    if document.get("format_version") != PATH_GRAPH_FORMAT_VERSION:
-        raise MapFormatError(
-            f"unsupported path graph format_version {document.get('format_version')!r}, "
-            f"this build reads {PATH_GRAPH_FORMAT_VERSION}"
-        )
-    try:
-        G: nx.Graph[int] = nx.Graph()
-        for node in document["nodes"]:
-            kind = str(node["kind"])
-            if kind not in (NODE, JUNCTION):
-                raise ValueError(f"node kind {kind!r}")
-            pose_index = node["pose_index"]
-            G.add_node(
-                int(node["id"]),
-                position_m=_tuple3(node["position_m"]),
-                floor=int(node["floor"]),
-                kind=kind,
-                pose_index=None if pose_index is None else int(pose_index),
-            )
-        for edge in document["edges"]:
-            u, v, kind = int(edge["from"]), int(edge["to"]), str(edge["kind"])
-            if kind not in EDGE_KINDS or u not in G or v not in G:
-                raise ValueError(f"edge {u}–{v} of kind {kind!r}")
-            G.add_edge(u, v, length_m=float(edge["length_m"]), kind=kind, floor=int(edge["floor"]))
-        return PathGraph(
-            graph=G,
-            floor_levels_m=tuple(float(v) for v in document["floor_levels_m"]),
-            tags={int(t["tag_id"]): _anchor_from_json(t) for t in document["tags"]},
-            pois=tuple(_anchor_from_json(p) for p in document["pois"]),
-        )
-    except (KeyError, TypeError, ValueError) as err:
-        raise MapFormatError(f"path graph document is missing or has a malformed {err}") from err
-
-
-def _anchor_to_json(anchor: Anchor) -> dict[str, Any]:
-    return {
-        "name": anchor.name,
-        "node": int(anchor.node),
-        "position_m": [float(v) for v in anchor.position_m],
-        "floor": int(anchor.floor),
-    }
-
-
-def _anchor_from_json(entry: Mapping[str, Any]) -> Anchor:
-    return Anchor(
-        name=str(entry["name"]),
-        node=int(entry["node"]),
-        position_m=_tuple3(entry["position_m"]),
-        floor=int(entry["floor"]),
-    )
-
-
-# =========================================================================== GeoJSON
-
-#: The GeoJSON coordinate system: a local frame, not WGS84 (see :func:`path_graph_to_geojson`).
-GEOJSON_COORDINATE_SYSTEM: dict[str, Any] = {
-    "name": "invisible-map local",
-    "units": "m",
-    "axes": ["x", "-z", "y"],
-    "description": (
-        "not WGS84: a local frame in metres. Each position is [x, -z, y] of the map frame "
-        "(ARKit world, y up): easting x, northing -z, altitude y, so a plot seen from above keeps "
-        "the map's handedness (left turns look left)."
-    ),
-}
-
-
-def path_graph_to_geojson(pg: PathGraph) -> dict[str, Any]:
-    """The path graph as a GeoJSON FeatureCollection (RFC 7946 structure, local coordinates).
-
-    Coordinates are ``[x, −z, y]`` of the map frame in metres: x east, −z north, y the height. The
-    map frame is right-handed with y up, so (x, −z, y) is right-handed east-north-up and a plot of
-    the first two coordinates shows the walk as seen from above without mirroring. It is a local
-    frame, not WGS84 longitude/latitude; the top-level foreign member ``coordinate_system`` says
-    so, and ``floor_levels_m`` gives the floor heights.
-
-    Point features, ``properties.kind``:
-        ``node``      a path node: ``id``, ``floor``, ``pose_index``.
-        ``junction``  a crossing: ``id``, ``floor``, ``pose_index`` None.
-        ``tag``       a tag: ``id`` (the tag id), ``name``, ``floor``, ``node`` (its anchor).
-        ``poi``       a point of interest: ``name``, ``floor``, ``node``.
-    LineString features (edges), ``properties.kind`` ``walk``, ``stairs`` or ``elevator``, with
-    ``floor`` (the lower one for a floor change), ``length_m``, ``from`` and ``to`` (node ids).
-    """
-    G = pg.graph
-    features: list[dict[str, Any]] = []
-    for n, d in G.nodes(data=True):
-        features.append(
-            _point_feature(
-                d["position_m"],
-                {
-                    "kind": d["kind"],
-                    "id": int(n),
-                    "floor": int(d["floor"]),
-                    "pose_index": d["pose_index"],
-                },
-            )
-        )
-    for tag_id, anchor in pg.tags.items():
-        features.append(
-            _point_feature(
-                anchor.position_m,
-                {
-                    "kind": "tag",
-                    "id": int(tag_id),
-                    "name": anchor.name,
-                    "floor": anchor.floor,
-                    "node": anchor.node,
-                },
-            )
-        )
-    for anchor in pg.pois:
-        features.append(
-            _point_feature(
-                anchor.position_m,
-                {"kind": "poi", "name": anchor.name, "floor": anchor.floor, "node": anchor.node},
-            )
-        )
-    for u, v, d in G.edges(data=True):
-        features.append(
-            {
-                "type": "Feature",
-                "geometry": {
-                    "type": "LineString",
-                    "coordinates": [
-                        _geojson_position(G.nodes[u]["position_m"]),
-                        _geojson_position(G.nodes[v]["position_m"]),
-                    ],
-                },
-                "properties": {
-                    "kind": d["kind"],
-                    "floor": int(d["floor"]),
-                    "length_m": float(d["length_m"]),
-                    "from": int(u),
-                    "to": int(v),
-                },
-            }
-        )
-    return {
-        "type": "FeatureCollection",
-        "coordinate_system": dict(GEOJSON_COORDINATE_SYSTEM),
-        "floor_levels_m": [float(v) for v in pg.floor_levels_m],
-        "features": features,
-    }
-
-
-def _geojson_position(position_m: Sequence[float]) -> list[float]:
-    x, y, z = (float(v) for v in position_m)
-    return [x, -z, y]
-
-
-def _point_feature(position_m: Sequence[float], properties: dict[str, Any]) -> dict[str, Any]:
-    return {
-        "type": "Feature",
-        "geometry": {"type": "Point", "coordinates": _geojson_position(position_m)},
-        "properties": properties,
-    }
-
-
-# =========================================================================== the app's format
-
-
-#: Poses per block when finding the nearest edge of poses that are not nodes.
-_APP_CHUNK = 256
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class AppVertex:
-    """An extra odometry vertex of the app's format (DESIGN §7): a junction of the path graph.
-
-    pose_id: the id it is given, above every pose id of the map; position_m: map frame, m.
-    neighbors: the pose ids it links to.
-    """
-
-    pose_id: int
-    position_m: tuple[float, float, float]
-    neighbors: list[int]
-
-
-def app_neighbors(
-    pg: PathGraph, *, pose_id: npt.ArrayLike, positions_m: npt.ArrayLike
-) -> tuple[list[list[int]], list[AppVertex]]:
-    """The app format's ``neighbors`` from a path graph: per pose row, and the junction vertices.
-
-    pose_id: (N,) the app's pose ids; positions_m: (N, 3) the poses' positions, map frame, m.
-
-    - A pose that is a graph node links to its graph neighbours.
-    - Junction ``k`` (k = 0, 1, … in node-id order) becomes an extra vertex with pose id
-      ``max(pose_id) + 1 + k``, linking to its graph neighbours.
-    - A pose that is not a node (simplified away, or a later pass merged into an earlier one)
-      links to the two ends of the nearest edge of its floor, so every vertex reaches the graph;
-      those links are one-way (the graph's nodes do not list it back).
-    """
-    ids = np.asarray(pose_id, dtype=np.int64).reshape(-1)
-    world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
-    n = ids.shape[0]
-    G = pg.graph
-    junctions = sorted(node for node in G.nodes if G.nodes[node]["kind"] == JUNCTION)
-    base = int(ids.max()) + 1 if n else 0
-    app_id = {node: base + k for k, node in enumerate(junctions)}
-    pose_nodes: dict[int, int] = {}
-    for node in G.nodes:
-        row = G.nodes[node]["pose_index"]
-        if row is not None:
-            if not 0 <= row < n:
-                raise MapFormatError(f"path graph node {node} is pose {row}, not in this map")
-            app_id[node] = int(ids[row])
-            pose_nodes[int(row)] = node
-
-    neighbors: list[list[int]] = [[] for _ in range(n)]
-    for row, node in pose_nodes.items():
-        neighbors[row] = [app_id[m] for m in G.neighbors(node)]
-    loose = [row for row in range(n) if row not in pose_nodes]
-    if loose and G.number_of_edges() > 0:
-        edge_list: list[tuple[int, int]] = list(G.edges)
-        a = np.array([G.nodes[u]["position_m"] for u, _ in edge_list], dtype=np.float64)
-        b = np.array([G.nodes[v]["position_m"] for _, v in edge_list], dtype=np.float64)
-        edge_floor = np.array([G.edges[e]["floor"] for e in edge_list], dtype=np.int64)
-        levels = np.asarray(pg.floor_levels_m, dtype=np.float64)
-        pose_floor = assign_floors(world_p_phone[loose, 1], levels)
-        for start in range(0, len(loose), _APP_CHUNK):
-            rows = loose[start : start + _APP_CHUNK]
-            distance_m = _project(world_p_phone[rows][:, None, :], a[None], b[None])[1]
-            other_floor = edge_floor[None, :] != pose_floor[start : start + _APP_CHUNK, None]
-            penalty = np.where(other_floor & ~other_floor.all(axis=1)[:, None], np.inf, 0.0)
-            nearest = np.argmin(distance_m + penalty, axis=1).tolist()
-            for row, e in zip(rows, nearest, strict=True):
-                u, v = edge_list[e]
-                neighbors[row] = [app_id[u], app_id[v]]
-    elif loose and G.number_of_nodes() > 0:
-        only = app_id[next(iter(G.nodes))]
-        for row in loose:
-            neighbors[row] = [only]
-
-    vertices = [
-        AppVertex(
-            pose_id=app_id[node],
-            position_m=_tuple3(G.nodes[node]["position_m"]),
-            neighbors=[app_id[m] for m in G.neighbors(node)],
-        )
-        for node in junctions
-    ]
-    return neighbors, vertices
+    return project_to_segments(points, a[None, :], b[None, :])[1]

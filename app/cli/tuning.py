@@ -1,4 +1,4 @@
-"""The ``sweep`` and ``simulate`` commands of ``invisible-map`` (see ``app/cli.py``).
+"""The ``sweep`` and ``simulate`` commands of ``invisible-map`` (see ``app/cli/program.py``).
 
 invisible-map sweep data/sessions/occam_room.json --gt data/ground_truth/occam_room_tape.json
 invisible-map sweep SESSION --trials 100 --json           # Optuna's sampler, 100 trials
@@ -18,7 +18,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from app.cli_params import add_param_option, slam_params
+from app.cli.common import add_param_option, slam_params
 from app.domain.errors import ParameterError
 from app.domain.ground_truth import load_ground_truth
 from app.domain.map_io import save_json
@@ -30,8 +30,9 @@ from app.domain.simulate import (
     simulate_session,
 )
 from app.domain.slam import optimize_session
+from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, TuningTarget, sweep_result
-from app.sweep_runner import SweepPlan, run_sweep
+from workers.sweep_pool import run_sweep
 
 #: ``--noise`` may set these fields of SimulationConfig.
 NOISE_FIELDS = tuple(
@@ -98,7 +99,7 @@ def add_sweep_commands(commands: Any) -> None:
 
 
 def sweep_command(args: argparse.Namespace) -> int:
-    from app.cli import CommandError
+    from app.cli.common import CommandError
 
     base_params = slam_params(args.param)
     ground_truth = load_ground_truth(args.gt) if args.gt else None
@@ -151,7 +152,7 @@ def sweep_command(args: argparse.Namespace) -> int:
     }
     written = []
     if args.plot_dir:
-        from app.sweep_plots import heatmap_png, shift_vs_gt_png
+        from app.render.sweep_plots import heatmap_png, shift_vs_gt_png
 
         args.plot_dir.mkdir(parents=True, exist_ok=True)
         (args.plot_dir / "heatmap.png").write_bytes(

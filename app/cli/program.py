@@ -8,9 +8,9 @@
                         [--space JSON] [--processes N] [--plot-dir DIR] [--json]
     invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
                         [--two-floors] [--noise NAME=VALUE …] [--seed N]
-    invisible-map serve | worker | migrate | keys …   (the server: see app/server_cli.py)
+    invisible-map serve | worker | migrate | keys …   (the server: see app/cli/server.py)
     invisible-map export OUT.zip [--include-keys] [--force]
-    invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/backup_cli.py)
+    invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/cli/backup.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
@@ -27,9 +27,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from app.backup_cli import add_backup_commands
-from app.cli_params import add_param_option as _add_param_option
-from app.cli_params import slam_params as _params
+from app.cli.backup import add_backup_commands
+from app.cli.common import DATA_DIR, DEMO_SESSIONS, PROGRAM, CommandError
+from app.cli.common import add_param_option as _add_param_option
+from app.cli.common import slam_params as _params
+from app.cli.server import add_server_commands
+from app.cli.tables import render_markdown_table
+from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.frames import FloatArray
@@ -39,26 +43,6 @@ from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
 from app.domain.session import Session, load_session
 from app.domain.slam import optimize_session
-from app.server_cli import ServerCommandError, add_server_commands
-from app.tables import render_markdown_table
-from app.tuning_cli import add_sweep_commands
-
-PROGRAM = "invisible-map"
-#: The demo sessions and their ground truth, shipped in the repository (see data/README.md).
-DATA_DIR = Path(__file__).resolve().parents[1] / "data"
-DEMO_SESSIONS = (
-    ("occam_room", "occam_room_tape.json"),
-    ("floor_2_straight", "rtabmap_mac_1_2.txt"),
-    ("straight_209_occam", "rtabmap_mac_1_2.txt"),
-    ("desnat_straight_once", "rtabmap_mac_1_2.txt"),
-    ("pgt_tester3", None),
-    ("singletag3times", None),
-    ("onetag", None),
-)
-
-
-class CommandError(Exception):
-    """A readable reason the command cannot go on."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -66,7 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args))
-    except (InvisibleMapError, CommandError, ServerCommandError) as err:
+    except (InvisibleMapError, CommandError) as err:
         print(f"{PROGRAM}: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:
@@ -142,7 +126,7 @@ def _process(args: argparse.Namespace) -> int:
     if args.app_map:
         save_json(map_to_app_format(result), args.app_map)
     if args.plot:
-        from app.plot import render_map_png
+        from app.render.map_plot import render_map_png
 
         render_map_png(result, session, ground_truth=ground_truth, path=args.plot)
 
@@ -266,7 +250,7 @@ def format_table(rows: Sequence[Evaluation]) -> str:
 
 def _demo(args: argparse.Namespace) -> int:
     params = _params(args.param)
-    from app.plot import render_map_png
+    from app.render.map_plot import render_map_png
 
     sessions_dir, truth_dir = DATA_DIR / "sessions", DATA_DIR / "ground_truth"
     if not sessions_dir.is_dir():

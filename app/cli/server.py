@@ -24,23 +24,24 @@ import time
 from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
-from app.allocator import jemalloc_path
+from app.cli.common import (
+    CommandError,
+    load_settings,
+    migrate_database,
+    open_database,
+    open_migrated,
+    safe_url,
+)
+from workers.allocator import jemalloc_path
 
 if TYPE_CHECKING:
     import uvicorn
-
-    from app.config import Settings
-    from app.storage.db import Database
 
 
 #: The longest ``keys create --expires-in-days`` (100 years).
 MAX_KEY_DAYS = 36500
 #: The largest id a row can have (a signed 64-bit integer).
 MAX_ID = 2**63 - 1
-
-
-class ServerCommandError(Exception):
-    """A readable reason a server command cannot go on (printed as one line)."""
 
 
 def add_server_commands(commands: Any) -> None:
@@ -91,64 +92,6 @@ def add_server_commands(commands: Any) -> None:
 # --------------------------------------------------------------------------- helpers
 
 
-def _settings(**overrides: Any) -> Settings:
-    from pydantic import ValidationError
-
-    from app.config import Settings
-
-    try:
-        settings = Settings()
-    except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(part) for part in first["loc"]) or "settings"
-        raise ServerCommandError(f"{where}: {first['msg']}") from err
-    return settings.model_copy(update=overrides) if overrides else settings
-
-
-def _database(settings: Settings) -> Database:
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from app.storage.db import Database
-
-    try:
-        database = Database(settings.resolved_database_url)
-        database.ping()
-    except (SQLAlchemyError, ValueError) as err:
-        raise ServerCommandError(
-            f"cannot use the database {_safe_url(settings)}: {_first_line(err)}"
-        ) from err
-    return database
-
-
-def _migrate_database(database: Database, settings: Settings) -> str:
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from app.storage.migrate import current_revision, upgrade_to_head
-
-    try:
-        upgrade_to_head(database)
-        return current_revision(database) or "empty"
-    except SQLAlchemyError as err:
-        raise ServerCommandError(
-            f"cannot migrate the database {_safe_url(settings)}: {_first_line(err)}"
-        ) from err
-
-
-def _safe_url(settings: Settings) -> str:
-    from sqlalchemy import make_url
-
-    try:
-        return make_url(settings.resolved_database_url).render_as_string(hide_password=True)
-    except Exception:  # an unparsable URL: show nothing of it
-        return "(DATABASE_URL)"
-
-
-def _first_line(err: BaseException) -> str:
-    from app.storage.db import first_line  # (imports SQLAlchemy: only when needed)
-
-    return first_line(err)
-
-
 # --------------------------------------------------------------------------- commands
 
 
@@ -159,23 +102,23 @@ def _serve(args: argparse.Namespace) -> int:
     from workers.main import start_worker_processes, stop_worker_processes
 
     if not 0 < args.port < 65536:
-        raise ServerCommandError(f"--port must be 1–65535, got {args.port}")
+        raise CommandError(f"--port must be 1–65535, got {args.port}")
     overrides: dict[str, Any] = {}
     if args.workers is not None:
         if not 0 <= args.workers <= 64:
-            raise ServerCommandError(f"--workers must be 0–64, got {args.workers}")
+            raise CommandError(f"--workers must be 0–64, got {args.workers}")
         overrides["workers"] = args.workers
-    settings = _settings(**overrides)
+    settings = load_settings(**overrides)
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     generated_key = settings.admin_key is None
     if generated_key:
         settings = settings.model_copy(
             update={"admin_key": "im_admin_" + secrets.token_urlsafe(24)}
         )
-    database = _database(settings)
+    database = open_database(settings)
     if not args.no_migrate:
-        revision = _migrate_database(database, settings)
-        print(f"database {_safe_url(settings)} at revision {revision}", file=sys.stderr)
+        revision = migrate_database(database, settings)
+        print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
     database.dispose()
 
     processes = start_worker_processes(settings, settings.workers)
@@ -218,7 +161,7 @@ def _serve(args: argparse.Namespace) -> int:
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)
     if not server.started:
-        raise ServerCommandError(f"the server could not start at {url} (see the log above)")
+        raise CommandError(f"the server could not start at {url} (see the log above)")
     return 0
 
 
@@ -234,19 +177,19 @@ def _worker(args: argparse.Namespace) -> int:
     from workers.main import run_worker_processes
 
     if not 1 <= args.processes <= 64:
-        raise ServerCommandError(f"--processes must be 1–64, got {args.processes}")
-    settings = _settings()
+        raise CommandError(f"--processes must be 1–64, got {args.processes}")
+    settings = load_settings()
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
-    _database(settings).dispose()
+    open_database(settings).dispose()
     return run_worker_processes(settings, args.processes)
 
 
 def _migrate(_args: argparse.Namespace) -> int:
-    settings = _settings()
-    database = _database(settings)
-    revision = _migrate_database(database, settings)
+    settings = load_settings()
+    database = open_database(settings)
+    revision = migrate_database(database, settings)
     database.dispose()
-    print(f"database {_safe_url(settings)} at revision {revision}")
+    print(f"database {safe_url(settings)} at revision {revision}")
     return 0
 
 
@@ -256,16 +199,16 @@ def _keys_create(args: argparse.Namespace) -> int:
 
     if args.expires_in_days is not None and not 0 < args.expires_in_days <= MAX_KEY_DAYS:
         # (NaN fails the comparison; inf or more than MAX_KEY_DAYS would overflow a datetime)
-        raise ServerCommandError(
+        raise CommandError(
             f"--expires-in-days must be > 0 and at most {MAX_KEY_DAYS}, got {args.expires_in_days}"
         )
     if len(args.name) > 100:
-        raise ServerCommandError(f"--name is {len(args.name)} characters; at most 100")
+        raise CommandError(f"--name is {len(args.name)} characters; at most 100")
     expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
-    database = _open_migrated(_settings())
-    with database.transaction() as session:
+    database = open_migrated(load_settings())
+    with database.transaction() as db_session:
         info, secret = keys.create_key(
-            session, name=args.name, role=Role(args.role), expires_at=expires_at
+            db_session, name=args.name, role=Role(args.role), expires_at=expires_at
         )
     database.dispose()
     print(
@@ -283,9 +226,9 @@ def _keys_list(_args: argparse.Namespace) -> int:
     from app.storage import keys
     from app.storage.orm import utc_now
 
-    database = _open_migrated(_settings())
-    with database.read() as session:
-        rows = keys.list_keys(session)
+    database = open_migrated(load_settings())
+    with database.read() as db_session:
+        rows = keys.list_keys(db_session)
     database.dispose()
     now = utc_now()
     for info in rows:
@@ -304,36 +247,24 @@ def _keys_list(_args: argparse.Namespace) -> int:
 def _keys_revoke(args: argparse.Namespace) -> int:
     from app.storage import keys
 
-    database = _open_migrated(_settings())
+    database = open_migrated(load_settings())
     try:
         if not 1 <= args.key_id <= MAX_ID:  # the database could not even compare it
             raise keys.KeyNotFound(args.key_id)
-        with database.transaction() as session:
-            info = keys.revoke_key(session, args.key_id)
+        with database.transaction() as db_session:
+            info = keys.revoke_key(db_session, args.key_id)
     except keys.KeyNotFound as err:
-        raise ServerCommandError(str(err)) from err
+        raise CommandError(str(err)) from err
     finally:
         database.dispose()
     print(f"revoked key {info.id} (im_{info.prefix}_…)")
     return 0
 
 
-def _open_migrated(settings: Settings) -> Database:
-    from app.storage.migrate import is_current
-
-    database = _database(settings)
-    if not is_current(database):
-        database.dispose()
-        raise ServerCommandError(
-            f"the database {_safe_url(settings)} is not migrated; run `invisible-map migrate`"
-        )
-    return database
-
-
 def _upload_demo_sessions(url: str, admin_key: str) -> None:
     """Upload the demo sessions in data/ through the API once it is up. Idempotency keys make a
     restart find them instead of adding them again."""
-    from app.cli import DATA_DIR, DEMO_SESSIONS
+    from app.cli.common import DATA_DIR, DEMO_SESSIONS
     from app.client import ApiError, Client
 
     with Client(url, api_key=admin_key) as client:

@@ -8,7 +8,7 @@
 of the database in ``DATABASE_URL`` to one zip archive; ``import`` puts such an archive into
 another migrated database, SQLite or PostgreSQL, in one transaction. The archive format and what
 it holds are in ``app/storage/backup.py``. Settings come from the environment, as for the server
-commands (``app/server_cli.py``); heavy imports happen inside the handlers.
+commands (``app/cli/server.py``); heavy imports happen inside the handlers.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
-from app.server_cli import ServerCommandError, _first_line, _open_migrated, _safe_url, _settings
+from app.cli.common import CommandError, first_line, load_settings, open_migrated, safe_url
 
 if TYPE_CHECKING:
     from app.storage.backup import ImportReport, Manifest
@@ -96,28 +96,26 @@ def _export(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     if out.is_dir():
-        raise ServerCommandError(f"{out} is a directory; give the archive's file name")
+        raise CommandError(f"{out} is a directory; give the archive's file name")
     if out.exists() and not args.force:
-        raise ServerCommandError(f"{out} exists; pass --force to replace it")
-    settings = _settings()
-    database = _open_migrated(settings)
+        raise CommandError(f"{out} exists; pass --force to replace it")
+    settings = load_settings()
+    database = open_migrated(settings)
     try:
         with _progress_bar("export") as on_progress:
             manifest = backup.export_archive(
                 database, out, include_key_hashes=args.include_keys, on_progress=on_progress
             )
     except backup.BackupError as err:
-        raise ServerCommandError(str(err)) from err
+        raise CommandError(str(err)) from err
     except SQLAlchemyError as err:
-        raise ServerCommandError(
-            f"cannot export {_safe_url(settings)}: {_first_line(err)}"
-        ) from err
+        raise CommandError(f"cannot export {safe_url(settings)}: {first_line(err)}") from err
     finally:
         database.dispose()
     size_mb = out.stat().st_size / 1e6
     keys = " (names only)" if manifest.counts["api_key"] and not args.include_keys else ""
     _say(
-        f"exported {_summary(manifest.counts)}{keys} from {_safe_url(settings)} to {out} "
+        f"exported {_summary(manifest.counts)}{keys} from {safe_url(settings)} to {out} "
         f"({size_mb:.1f} MB, schema revision {manifest.schema_revision})"
     )
     if args.include_keys:
@@ -136,7 +134,7 @@ def _import(args: argparse.Namespace) -> int:
         manifest = read(args.archive)
         backup.check_schema_revision(manifest.schema_revision, head_revision())
     except backup.BackupError as err:
-        raise ServerCommandError(str(err)) from err
+        raise CommandError(str(err)) from err
     if args.check:
         keys = "with" if manifest.key_hashes else "without"
         _say(
@@ -146,8 +144,8 @@ def _import(args: argparse.Namespace) -> int:
             f"{len(manifest.members)} members, every checksum matches"
         )
         return 0
-    settings = _settings()
-    database = _open_migrated(settings)
+    settings = load_settings()
+    database = open_migrated(settings)
     try:
         with _progress_bar("import") as on_progress:
             report = backup.import_archive(
@@ -158,15 +156,15 @@ def _import(args: argparse.Namespace) -> int:
                 on_progress=on_progress,
             )
     except backup.BackupError as err:
-        raise ServerCommandError(f"nothing imported: {err}") from err
+        raise CommandError(f"nothing imported: {err}") from err
     except SQLAlchemyError as err:
-        raise ServerCommandError(
-            f"nothing imported into {_safe_url(settings)}: {_first_line(err)}"
+        raise CommandError(
+            f"nothing imported into {safe_url(settings)}: {first_line(err)}"
         ) from err
     finally:
         database.dispose()
     _report_import(
-        report, manifest, into=_safe_url(settings), archive=args.archive, keys=args.include_keys
+        report, manifest, into=safe_url(settings), archive=args.archive, keys=args.include_keys
     )
     return 0
 

@@ -1,0 +1,51 @@
+"""What every router's schemas share: the error body and example values."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+AT_EXAMPLE = "2026-11-22T10:15:30Z"
+LATER_EXAMPLE = "2026-11-22T10:15:31.250000Z"
+SHA_EXAMPLE = "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"
+
+
+def examples(*examples: dict[str, Any]) -> ConfigDict:
+    return ConfigDict(json_schema_extra={"examples": list(examples)})
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class ErrorBody(BaseModel):
+    """Every error response: what went wrong, a stable code, and the field at fault if any."""
+
+    model_config = examples(
+        {
+            "detail": "pose_data[3].pose: rotation not orthonormal",
+            "code": "invalid_session",
+            "field": "pose_data[3].pose",
+        },
+        {"detail": "map 42 not found", "code": "not_found", "field": None},
+    )
+
+    detail: str = Field(description="a sentence for a person")
+    code: str = Field(description="stable, for programs: not_found, invalid_session, …")
+    field: str | None = Field(
+        default=None, description="where in the request: a JSON path, a parameter or a header"
+    )
+
+
+# --------------------------------------------------------------------------- sessions
+
+_STATS_EXAMPLE: dict[str, Any] = {
+    "pose_count": 621,
+    "detection_count": 200,
+    "tag_count": 8,
+    "poi_count": 0,
+    "duration_s": 62.1,
+    "path_length_m": 41.7,
+    "tag_ids": [0, 1, 2, 3, 4, 5, 6, 7],
+    "warnings": [],
+}

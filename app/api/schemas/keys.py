@@ -1,0 +1,82 @@
+"""Schemas of the keys router."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
+
+from app.api.schemas.common import examples
+from app.api.schemas.maps import _KEY_EXAMPLE
+from app.storage.keys import KeyInfo
+from app.storage.orm import Role
+
+
+class KeyCreate(BaseModel):
+    """A new API key: a name for people, a role, and optionally when it stops working."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"name": "lab iPhone 12", "role": "device"},
+                {"name": "ops laptop", "role": "admin", "expires_at": "2027-01-01T00:00:00Z"},
+            ]
+        },
+    )
+
+    name: str = Field(min_length=1, max_length=100)
+    role: Role
+    expires_at: AwareDatetime | None = Field(
+        default=None, description="with a time zone, in the future"
+    )
+
+
+class KeyPublic(BaseModel):
+    """An API key as listed: never its secret."""
+
+    model_config = examples(_KEY_EXAMPLE)
+
+    id: int
+    name: str
+    role: Role
+    prefix: str = Field(description="the public part of the key, im_<prefix>_…")
+    created_at: datetime
+    expires_at: datetime | None
+    revoked_at: datetime | None
+    last_used_at: datetime | None = Field(description="to within a minute")
+
+    @classmethod
+    def from_domain(cls, key: KeyInfo) -> KeyPublic:
+        return cls(
+            id=key.id,
+            name=key.name,
+            role=key.role,
+            prefix=key.prefix,
+            created_at=key.created_at,
+            expires_at=key.expires_at,
+            revoked_at=key.revoked_at,
+            last_used_at=key.last_used_at,
+        )
+
+
+class KeyCreated(KeyPublic):
+    """A new key with its secret: shown this once, never stored or shown again."""
+
+    model_config = examples(
+        {**_KEY_EXAMPLE, "last_used_at": None, "key": "im_a1b2c3d4_Zq9…(32 characters)"}
+    )
+
+    key: str = Field(description="send as 'Authorization: Bearer <key>'")
+
+
+class KeysPublic(BaseModel):
+    """All API keys, oldest first."""
+
+    model_config = examples({"data": [_KEY_EXAMPLE], "count": 1})
+
+    data: list[KeyPublic]
+    count: int
+
+
+# --------------------------------------------------------------------------- system

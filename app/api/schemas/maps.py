@@ -1,0 +1,384 @@
+"""Schemas of the maps router: maps, versions, tags, rebuilds, the app's map format."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
+from app.api.schemas.jobs import JobBrief
+from app.storage.maps import MapInfo, TagPose, VersionInfo
+from app.storage.queue import JobInfo
+
+TAG_EXAMPLE = {
+    "tag_id": 3,
+    "position_m": [1.52, 0.31, -4.07],
+    "quat_xyzw": [0.0, 0.7071, 0.0, 0.7071],
+    "detection_count": 24,
+    "covariance": None,
+}
+_VERSION_EXAMPLE: dict[str, Any] = {
+    "number": 1,
+    "created_at": LATER_EXAMPLE,
+    "job_id": 31,
+    "params": {"tag_position_var_m2": 0.0001, "huber_k": 1.345},
+    "statistics": {"poses": 621, "tags": 8, "path_length_m": 41.7, "iterations": 3},
+    "metrics": {"shift_pre": 0.0139, "shift_opt": 0.0115},
+    "shift_metric": 0.0115,
+    "tag_count": 8,
+    "detections_used": 191,
+    "detections_rejected": 9,
+    "warnings": [],
+    "content_sha256": SHA_EXAMPLE,
+}
+
+
+class TagPosePublic(BaseModel):
+    """A tag in a map version, map frame (y up)."""
+
+    model_config = examples(TAG_EXAMPLE)
+
+    tag_id: int
+    position_m: list[float] = Field(description="[x, y, z], m")
+    quat_xyzw: list[float] = Field(description="orientation, unit quaternion [x, y, z, w]")
+    detection_count: int = Field(description="detections of it used in the optimization")
+    covariance: list[float] | None = Field(
+        description="6×6 marginal covariance, row-major, [rotation rad, translation m] in the "
+        "tag frame; null if not computed"
+    )
+
+    @classmethod
+    def from_domain(cls, tag: TagPose) -> TagPosePublic:
+        return cls(
+            tag_id=tag.tag_id,
+            position_m=list(tag.position_m),
+            quat_xyzw=list(tag.quat_xyzw),
+            detection_count=tag.detection_count,
+            covariance=tag.covariance,
+        )
+
+
+class VersionSummary(BaseModel):
+    """One version of a map: how it was made and how good it is (without its tags)."""
+
+    model_config = examples(_VERSION_EXAMPLE)
+
+    number: int = Field(description="1, 2, … per map; the newest is the map's current version")
+    created_at: datetime
+    job_id: int | None = Field(description="the job that built it")
+    params: dict[str, Any] = Field(description="every SLAM parameter it used")
+    statistics: dict[str, Any] = Field(description="poses, tags, path length, solver figures")
+    metrics: dict[str, Any] = Field(
+        description="shift metric of the pre-optimized (shift_pre) and optimized (shift_opt) map"
+    )
+    shift_metric: float | None = Field(description="the optimized map's shift metric")
+    tag_count: int
+    detections_used: int
+    detections_rejected: int
+    warnings: list[str]
+    content_sha256: str = Field(description="SHA-256 of the stored map document")
+
+    @classmethod
+    def from_domain(cls, version: VersionInfo) -> VersionSummary:
+        return cls(**_version_fields(version))
+
+
+class VersionPublic(VersionSummary):
+    """A map version with its tag poses."""
+
+    model_config = examples({**_VERSION_EXAMPLE, "tags": [TAG_EXAMPLE]})
+
+    tags: list[TagPosePublic]
+
+    @classmethod
+    def with_tags(cls, version: VersionInfo, tags: list[TagPose]) -> VersionPublic:
+        return cls(
+            **_version_fields(version), tags=[TagPosePublic.from_domain(tag) for tag in tags]
+        )
+
+
+REJECTION_EXAMPLE = {
+    "detection_index": 57,
+    "tag_id": 5,
+    "pose_index": 233,
+    "reason": "reprojection",
+    "value": 11.2,
+    "limit": 8.0,
+    "detail": "reprojection 11.2 px > 8 px",
+}
+
+
+class VersionDetail(VersionPublic):
+    """A map version with its tag poses and the detections it left out, and why."""
+
+    model_config = examples(
+        {**_VERSION_EXAMPLE, "tags": [TAG_EXAMPLE], "rejections": [REJECTION_EXAMPLE]}
+    )
+
+    rejections: list[dict[str, Any]] = Field(
+        description="detections left out: reason (reprojection, view_angle, distance), value, limit"
+    )
+
+    @classmethod
+    def with_details(cls, version: VersionInfo, tags: list[TagPose]) -> VersionDetail:
+        return cls(
+            **_version_fields(version),
+            tags=[TagPosePublic.from_domain(tag) for tag in tags],
+            rejections=version.rejections,
+        )
+
+
+def _version_fields(version: VersionInfo) -> dict[str, Any]:
+    return {
+        "number": version.number,
+        "created_at": version.created_at,
+        "job_id": version.job_id,
+        "params": version.params,
+        "statistics": version.statistics,
+        "metrics": version.metrics,
+        "shift_metric": version.metrics.get("shift_opt"),
+        "tag_count": version.tag_count,
+        "detections_used": version.detections_used,
+        "detections_rejected": version.detections_rejected,
+        "warnings": version.warnings,
+        "content_sha256": version.content_sha256,
+    }
+
+
+class VersionsPublic(BaseModel):
+    """All versions of a map, oldest first."""
+
+    model_config = examples({"data": [_VERSION_EXAMPLE], "count": 1})
+
+    data: list[VersionSummary]
+    count: int
+
+
+_MAP_EXAMPLE: dict[str, Any] = {
+    "id": 12,
+    "name": "occam_room",
+    "session_id": 17,
+    "created_at": AT_EXAMPLE,
+    "version_count": 1,
+    "latest_job": {"id": 31, "kind": "build_map", "state": "succeeded"},
+}
+
+
+class MapSummary(BaseModel):
+    """A map in a list: its current version without tags (null until the first build)."""
+
+    model_config = examples({**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE})
+
+    id: int
+    name: str = Field(description="the session's map_id")
+    session_id: int
+    created_at: datetime
+    version_count: int
+    current_version: VersionSummary | None
+
+    @classmethod
+    def from_domain(cls, info: MapInfo) -> MapSummary:
+        return cls(
+            id=info.id,
+            name=info.name,
+            session_id=info.session_id,
+            created_at=info.created_at,
+            version_count=info.version_count,
+            current_version=VersionSummary.from_domain(info.current) if info.current else None,
+        )
+
+
+class MapPublic(BaseModel):
+    """A map: its current version with tag poses (null until the first build succeeds) and its
+    newest job (to tell "not built yet" from "build failed")."""
+
+    model_config = examples(
+        {**_MAP_EXAMPLE, "current_version": {**_VERSION_EXAMPLE, "tags": [TAG_EXAMPLE]}},
+        {
+            **_MAP_EXAMPLE,
+            "version_count": 0,
+            "current_version": None,
+            "latest_job": {"id": 31, "kind": "build_map", "state": "queued"},
+        },
+    )
+
+    id: int
+    name: str = Field(description="the session's map_id")
+    session_id: int
+    created_at: datetime
+    version_count: int
+    current_version: VersionPublic | None
+    latest_job: JobBrief | None
+
+    @classmethod
+    def from_domain(
+        cls, info: MapInfo, *, tags: list[TagPose], latest_job: JobInfo | None
+    ) -> MapPublic:
+        return cls(
+            id=info.id,
+            name=info.name,
+            session_id=info.session_id,
+            created_at=info.created_at,
+            version_count=info.version_count,
+            current_version=VersionPublic.with_tags(info.current, tags) if info.current else None,
+            latest_job=JobBrief.from_domain(latest_job) if latest_job else None,
+        )
+
+
+class MapsPublic(BaseModel):
+    """A page of maps, newest first."""
+
+    model_config = examples(
+        {
+            "data": [{**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE}],
+            "count": 1,
+            "limit": 50,
+            "offset": 0,
+        }
+    )
+
+    data: list[MapSummary]
+    count: int
+    limit: int
+    offset: int
+
+
+class RebuildRequest(BaseModel):
+    """Optional body of a rebuild: SLAM parameters to change from the defaults."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"params": {"tag_position_var_m2": 1e-3, "huber_k": 0}},
+                {"params": {"tag_sizes_m": {"301": 0.15}, "max_reprojection_px": "12"}},
+                {"auto_tune_trials": 40},
+            ]
+        },
+    )
+
+    params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="name → value of any SlamParams field (see the README's parameter table)",
+    )
+    auto_tune_trials: int = Field(
+        default=0,
+        ge=0,
+        le=1000,
+        description="first choose the noise variances by the shift metric with this many "
+        "sampler trials (0: use the parameters as given)",
+    )
+
+
+class RebuildAccepted(BaseModel):
+    """The answer to a rebuild (202): the new job, which adds a version when it succeeds."""
+
+    model_config = examples(
+        {
+            "job_id": 40,
+            "map_id": 12,
+            "session_id": 17,
+            "params": {"tag_position_var_m2": 0.001},
+            "job_url": "/v1/jobs/40",
+        }
+    )
+
+    job_id: int
+    map_id: int
+    session_id: int
+    params: dict[str, Any] = Field(description="the overrides, as the job will use them")
+    job_url: str
+
+    @classmethod
+    def queued(cls, info: MapInfo, job_id: int, params: dict[str, Any]) -> RebuildAccepted:
+        """The answer for the build job ``job_id`` queued for map ``info`` with ``params``."""
+        return cls(
+            job_id=job_id,
+            map_id=info.id,
+            session_id=info.session_id,
+            params=params,
+            job_url=f"/v1/jobs/{job_id}",
+        )
+
+
+class Vector3(BaseModel):
+    x: float
+    y: float
+    z: float
+
+
+class Quaternion(BaseModel):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+TRANSLATION_EXAMPLE = {"x": 1.52, "y": 0.31, "z": -4.07}
+ROTATION_EXAMPLE = {"x": 0.0, "y": 0.7071, "z": 0.0, "w": 0.7071}
+
+
+class AppTagVertex(BaseModel):
+    id: int
+    translation: Vector3
+    rotation: Quaternion
+
+
+class AppOdometryVertex(BaseModel):
+    poseId: int  # noqa: N815 (the app's name)
+    translation: Vector3
+    rotation: Quaternion
+    adjChi2: float  # noqa: N815
+    vizTags: float  # noqa: N815
+    neighbors: list[int]
+
+
+class AppWaypointVertex(BaseModel):
+    id: str = Field(description="the point of interest's name")
+    translation: Vector3
+    rotation: Quaternion
+
+
+class AppMap(BaseModel):
+    """The iPhone app's map download format (docs/architecture.md §7), map frame y up."""
+
+    model_config = examples(
+        {
+            "tag_vertices": [
+                {"id": 3, "translation": TRANSLATION_EXAMPLE, "rotation": ROTATION_EXAMPLE}
+            ],
+            "odometry_vertices": [
+                {
+                    "poseId": 0,
+                    "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                    "adjChi2": 0.0003,
+                    "vizTags": 0.0,
+                    "neighbors": [1],
+                }
+            ],
+            "waypoints_vertices": [
+                {"id": "Room 101", "translation": TRANSLATION_EXAMPLE, "rotation": ROTATION_EXAMPLE}
+            ],
+        }
+    )
+
+    tag_vertices: list[AppTagVertex]
+    odometry_vertices: list[AppOdometryVertex]
+    waypoints_vertices: list[AppWaypointVertex]
+
+
+# --------------------------------------------------------------------------- keys
+
+_KEY_EXAMPLE: dict[str, Any] = {
+    "id": 3,
+    "name": "lab iPhone 12",
+    "role": "device",
+    "prefix": "a1b2c3d4",
+    "created_at": AT_EXAMPLE,
+    "expires_at": None,
+    "revoked_at": None,
+    "last_used_at": LATER_EXAMPLE,
+}

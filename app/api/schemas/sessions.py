@@ -1,0 +1,170 @@
+"""Schemas of the sessions router (uploads)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from app.api.schemas.common import _STATS_EXAMPLE, AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
+from app.storage.sessions import SessionInfo, SessionStatistics, UploadResult
+
+
+class SessionStatisticsPublic(BaseModel):
+    """What a session holds, computed when it was uploaded."""
+
+    model_config = examples(_STATS_EXAMPLE)
+
+    pose_count: int
+    detection_count: int
+    tag_count: int
+    poi_count: int = Field(description="points of interest (location_data)")
+    duration_s: float = Field(description="last pose timestamp minus the first, s")
+    path_length_m: float = Field(description="distance walked along the raw odometry, m")
+    tag_ids: list[int]
+    warnings: list[str]
+
+    @classmethod
+    def from_domain(cls, stats: SessionStatistics) -> SessionStatisticsPublic:
+        return cls(
+            pose_count=stats.pose_count,
+            detection_count=stats.detection_count,
+            tag_count=stats.tag_count,
+            poi_count=stats.poi_count,
+            duration_s=stats.duration_s,
+            path_length_m=stats.path_length_m,
+            tag_ids=stats.tag_ids,
+            warnings=stats.warnings,
+        )
+
+
+class SessionCreated(BaseModel):
+    """The answer to an upload (202): where to follow the build of its map."""
+
+    model_config = examples(
+        {
+            "session_id": 17,
+            "map_id": 12,
+            "job_id": 31,
+            "map_name": "occam_room",
+            "job_url": "/v1/jobs/31",
+            "map_url": "/v1/maps/12",
+            "statistics": _STATS_EXAMPLE,
+        }
+    )
+
+    session_id: int
+    map_id: int
+    job_id: int = Field(description="the build_map job; poll it at job_url")
+    map_name: str = Field(description="the upload's map_id")
+    job_url: str
+    map_url: str
+    statistics: SessionStatisticsPublic
+
+    @classmethod
+    def from_domain(cls, result: UploadResult) -> SessionCreated:
+        return cls(
+            session_id=result.session_id,
+            map_id=result.map_id,
+            job_id=result.job_id,
+            map_name=result.map_name,
+            job_url=f"/v1/jobs/{result.job_id}",
+            map_url=f"/v1/maps/{result.map_id}",
+            statistics=SessionStatisticsPublic.from_domain(result.statistics),
+        )
+
+
+_SESSION_EXAMPLE: dict[str, Any] = {
+    "id": 17,
+    "map_name": "occam_room",
+    "created_at": AT_EXAMPLE,
+    "uploaded_by": "key:3",
+    "idempotency_key": "3f1c2a9e-occam-1",
+    "raw_sha256": SHA_EXAMPLE,
+    "raw_size_bytes": 912204,
+    "stored_size_bytes": 251377,
+    "statistics": _STATS_EXAMPLE,
+    "map_id": 12,
+    "job_ids": [31],
+}
+
+
+class SessionPublic(BaseModel):
+    """A stored session: metadata, statistics, and the map and jobs made from it."""
+
+    model_config = examples(_SESSION_EXAMPLE)
+
+    id: int
+    map_name: str = Field(description="the upload's map_id")
+    created_at: datetime
+    uploaded_by: str = Field(description="key:<id> of the key that uploaded it, or env-admin")
+    idempotency_key: str | None
+    raw_sha256: str = Field(description="SHA-256 of the JSON bytes as uploaded (hex)")
+    raw_size_bytes: int = Field(description="size of the JSON as uploaded, after any gunzip")
+    stored_size_bytes: int = Field(description="size as stored (gzip)")
+    statistics: SessionStatisticsPublic
+    map_id: int | None = Field(description="the map built from it (null once deleted)")
+    job_ids: list[int] = Field(description="its jobs, oldest first (the upload's build first)")
+
+    @classmethod
+    def from_domain(cls, info: SessionInfo) -> SessionPublic:
+        return cls(
+            id=info.id,
+            map_name=info.map_name,
+            created_at=info.created_at,
+            uploaded_by=info.uploaded_by,
+            idempotency_key=info.idempotency_key,
+            raw_sha256=info.raw_sha256,
+            raw_size_bytes=info.raw_size_bytes,
+            stored_size_bytes=info.stored_size_bytes,
+            statistics=SessionStatisticsPublic.from_domain(info.statistics),
+            map_id=info.map_id,
+            job_ids=info.job_ids,
+        )
+
+
+class SessionsPublic(BaseModel):
+    """A page of sessions, newest first; ``count`` is how many there are in all."""
+
+    model_config = examples(
+        {
+            "data": [_SESSION_EXAMPLE],
+            "count": 1,
+            "limit": 50,
+            "offset": 0,
+        }
+    )
+
+    data: list[SessionPublic]
+    count: int
+    limit: int
+    offset: int
+
+
+# --------------------------------------------------------------------------- jobs
+
+
+_JOB_EXAMPLE: dict[str, Any] = {
+    "id": 31,
+    "kind": "build_map",
+    "state": "running",
+    "progress": 0.6,
+    "stage": "optimize",
+    "attempts": 1,
+    "max_attempts": 3,
+    "error": None,
+    "log_tail": "2026-11-22T10:15:30Z queued\n"
+    "2026-11-22T10:15:30Z attempt 1 of 3 started by host-1:4242\n",
+    "cancel_requested": False,
+    "map_id": 12,
+    "session_id": 17,
+    "params": {},
+    "worker": "host-1:4242",
+    "created_at": AT_EXAMPLE,
+    "run_after": AT_EXAMPLE,
+    "started_at": AT_EXAMPLE,
+    "finished_at": None,
+    "updated_at": LATER_EXAMPLE,
+    "duration_s": 1.25,
+}

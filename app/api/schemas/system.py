@@ -1,0 +1,99 @@
+"""Schemas of the system router: health, readiness, info, workers."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
+from app.storage.queue import WorkerInfo
+
+
+class Health(BaseModel):
+    """The process is up."""
+
+    model_config = examples({"status": "ok"})
+
+    status: Literal["ok"] = "ok"
+
+
+class Ready(BaseModel):
+    """The database answers and its schema is at the newest migration."""
+
+    model_config = examples(
+        {"status": "ready", "database": "postgresql", "schema_revision": "0001_initial"}
+    )
+
+    status: Literal["ready"] = "ready"
+    database: str = Field(description="sqlite or postgresql")
+    schema_revision: str | None
+
+
+_WORKER_EXAMPLE: dict[str, Any] = {
+    "id": "host-1:4242",
+    "hostname": "host-1",
+    "pid": 4242,
+    "state": "busy",
+    "current_job_id": 31,
+    "jobs_done": 12,
+    "started_at": AT_EXAMPLE,
+    "heartbeat_at": LATER_EXAMPLE,
+}
+
+
+class WorkerPublic(BaseModel):
+    """A worker process that reported recently."""
+
+    model_config = examples(_WORKER_EXAMPLE)
+
+    id: str
+    hostname: str
+    pid: int
+    state: str = Field(description="idle or busy (or what the worker reports)")
+    current_job_id: int | None
+    jobs_done: int
+    started_at: datetime
+    heartbeat_at: datetime
+
+    @classmethod
+    def from_domain(cls, worker: WorkerInfo) -> WorkerPublic:
+        return cls(
+            id=worker.id,
+            hostname=worker.hostname,
+            pid=worker.pid,
+            state=worker.state,
+            current_job_id=worker.current_job_id,
+            jobs_done=worker.jobs_done,
+            started_at=worker.started_at,
+            heartbeat_at=worker.heartbeat_at,
+        )
+
+
+class Info(BaseModel):
+    """The server: its version, database, queue and workers."""
+
+    model_config = examples(
+        {
+            "version": "0.1.0",
+            "database": "postgresql",
+            "queue_depth": 2,
+            "jobs_by_state": {
+                "queued": 2,
+                "running": 1,
+                "succeeded": 40,
+                "failed": 0,
+                "canceled": 1,
+            },
+            "workers": [_WORKER_EXAMPLE],
+            "principal": {"subject": "key:3", "role": "device"},
+        }
+    )
+
+    version: str = Field(description="the invisible-map package version")
+    database: str = Field(description="sqlite or postgresql")
+    queue_depth: int = Field(description="jobs waiting (queued)")
+    jobs_by_state: dict[str, int]
+    workers: list[WorkerPublic] = Field(description="workers alive (heartbeat in 3 × heartbeat_s)")
+    principal: dict[str, str] = Field(description="who the presented key stands for")

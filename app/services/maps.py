@@ -1,0 +1,87 @@
+"""Maps: the version a request means, rebuilds, deletion, the app-map document.
+
+What the API routers and the dashboard pages both do; errors are :mod:`app.services.errors`.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from app.domain.errors import ParameterError
+from app.domain.map_io import map_from_json, map_to_app_format
+from app.domain.params import SlamParams
+from app.domain.path_graph import path_graph_from_json
+from app.services.errors import Conflict, InvalidInput
+from app.storage import maps, queue
+from app.storage.maps import MapInfo, VersionInfo
+from app.storage.navigation import path_graph_document
+from app.storage.sessions import BUILD_MAP
+
+
+def enqueue_rebuild(
+    db_session: Session, map_id: int, overrides: dict[str, Any], *, max_attempts: int
+) -> tuple[MapInfo, int]:
+    """Queue a build of map ``map_id``'s session with ``overrides`` (already checked, see
+    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound."""
+    info = maps.get_map(db_session, map_id)
+    job_id = queue.enqueue(
+        db_session,
+        kind=BUILD_MAP,
+        map_id=info.id,
+        session_id=info.session_id,
+        params=overrides,
+        max_attempts=max_attempts,
+    )
+    return info, job_id
+
+
+def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
+    """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), or a 422
+    naming the first bad parameter."""
+    defaults = SlamParams()
+    for name, value in overrides.items():
+        try:
+            defaults.with_overrides({name: value})
+        except ParameterError as err:
+            raise InvalidInput("invalid_parameter", str(err), field=f"params.{name}") from err
+    try:
+        params = defaults.with_overrides(overrides).to_dict()
+    except ParameterError as err:
+        raise InvalidInput("invalid_parameter", str(err), field="params") from err
+    return {name: params[name] for name in overrides}
+
+
+def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
+    """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes."""
+    graph_document = path_graph_document(db_session, version.id)
+    app_map = map_to_app_format(
+        map_from_json(maps.map_document(db_session, version.map_id, version.number)),
+        path_graph=None if graph_document is None else path_graph_from_json(graph_document),
+    )
+    return json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
+
+
+def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
+    """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel)."""
+    queue.cancel_unfinished_for_map(db_session, map_id)
+    maps.delete_map(db_session, map_id)
+
+
+def chosen_version(db_session: Session, info: MapInfo, number: int | None) -> VersionInfo:
+    """The asked-for version (404 if there is none with that number), or the current one
+    (409 while there is none)."""
+    if number is not None:
+        return maps.get_version(db_session, info.id, number)
+    if info.current is not None:
+        return info.current
+    jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=1)
+    building = (
+        f": its build job {jobs[0].id} is {jobs[0].state}; follow /v1/jobs/{jobs[0].id}"
+        if jobs
+        else ": rebuild it to make one"
+    )
+    raise Conflict("map_not_ready", f"map {info.id} has no version yet{building}")
