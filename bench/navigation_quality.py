@@ -22,6 +22,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.instructions import plan_guided_route  # noqa: E402
 from app.domain.metrics import umeyama_rigid  # noqa: E402
@@ -37,7 +38,6 @@ from app.domain.session import load_session  # noqa: E402
 from app.domain.skeleton import build_skeleton_from_arrays  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
 from app.domain.turn_metrics import RouteScore, agreement, score_tag_routes  # noqa: E402
-from app.tables import render_markdown_table  # noqa: E402
 from bench.mac_floor_2_reference import (  # noqa: E402
     FLOOR_2_Y_M,
     branch_points_xz,
