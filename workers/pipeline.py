@@ -47,14 +47,9 @@ from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import (
-    ELEVATOR,
-    JUNCTION,
-    STAIRS,
-    build_path_graph,
-    path_graph_to_json,
-)
+from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, path_graph_to_json
 from app.domain.session import Session, decode_json_bytes, parse_session
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
@@ -303,15 +298,16 @@ def evaluate(ctx: JobContext) -> None:
 
 
 def path_graph(ctx: JobContext) -> None:
-    """Where a pedestrian can walk: the optimized path with junctions, floors, stairs and
-    elevators, and the tags and points of interest attached to it."""
-    graph = build_path_graph(_need(ctx.result, "result"))
+    """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
+    into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
+    tags and points of interest attached to it (app.domain.skeleton)."""
+    graph = build_skeleton(_need(ctx.result, "result"))
     ctx.path_graph = path_graph_to_json(graph)
     walk = graph.graph
     kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
     junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)
     ctx.log(
-        f"path graph: {walk.number_of_nodes()} nodes ({junctions} junctions), "
+        f"path graph: corridor skeleton, {walk.number_of_nodes()} nodes ({junctions} junctions), "
         f"{walk.number_of_edges()} edges ({kinds[STAIRS]} stairs, {kinds[ELEVATOR]} "
         f"elevator), {len(graph.floor_levels_m)} floor(s)"
     )

@@ -85,7 +85,12 @@ def plan(
 ) -> RoutePublic:
     version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
     route = planned_route(
-        graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
+        graph,
+        body.from_.to_domain(),
+        body.to.to_domain(),
+        avoid=frozenset(body.avoid),
+        heading_rad=body.heading_rad(),
+        style=body.guidance_style(),
     )
     return RoutePublic.from_domain(route, map_id=info.id, map_version=version.number)
 

@@ -10,7 +10,7 @@ import numpy.typing as npt
 from app.domain.errors import MapFormatError
 from app.domain.floors import assign_floors
 from app.domain.path_graph.geometry import project_to_segments, tuple3
-from app.domain.path_graph.model import JUNCTION, PathGraph
+from app.domain.path_graph.model import PathGraph
 
 # =========================================================================== the app's format
 
@@ -21,7 +21,8 @@ _APP_CHUNK = 256
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AppVertex:
-    """An extra odometry vertex of the app's format (architecture §7): a junction of the path graph.
+    """An extra odometry vertex of the app's format (architecture §7): a path-graph node that is
+    no pose (a junction, or any node of a corridor skeleton).
 
     pose_id: the id it is given, above every pose id of the map; position_m: map frame, m.
     neighbors: the pose ids it links to.
@@ -40,8 +41,9 @@ def app_neighbors(
     pose_id: (N,) the app's pose ids; positions_m: (N, 3) the poses' positions, map frame, m.
 
     - A pose that is a graph node links to its graph neighbours.
-    - Junction ``k`` (k = 0, 1, … in node-id order) becomes an extra vertex with pose id
-      ``max(pose_id) + 1 + k``, linking to its graph neighbours.
+    - A node that is no pose (a junction; every node of a corridor skeleton), ``k`` = 0, 1, … in
+      node-id order, becomes an extra vertex with pose id ``max(pose_id) + 1 + k``, linking to
+      its graph neighbours.
     - A pose that is not a node (simplified away, or a later pass merged into an earlier one)
       links to the two ends of the nearest edge of its floor, so every vertex reaches the graph;
       those links are one-way (the graph's nodes do not list it back).
@@ -50,7 +52,7 @@ def app_neighbors(
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
     n = ids.shape[0]
     G = pg.graph
-    junctions = sorted(node for node in G.nodes if G.nodes[node]["kind"] == JUNCTION)
+    junctions = sorted(node for node in G.nodes if G.nodes[node]["pose_index"] is None)
     base = int(ids.max()) + 1 if n else 0
     app_id = {node: base + k for k, node in enumerate(junctions)}
     pose_nodes: dict[int, int] = {}
