@@ -9,7 +9,8 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
 
 1. **Floors.** Levels from the pose heights (``find_floor_levels``); a pose within the floor band
    of a level is *settled* there. Between two consecutive settled poses on different floors lies a
-   floor change: an elevator when it moves at most ``elevator_max_horizontal_m`` horizontally or
+   floor change, widened over the steps around it that still climb ``stairs_min_rise_per_run``:
+   an elevator when it moves at most ``elevator_max_horizontal_m`` horizontally or
    rises at least ``elevator_min_rise_per_run`` m per m, stairs otherwise.
 2. **Occupancy per floor.** The walked segments of each floor are drawn on a grid of ``cell_m``
    in the horizontal x–z plane and widened by half the corridor width (a disk of radius
@@ -63,6 +64,8 @@ BoolArray = npt.NDArray[np.bool_]
 
 #: A pose within this height of a floor level is settled on it, m (capped at 0.45 × level gap).
 FLOOR_BAND_M = 0.75
+#: A step shorter than this horizontally counts as this long when judging its slope, m.
+STANDING_STILL_M = 0.05
 #: A projection this close to an edge end is that end, m.
 SNAP_TO_END_M = 0.3
 
@@ -79,6 +82,9 @@ class SkeletonParams:
     junction_merge_m            branch points closer than this along a branch are one, m.
     gap_close_m                 dead ends this close and facing each other are joined, m.
     straight_tolerance_m        Douglas–Peucker tolerance of a branch, m.
+    stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
+                                that still climb at least this steeply (rise over run), so it
+                                starts where the stairs start.
     elevator_max_horizontal_m   a floor change moving at most this far horizontally is an
                                 elevator, m.
     elevator_min_rise_per_run   … and so is one rising at least this many m per horizontal m.
@@ -92,6 +98,7 @@ class SkeletonParams:
     junction_merge_m: float = 3.0
     gap_close_m: float = 4.0
     straight_tolerance_m: float = 0.4
+    stairs_min_rise_per_run: float = 0.25
     elevator_max_horizontal_m: float = 1.5
     elevator_min_rise_per_run: float = 2.0
 
@@ -211,10 +218,19 @@ def _floor_changes(
     last_settled = np.maximum.accumulate(np.where(settled_floor >= 0, np.arange(n), 0))
     pose_floor = settled_floor[last_settled].astype(np.int64)
     changes: list[_FloorChange] = []
+    steps = np.diff(world_p_phone, axis=0)
+    run_m = np.maximum(np.hypot(steps[:, 0], steps[:, 2]), STANDING_STILL_M)
+    slope = steps[:, 1] / run_m  # rise over run of each step
+    done = 0
     for k in np.flatnonzero(settled_floor[settled[:-1]] != settled_floor[settled[1:]]).tolist():
         a, b = int(settled[k]), int(settled[k + 1])
-        steps = np.diff(world_p_phone[a : b + 1], axis=0)
-        horizontal_m = float(np.hypot(steps[:, 0], steps[:, 2]).sum())
+        up = 1.0 if settled_floor[b] > settled_floor[a] else -1.0
+        while a > done and up * slope[a - 1] >= params.stairs_min_rise_per_run:
+            a -= 1  # where the stairs (or the lift) really begin …
+        while b < n - 1 and up * slope[b] >= params.stairs_min_rise_per_run:
+            b += 1  # … and end
+        done = b
+        horizontal_m = float(np.hypot(steps[a:b, 0], steps[a:b, 2]).sum())
         rise_m = abs(float(heights_m[b] - heights_m[a]))
         is_elevator = (
             horizontal_m <= params.elevator_max_horizontal_m
