@@ -97,6 +97,46 @@ def test_route_from_a_tag_to_a_poi(nav):
     assert all(len(step["position"]) == 3 for step in body["steps"])
 
 
+def test_route_faces_the_heading_and_words_the_style(nav):
+    api, map_id = nav
+    plain = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}}).json()
+    first = np.array(plain["polyline"][1]) - np.array(plain["polyline"][0])
+    way_deg = math.degrees(math.atan2(-first[0], -first[2]))  # the route's first direction
+    # Facing the other way, the first step is to turn round (clock face: 6 o'clock).
+    body = {
+        "from": {"tag": 300},
+        "to": {"tag": 311},
+        "heading_deg": way_deg + 180.0,
+        "style": {"units": "ft", "clock": True},
+    }
+    response = route(api, map_id, body)
+    assert response.status_code == 200, response.text
+    steps = response.json()["steps"]
+    assert steps[0]["kind"] == "face"
+    assert steps[0]["instruction"] == "turn to 6 o'clock to face the way"
+    assert any(s["instruction"].endswith(" ft") for s in steps if s["kind"] == "go")
+    # Facing the way: no facing step; distances in metres by default.
+    facing = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}, "heading_deg": way_deg})
+    assert facing.json()["steps"][0]["kind"] == "go"
+    assert facing.json()["steps"][0]["instruction"].endswith(" m")
+    for bad in ({"heading_deg": 400}, {"style": {"units": "yards"}}):
+        refused = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}, **bad})
+        assert refused.status_code == 422, refused.text
+
+
+def test_route_steps_are_decisions_only(nav):
+    """On the corridor skeleton of floor 2 (one gently curving corridor), a route along it has
+    no turn closer than 5 m to another and none that reverses."""
+    api, map_id = nav
+    body = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 324}}).json()
+    turns = [s for s in body["steps"] if s["kind"] == "turn"]
+    assert all("around" not in s["instruction"] for s in turns)
+    positions = np.array([s["position"] for s in turns]).reshape(-1, 3)
+    gaps_m = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert np.all(gaps_m >= 5.0 - 1e-6)
+    assert len(turns) <= 4
+
+
 def test_route_between_positions_and_nodes(nav):
     api, map_id = nav
     geo = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN).json()
