@@ -19,6 +19,7 @@ from fastapi import Depends, FastAPI
 from app.admin.router import router as admin_router
 from app.api.body_limit import BodyLimit
 from app.api.deps import KeyUsage, current_principal
+from app.api.docs_pages import install_docs
 from app.api.errors import install_error_handlers
 from app.api.routes import (
     jobs,
@@ -81,6 +82,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         description=DESCRIPTION,
         openapi_tags=OPENAPI_TAGS,
         lifespan=lifespan,
+        docs_url=None,  # served by install_docs, with no CDN
+        redoc_url=None,
     )
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
@@ -90,6 +93,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]
     )
     app.include_router(system.router)
+    install_docs(app)  # /docs, /redoc: Swagger UI and ReDoc from the installed package
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
     for module in (sessions, jobs, maps, sweeps, navigation, localization, keys):
         app.include_router(module.router, prefix="/v1", dependencies=authenticated)

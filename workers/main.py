@@ -433,6 +433,7 @@ def run_worker_processes(settings: Settings, processes: int) -> int:
     service manager then restarts the whole)."""
     if processes < 1:
         raise ValueError(f"processes must be at least 1, got {processes}")
+    configure_logging()  # `invisible-map worker` logs like the worker processes it starts
     if processes == 1:
         return run_worker(settings, signums=[signal.SIGTERM, signal.SIGINT])
 

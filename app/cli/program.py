@@ -3,7 +3,7 @@
     invisible-map process SESSION [--gt GT] [--param NAME=VALUE …] [-o MAP.json]
                           [--app-map FILE] [--plot FILE.png]
     invisible-map evaluate SESSION… --gt GT [--gt GT …] [--param NAME=VALUE …] [--json]
-    invisible-map demo [--out DIR]
+    invisible-map evaluate-samples [--out DIR]
     invisible-map sweep SESSION [--gt GT] [--grid | --trials N] [--objective shift|ground_truth]
                         [--space JSON] [--processes N] [--plot-dir DIR] [--json]
     invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
@@ -99,8 +99,9 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(handler=_evaluate)
 
     demo = commands.add_parser(
-        "demo",
-        help="process the demo sessions shipped in data/ and write maps, plots and a table",
+        "evaluate-samples",
+        help="process the sample sessions shipped in data/ offline and write maps, plots and a "
+        "table (the server's demo is `serve --demo`)",
     )
     demo.add_argument("--out", type=Path, default=Path("out"), help="output folder (./out)")
     _add_param_option(demo)
@@ -258,7 +259,7 @@ def _demo(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, truth_file in tqdm(
-        DEMO_SESSIONS, desc="demo", unit=" session", disable=None, file=sys.stderr
+        DEMO_SESSIONS, desc="samples", unit=" session", disable=None, file=sys.stderr
     ):
         session = load_session(sessions_dir / f"{name}.json")
         ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import errno
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -37,9 +39,13 @@ from workers.allocator import jemalloc_path
 if TYPE_CHECKING:
     import uvicorn
 
+    from app.client import Client
+
 
 #: The longest ``keys create --expires-in-days`` (100 years).
 MAX_KEY_DAYS = 36500
+#: How often the demo asks whether its maps are built, s.
+DEMO_POLL_S = 0.5
 #: The largest id a row can have (a signed 64-bit integer).
 MAX_ID = 2**63 - 1
 
@@ -110,16 +116,21 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["workers"] = args.workers
     settings = load_settings(**overrides)
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
+    listener = listening_socket(args.host, args.port)  # a busy port stops it before any output
     generated_key = settings.admin_key is None
     if generated_key:
         settings = settings.model_copy(
             update={"admin_key": "im_admin_" + secrets.token_urlsafe(24)}
         )
-    database = open_database(settings)
-    if not args.no_migrate:
-        revision = migrate_database(database, settings)
-        print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
-    database.dispose()
+    try:
+        database = open_database(settings)
+        if not args.no_migrate:
+            revision = migrate_database(database, settings)
+            print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
+        database.dispose()
+    except BaseException:
+        listener.close()
+        raise
 
     processes = start_worker_processes(settings, settings.workers)
     url = f"http://{args.host}:{args.port}"
@@ -131,7 +142,9 @@ def _serve(args: argparse.Namespace) -> int:
     if args.demo:
         assert settings.admin_key is not None
         threading.Thread(
-            target=_upload_demo_sessions, args=(url, settings.admin_key), daemon=True
+            target=_upload_demo_sessions,
+            args=(url, settings.admin_key, settings.workers),
+            daemon=True,
         ).start()
     server = uvicorn.Server(
         uvicorn.Config(
@@ -152,7 +165,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         # uvicorn's Server.run, with the thread pool sized first (it belongs to the event loop).
         with asyncio.Runner(loop_factory=server.config.get_loop_factory()) as runner:
-            runner.run(_serve_with_threads(server, settings.api_threads))
+            runner.run(_serve_with_threads(server, settings.api_threads, listener))
     except SystemExit:  # uvicorn's sys.exit(3) when it cannot start (the port is taken, …)
         if server.started:
             raise
@@ -165,12 +178,32 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _serve_with_threads(server: uvicorn.Server, threads: int) -> None:
-    """Serve with ``threads`` threads for the routes (``Settings.api_threads``)."""
+async def _serve_with_threads(
+    server: uvicorn.Server, threads: int, listener: socket.socket
+) -> None:
+    """Serve on ``listener`` with ``threads`` threads for the routes (``Settings.api_threads``)."""
     from anyio import to_thread
 
     to_thread.current_default_thread_limiter().total_tokens = threads
-    await server.serve()
+    await server.serve(sockets=[listener])
+
+
+def listening_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host``:``port`` (uvicorn listens on it); CommandError naming the
+    address if it cannot be had (in use, no such address, a privileged port)."""
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+    except socket.gaierror as err:
+        raise CommandError(f"cannot listen on {host}:{port}: {err.strerror}") from err
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        hint = "; stop what uses it or pass --port" if err.errno == errno.EADDRINUSE else ""
+        raise CommandError(f"cannot listen on {host}:{port}: {err.strerror}{hint}") from err
+    return sock
 
 
 def _worker(args: argparse.Namespace) -> int:
@@ -261,9 +294,10 @@ def _keys_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
-def _upload_demo_sessions(url: str, admin_key: str) -> None:
-    """Upload the demo sessions in data/ through the API once it is up. Idempotency keys make a
-    restart find them instead of adding them again."""
+def _upload_demo_sessions(url: str, admin_key: str, workers: int) -> None:
+    """Upload the demo sessions in data/ through the API once it is up, then say as each map
+    becomes ready and, at the end, how many are. Idempotency keys make a restart find them
+    instead of adding them again."""
     from app.cli.common import DATA_DIR, DEMO_SESSIONS
     from app.client import ApiError, Client
 
@@ -275,18 +309,54 @@ def _upload_demo_sessions(url: str, admin_key: str) -> None:
                 break
             except Exception:  # not listening yet, or not ready
                 time.sleep(0.2)
-        for name, _truth in DEMO_SESSIONS:
+        demo_sessions = [
+            (name, DATA_DIR / "sessions" / f"{name}.json") for name, _ in DEMO_SESSIONS
+        ]
+        # floor_2_straight with points of interest, for the README's quick start (data/README.md)
+        demo_sessions.append(("floor_2_pois", DATA_DIR / "demo" / "floor_2_pois.json"))
+        building: dict[int, tuple[str, int]] = {}  # job id → (name, map id)
+        for name, path in demo_sessions:
             try:
-                accepted = client.upload_session(
-                    DATA_DIR / "sessions" / f"{name}.json", idempotency_key=f"demo-{name}"
-                )
+                accepted = client.upload_session(path, idempotency_key=f"demo-{name}")
             except (ApiError, OSError) as err:
-                print(f"demo: {name} not uploaded: {err}", file=sys.stderr)
+                _say(f"demo: {name} not uploaded: {err}")
                 continue
-            print(
+            building[accepted["job_id"]] = (name, accepted["map_id"])
+            _say(
                 f"demo: {name}: session {accepted['session_id']}, map {accepted['map_id']}, "
-                f"job {accepted['job_id']}",
-                file=sys.stderr,
-                flush=True,
+                f"job {accepted['job_id']}"
             )
-        print(f"demo: maps at {url}/v1/maps", file=sys.stderr, flush=True)
+        if workers == 0:
+            _say("demo: no worker processes (--workers 0): maps are built when a worker runs")
+            return
+        ready = _report_demo_maps(client, url, building)
+        _say(f"demo: {ready} of {len(demo_sessions)} maps ready: {url}/admin/maps")
+
+
+def _report_demo_maps(client: Client, url: str, building: dict[int, tuple[str, int]]) -> int:
+    """Say each demo map as its build ends (ready, or failed with the reason); the number ready.
+    Stops quietly when the server stops answering (it is shutting down)."""
+    from app.client import ApiError
+
+    ready = 0
+    pending = dict(building)
+    while pending:
+        for job_id, (name, map_id) in list(pending.items()):
+            try:
+                job = client.get_job(job_id)
+            except (ApiError, OSError):
+                return ready
+            if job["state"] == "succeeded":
+                ready += 1
+                _say(f"demo: map {map_id} ({name}) ready: {url}/v1/maps/{map_id}")
+            elif job["state"] in ("failed", "canceled"):
+                _say(f"demo: map {map_id} ({name}) {job['state']}: {job.get('error') or ''}")
+            else:
+                continue
+            del pending[job_id]
+        time.sleep(DEMO_POLL_S)
+    return ready
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)

@@ -15,6 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.storage.orm import ApiKey, Role, utc_now
+from app.storage.rows import info_from_row
 
 KEY_SCHEME = "im"
 #: ``uploaded_by`` of uploads made with ``INVISIBLE_MAP_ADMIN_KEY``.
@@ -44,16 +45,7 @@ class KeyInfo:
 
     @classmethod
     def from_row(cls, row: ApiKey) -> KeyInfo:
-        return cls(
-            id=row.id,
-            name=row.name,
-            role=Role(row.role),
-            prefix=row.prefix,
-            created_at=row.created_at,
-            expires_at=row.expires_at,
-            revoked_at=row.revoked_at,
-            last_used_at=row.last_used_at,
-        )
+        return info_from_row(cls, row)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -24,6 +24,7 @@ from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
 from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
+from app.storage.rows import info_from_row
 
 #: Load options for a version's metadata without its (large) map document and plot.
 _WITHOUT_BLOBS = (
@@ -64,22 +65,7 @@ class VersionInfo:
 
     @classmethod
     def from_row(cls, row: MapVersion) -> VersionInfo:
-        return cls(
-            id=row.id,
-            map_id=row.map_id,
-            number=row.number,
-            job_id=row.job_id,
-            created_at=row.created_at,
-            params=dict(row.params),
-            statistics=dict(row.statistics),
-            metrics=dict(row.metrics),
-            tag_count=row.tag_count,
-            detections_used=row.detections_used,
-            detections_rejected=row.detections_rejected,
-            rejections=list(row.rejections),
-            warnings=list(row.warnings),
-            content_sha256=row.content_sha256,
-        )
+        return info_from_row(cls, row)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session
 
 from app.storage.db import Database
 from app.storage.orm import TERMINAL_STATES, Job, JobState, WorkerRow, utc_now
+from app.storage.rows import info_from_row
 
 #: How many lines of a job's log are kept on its row.
 LOG_TAIL_LINES = 40
@@ -89,27 +90,7 @@ class JobInfo:
 
     @classmethod
     def from_row(cls, row: Job) -> JobInfo:
-        return cls(
-            id=row.id,
-            kind=row.kind,
-            state=JobState(row.state),
-            map_id=row.map_id,
-            session_id=row.session_id,
-            params=dict(row.params),
-            attempts=row.attempts,
-            max_attempts=row.max_attempts,
-            progress=row.progress,
-            stage=row.stage,
-            error=row.error,
-            log_tail=row.log_tail,
-            cancel_requested=row.cancel_requested,
-            lease_owner=row.lease_owner,
-            created_at=row.created_at,
-            run_after=row.run_after,
-            started_at=row.started_at,
-            finished_at=row.finished_at,
-            updated_at=row.updated_at,
-        )
+        return info_from_row(cls, row)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

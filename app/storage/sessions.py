@@ -32,6 +32,7 @@ from sqlalchemy.orm import Session
 from app.domain.session import Session as ParsedSession
 from app.storage import maps, queue
 from app.storage.orm import Job, MapRow, SessionRow, SessionUpload, utc_now
+from app.storage.rows import info_from_row
 
 #: The job kind that turns a session into a map version.
 BUILD_MAP = "build_map"
@@ -95,16 +96,7 @@ class SessionStatistics:
 
     @classmethod
     def from_row(cls, row: SessionRow) -> SessionStatistics:
-        return cls(
-            pose_count=row.pose_count,
-            detection_count=row.detection_count,
-            tag_count=row.tag_count,
-            poi_count=row.poi_count,
-            duration_s=row.duration_s,
-            path_length_m=row.path_length_m,
-            tag_ids=list(row.tag_ids),
-            warnings=list(row.warnings),
-        )
+        return info_from_row(cls, row)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -442,7 +442,7 @@ def test_help_lists_the_subcommands(capsys):
         cli.main(["--help"])
     assert info.value.code == 0
     out = capsys.readouterr().out
-    for command in ("process", "evaluate", "demo"):
+    for command in ("process", "evaluate", "evaluate-samples"):
         assert command in out
 
 
@@ -561,7 +561,7 @@ def test_evaluate_one_gt_per_session(capsys):
 @pytest.mark.slow
 def test_demo_writes_maps_plots_and_table(tmp_path):
     out = tmp_path / "demo"
-    proc = run_cli("demo", "--out", out)
+    proc = run_cli("evaluate-samples", "--out", out)
 
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr

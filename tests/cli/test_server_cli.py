@@ -23,7 +23,7 @@ from typing import IO, Any
 
 import httpx
 import pytest
-from cli_support import ERROR_PREFIX, assert_one_line_error
+from cli_support import assert_one_line_error
 
 from app import cli
 from app.cli.common import DEMO_SESSIONS
@@ -37,8 +37,8 @@ from tests.service.helpers import get_job, insert_session, wait_for
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
 ADMIN_KEY = "im_test_admin_0123456789abcdef"
-#: The demo sessions ``serve --demo`` uploads (data/sessions).
-DEMO_SESSION_COUNT = 7
+#: The demo sessions ``serve --demo`` uploads (data/sessions and data/demo).
+DEMO_SESSION_COUNT = 8
 KEY_LINE = re.compile(r"^im_[0-9a-f]{8}_[A-Za-z0-9_-]+$")
 
 
@@ -451,12 +451,13 @@ def test_serve_on_a_port_in_use(tmp_path: Path, empty_sqlite_url: str) -> None:
             server_env(empty_sqlite_url, tmp_path / "var", INVISIBLE_MAP_ADMIN_KEY=ADMIN_KEY),
             *("serve", "--port", port, "--workers", "0"),
         )
-    assert result.returncode == 1, result.stderr
-    assert "Traceback" not in result.stderr
-    assert "address already in use" in result.stderr  # uvicorn's log
-    last = result.stderr.splitlines()[-1]
-    assert last.startswith(ERROR_PREFIX)
-    assert f"could not start at http://127.0.0.1:{port}" in last
+    # Checked before anything else: no URL, no admin key, no migration, no "startup complete".
+    assert result.stdout == ""
+    assert_one_line_error(
+        result.returncode,
+        result.stderr,
+        f"cannot listen on 127.0.0.1:{port}: Address already in use; stop what uses it",
+    )
 
 
 class DemoServer:
@@ -545,19 +546,24 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
             every_s=0.25,
         )
         assert first.count("/v1/jobs") == DEMO_SESSION_COUNT
-        wait_for(lambda: "demo: maps at" in first.log(), timeout_s=10, what="the demo's end")
+        final = f"demo: {DEMO_SESSION_COUNT} of {DEMO_SESSION_COUNT} maps ready"
+        wait_for(lambda: final in first.log(), timeout_s=10, what="the demo's end")
         assert first.terminate() == 0
     finally:
         first.close()
     log = first.log()
     uploads = demo_uploads(log)
-    assert sorted(uploads) == sorted(name for name, _ in DEMO_SESSIONS)
+    assert sorted(uploads) == sorted([*(name for name, _ in DEMO_SESSIONS), "floor_2_pois"])
     assert "not uploaded" not in log
     assert "Traceback" not in log
+    # Each map is announced as it becomes ready, before the final count.
+    announced = re.findall(r"^demo: map (\d+) \((\w+)\) ready: ", log, re.MULTILINE)
+    assert sorted(name for _, name in announced) == sorted(uploads)
+    assert log.index("ready: ") < log.index(final)
 
     second = DemoServer(url, tmp_path, run=2)
     try:
-        wait_for(lambda: "demo: maps at" in second.log(), timeout_s=60, what="the demo upload")
+        wait_for(lambda: final in second.log(), timeout_s=60, what="the demo upload")
         assert second.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT
         assert second.count("/v1/jobs") == DEMO_SESSION_COUNT  # no job queued again
         wait_for(
@@ -612,4 +618,8 @@ def test_worker_runs_a_queued_job_and_stops_on_sigterm(db: Database, tmp_path: P
             if process.poll() is None:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+    # One process (the default, and what the compose file runs) logs like several do.
+    log = log_path.read_text()
+    assert "started" in log, log
+    assert f"job {inserted.job_id}" in log, log
     assert "Traceback" not in log_path.read_text()

@@ -200,6 +200,10 @@ def test_the_map_page_has_the_plot_data_tables_versions_and_downloads(
         assert floor[layer]["x"], layer
     assert page.text.count('class="tag-table"') == len(figure["floors"])
     assert "Version 1" in page.text
+    # Where the shift metric is shown, why the optimized figure may be higher is said.
+    assert 'id="shift-explained"' in page.text
+    assert "low by construction" in page.text
+    assert 'id="shift-explained"' in api.client.get("/admin/maps").text
 
     app_map = api.client.get(f"/admin/maps/{map_id}/app-map")
     assert app_map.json() == api.client.get(f"/v1/maps/{map_id}/app-map", headers=ADMIN).json()

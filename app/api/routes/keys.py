@@ -30,7 +30,7 @@ def create_key(
         db_session, name=new.name, role=new.role, expires_at=new.expires_at
     )
     response.headers["Location"] = f"/v1/keys/{info.id}"
-    return KeyCreated(**KeyPublic.from_domain(info).model_dump(), key=secret)
+    return KeyCreated(**KeyPublic.model_validate(info).model_dump(), key=secret)
 
 
 @router.get(
@@ -41,7 +41,7 @@ def create_key(
 )
 def list_keys(_admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeysPublic:
     infos = keys.list_keys(db_session)
-    return KeysPublic(data=[KeyPublic.from_domain(info) for info in infos], count=len(infos))
+    return KeysPublic(data=[KeyPublic.model_validate(info) for info in infos], count=len(infos))
 
 
 @router.get(
@@ -51,7 +51,7 @@ def list_keys(_admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeysPubli
     responses=error_responses(401, 403, 404, 422),
 )
 def get_key(key_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeyPublic:
-    return KeyPublic.from_domain(keys.get_key(db_session, valid_id(key_id, "API key")))
+    return KeyPublic.model_validate(keys.get_key(db_session, valid_id(key_id, "API key")))
 
 
 @router.delete(
@@ -62,4 +62,4 @@ def get_key(key_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -
     responses=error_responses(401, 403, 404, 422),
 )
 def revoke_key(key_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> KeyPublic:
-    return KeyPublic.from_domain(keys.revoke_key(db_session, valid_id(key_id, "API key")))
+    return KeyPublic.model_validate(keys.revoke_key(db_session, valid_id(key_id, "API key")))

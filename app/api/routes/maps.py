@@ -93,7 +93,7 @@ def list_maps(
 ) -> MapsPublic:
     infos, total = maps.list_maps(db_session, limit=limit, offset=offset, tag_id=tag_id)
     return MapsPublic(
-        data=[MapSummary.from_domain(info) for info in infos],
+        data=[MapSummary.model_validate(info) for info in infos],
         count=total,
         limit=limit,
         offset=offset,
@@ -140,7 +140,7 @@ def get_map(
 def list_versions(info: MapDep, db_session: ReadDbSessionDep) -> VersionsPublic:
     versions = maps.list_versions(db_session, info.id)
     return VersionsPublic(
-        data=[VersionSummary.from_domain(version) for version in versions], count=len(versions)
+        data=[VersionSummary.model_validate(version) for version in versions], count=len(versions)
     )
 
 

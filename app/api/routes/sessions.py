@@ -232,7 +232,7 @@ def list_sessions(
         uploaded_by=None if principal.is_admin else principal.subject,
     )
     return SessionsPublic(
-        data=[SessionPublic.from_domain(info) for info in infos],
+        data=[SessionPublic.model_validate(info) for info in infos],
         count=total,
         limit=limit,
         offset=offset,
@@ -246,7 +246,7 @@ def list_sessions(
     responses=error_responses(401, 404, 422),
 )
 def get_session(info: SessionDep) -> SessionPublic:
-    return SessionPublic.from_domain(info)
+    return SessionPublic.model_validate(info)
 
 
 @router.get(

@@ -64,6 +64,6 @@ def info(
         database=db.backend,
         queue_depth=counts.get(JobState.QUEUED.value, 0),
         jobs_by_state=counts,
-        workers=[WorkerPublic.from_domain(worker) for worker in workers],
+        workers=[WorkerPublic.model_validate(worker) for worker in workers],
         principal={"subject": principal.subject, "role": principal.role.value},
     )

@@ -8,7 +8,6 @@ from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
 
 from app.api.schemas.common import examples
 from app.api.schemas.maps import _KEY_EXAMPLE
-from app.storage.keys import KeyInfo
 from app.storage.orm import Role
 
 
@@ -45,19 +44,6 @@ class KeyPublic(BaseModel):
     expires_at: datetime | None
     revoked_at: datetime | None
     last_used_at: datetime | None = Field(description="to within a minute")
-
-    @classmethod
-    def from_domain(cls, key: KeyInfo) -> KeyPublic:
-        return cls(
-            id=key.id,
-            name=key.name,
-            role=key.role,
-            prefix=key.prefix,
-            created_at=key.created_at,
-            expires_at=key.expires_at,
-            revoked_at=key.revoked_at,
-            last_used_at=key.last_used_at,
-        )
 
 
 class KeyCreated(KeyPublic):

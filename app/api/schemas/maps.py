@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, model_validator
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
 from app.api.schemas.jobs import JobBrief
@@ -49,16 +49,6 @@ class TagPosePublic(BaseModel):
         "tag frame; null if not computed"
     )
 
-    @classmethod
-    def from_domain(cls, tag: TagPose) -> TagPosePublic:
-        return cls(
-            tag_id=tag.tag_id,
-            position_m=list(tag.position_m),
-            quat_xyzw=list(tag.quat_xyzw),
-            detection_count=tag.detection_count,
-            covariance=tag.covariance,
-        )
-
 
 class VersionSummary(BaseModel):
     """One version of a map: how it was made and how good it is (without its tags)."""
@@ -80,9 +70,11 @@ class VersionSummary(BaseModel):
     warnings: list[str]
     content_sha256: str = Field(description="SHA-256 of the stored map document")
 
+    @model_validator(mode="before")
     @classmethod
-    def from_domain(cls, version: VersionInfo) -> VersionSummary:
-        return cls(**_version_fields(version))
+    def _from_version_info(cls, data: Any) -> Any:
+        """From a :class:`VersionInfo`: its fields, and ``shift_metric`` from its metrics."""
+        return _version_fields(data) if isinstance(data, VersionInfo) else data
 
 
 class VersionPublic(VersionSummary):
@@ -95,7 +87,7 @@ class VersionPublic(VersionSummary):
     @classmethod
     def with_tags(cls, version: VersionInfo, tags: list[TagPose]) -> VersionPublic:
         return cls(
-            **_version_fields(version), tags=[TagPosePublic.from_domain(tag) for tag in tags]
+            **_version_fields(version), tags=[TagPosePublic.model_validate(tag) for tag in tags]
         )
 
 
@@ -125,7 +117,7 @@ class VersionDetail(VersionPublic):
     def with_details(cls, version: VersionInfo, tags: list[TagPose]) -> VersionDetail:
         return cls(
             **_version_fields(version),
-            tags=[TagPosePublic.from_domain(tag) for tag in tags],
+            tags=[TagPosePublic.model_validate(tag) for tag in tags],
             rejections=version.rejections,
         )
 
@@ -176,18 +168,9 @@ class MapSummary(BaseModel):
     session_id: int
     created_at: datetime
     version_count: int
-    current_version: VersionSummary | None
-
-    @classmethod
-    def from_domain(cls, info: MapInfo) -> MapSummary:
-        return cls(
-            id=info.id,
-            name=info.name,
-            session_id=info.session_id,
-            created_at=info.created_at,
-            version_count=info.version_count,
-            current_version=VersionSummary.from_domain(info.current) if info.current else None,
-        )
+    current_version: VersionSummary | None = Field(
+        validation_alias=AliasChoices("current_version", "current")
+    )
 
 
 class MapPublic(BaseModel):

@@ -8,7 +8,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from app.api.schemas.common import _STATS_EXAMPLE, AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
-from app.storage.sessions import SessionInfo, SessionStatistics, UploadResult
+from app.storage.sessions import UploadResult
 
 
 class SessionStatisticsPublic(BaseModel):
@@ -24,19 +24,6 @@ class SessionStatisticsPublic(BaseModel):
     path_length_m: float = Field(description="distance walked along the raw odometry, m")
     tag_ids: list[int]
     warnings: list[str]
-
-    @classmethod
-    def from_domain(cls, stats: SessionStatistics) -> SessionStatisticsPublic:
-        return cls(
-            pose_count=stats.pose_count,
-            detection_count=stats.detection_count,
-            tag_count=stats.tag_count,
-            poi_count=stats.poi_count,
-            duration_s=stats.duration_s,
-            path_length_m=stats.path_length_m,
-            tag_ids=stats.tag_ids,
-            warnings=stats.warnings,
-        )
 
 
 class SessionCreated(BaseModel):
@@ -71,7 +58,7 @@ class SessionCreated(BaseModel):
             map_name=result.map_name,
             job_url=f"/v1/jobs/{result.job_id}",
             map_url=f"/v1/maps/{result.map_id}",
-            statistics=SessionStatisticsPublic.from_domain(result.statistics),
+            statistics=SessionStatisticsPublic.model_validate(result.statistics),
         )
 
 
@@ -106,22 +93,6 @@ class SessionPublic(BaseModel):
     statistics: SessionStatisticsPublic
     map_id: int | None = Field(description="the map built from it (null once deleted)")
     job_ids: list[int] = Field(description="its jobs, oldest first (the upload's build first)")
-
-    @classmethod
-    def from_domain(cls, info: SessionInfo) -> SessionPublic:
-        return cls(
-            id=info.id,
-            map_name=info.map_name,
-            created_at=info.created_at,
-            uploaded_by=info.uploaded_by,
-            idempotency_key=info.idempotency_key,
-            raw_sha256=info.raw_sha256,
-            raw_size_bytes=info.raw_size_bytes,
-            stored_size_bytes=info.stored_size_bytes,
-            statistics=SessionStatisticsPublic.from_domain(info.statistics),
-            map_id=info.map_id,
-            job_ids=info.job_ids,
-        )
 
 
 class SessionsPublic(BaseModel):

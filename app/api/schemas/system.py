@@ -8,7 +8,6 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
-from app.storage.queue import WorkerInfo
 
 
 class Health(BaseModel):
@@ -56,19 +55,6 @@ class WorkerPublic(BaseModel):
     jobs_done: int
     started_at: datetime
     heartbeat_at: datetime
-
-    @classmethod
-    def from_domain(cls, worker: WorkerInfo) -> WorkerPublic:
-        return cls(
-            id=worker.id,
-            hostname=worker.hostname,
-            pid=worker.pid,
-            state=worker.state,
-            current_job_id=worker.current_job_id,
-            jobs_done=worker.jobs_done,
-            started_at=worker.started_at,
-            heartbeat_at=worker.heartbeat_at,
-        )
 
 
 class Info(BaseModel):
