@@ -233,19 +233,23 @@ def decision_points(
     walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
     total_m = float(walked_m[-1]) if len(xyz) else 0.0
     candidates: list[Decision] = []
-    for k in range(1, len(xyz) - 1):
-        along_m = float(walked_m[k])
-        if along_m < end_margin_m or total_m - along_m < end_margin_m:
-            continue
-        before = _direction(_point_at(xyz, walked_m, max(along_m - CHORD_M, 0.0)), xyz[k])
-        after = _direction(xyz[k], _point_at(xyz, walked_m, min(along_m + CHORD_M, total_m)))
-        if before is None or after is None:
-            continue
-        turn_deg = signed_turn_deg(_xyz(before), _xyz(after))
-        if abs(turn_deg) >= BEAR_MIN_DEG:
-            candidates.append(
-                Decision(index=k, turn_deg=turn_deg, at_junction=False, along_m=along_m)
-            )
+    inner = np.arange(1, max(len(xyz) - 1, 1))
+    inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
+    if inner.size:
+        xz = xyz[:, [0, 2]]
+        here = xz[inner]
+        before = here - _points_at(xz, walked_m, np.maximum(walked_m[inner] - CHORD_M, 0.0))
+        after = _points_at(xz, walked_m, np.minimum(walked_m[inner] + CHORD_M, total_m)) - here
+        # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up).
+        cross_y = before[:, 1] * after[:, 0] - before[:, 0] * after[:, 1]
+        dot = (before * after).sum(axis=1)
+        turn_deg = np.degrees(np.arctan2(cross_y, dot))
+        moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
+        for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
+            if abs(turn) >= BEAR_MIN_DEG:
+                candidates.append(
+                    Decision(index=k, turn_deg=turn, at_junction=False, along_m=float(walked_m[k]))
+                )
     chosen: list[Decision] = []
     for c in sorted(candidates, key=lambda d: -abs(d.turn_deg)):
         near = [
@@ -446,6 +450,13 @@ def _point_at(xyz: FloatArray, walked_m: FloatArray, along_m: float) -> FloatArr
     span = float(walked_m[k + 1] - walked_m[k])
     t = 0.0 if span == 0 else (along_m - float(walked_m[k])) / span
     return np.asarray(xyz[k] + t * (xyz[k + 1] - xyz[k]), dtype=np.float64)
+
+
+def _points_at(xz: FloatArray, walked_m: FloatArray, along_m: FloatArray) -> FloatArray:
+    """(M, 2) the points ``along_m`` (M,) metres along the polyline (N, 2)."""
+    return np.column_stack(
+        [np.interp(along_m, walked_m, xz[:, 0]), np.interp(along_m, walked_m, xz[:, 1])]
+    )
 
 
 def _direction(a: FloatArray, b: FloatArray) -> FloatArray | None:
