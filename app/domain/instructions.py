@@ -336,7 +336,13 @@ def _walk_steps(
     for d in announced:
         leg_m = d.along_m - from_m
         steps.append(
-            _step(f"go straight {distance_words(leg_m, style.units)}", xyz[from_i], "go", leg_m)
+            _step(
+                f"go straight {distance_words(leg_m, style.units)}",
+                xyz[from_i],
+                "go",
+                leg_m,
+                floor=floor,
+            )
         )
         words = turn_words(d.turn_deg, style, at_junction=d.at_junction)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
@@ -348,7 +354,13 @@ def _walk_steps(
     rest_m = float(walked_m[-1] - from_m)
     if rest_m >= 0.5:
         steps.append(
-            _step(f"go straight {distance_words(rest_m, style.units)}", xyz[from_i], "go", rest_m)
+            _step(
+                f"go straight {distance_words(rest_m, style.units)}",
+                xyz[from_i],
+                "go",
+                rest_m,
+                floor=floor,
+            )
         )
     if len(kept) > 1:
         return _direction(xyz[kept[-2]], xyz[kept[-1]])

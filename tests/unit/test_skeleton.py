@@ -126,6 +126,7 @@ def test_stairs_join_the_floors_skeletons() -> None:
     assert stairs_steps[0].instruction.startswith("take the stairs up, ")
     assert stairs_steps[0].instruction.endswith("to floor 2")
     assert 4.0 <= stairs_steps[0].distance_m <= 6.0
+    assert [s.floor for s in route.steps if s.kind == "go"] == [0, 1]
 
 
 @settings(max_examples=15, deadline=None)
