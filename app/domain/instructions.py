@@ -52,6 +52,7 @@ from app.domain.routing import (
     Step,
     TagEnd,
     plan_route,
+    search_pois,
     signed_turn_deg,
     simplify_xz,
 )
@@ -123,7 +124,7 @@ def plan_guided_route(
 ) -> Route:
     """:func:`app.domain.routing.plan_route` with instructions at decision points only."""
     route = plan_route(pg, start, goal, avoid=avoid)
-    name, thing_m = _goal(pg, goal, route)
+    name, thing_m = _goal(pg, goal)
     steps = guidance_steps(
         pg,
         route,
@@ -136,16 +137,15 @@ def plan_guided_route(
     return dataclasses.replace(route, steps=steps)
 
 
-def _goal(pg: PathGraph, goal: Endpoint, route: Route) -> tuple[str, FloatArray | None]:
+def _goal(pg: PathGraph, goal: Endpoint) -> tuple[str, FloatArray | None]:
     match goal:
         case TagEnd(tag_id=tag):
             return f"tag {tag}", np.asarray(pg.tags[tag].position_m)
-        case PoiEnd():
-            last = route.nodes[-1] if route.nodes else None
-            poi = next((p for p in pg.pois if p.node == last), None)
-            if poi is not None:
-                return poi.name, np.asarray(poi.position_m)
-            return goal.name, None
+        case PoiEnd(name=name):
+            found = search_pois(pg, name)  # exact names first; plan_route refused ambiguity
+            if found:
+                return found[0].name, np.asarray(found[0].position_m)
+            return name, None
         case NodeEnd(node_id=node):
             return f"node {node}", None
         case PositionEnd():

@@ -20,7 +20,7 @@ from app.domain.instructions import (
     plan_guided_route,
 )
 from app.domain.path_graph import JUNCTION
-from app.domain.routing import TagEnd
+from app.domain.routing import PoiEnd, TagEnd
 from app.domain.skeleton import build_skeleton_from_arrays
 from tests.unit.walks import walk
 
@@ -148,3 +148,20 @@ def test_instructions_are_spaced_except_at_junctions() -> None:
             np.linalg.norm(np.asarray(s.position_m) - j) < 1.0 for s in (a, b) for j in junction_xyz
         )
         assert gap_m >= MIN_SPACING_M - 0.3 or at_junction or a.kind == "announce"
+
+
+def test_the_arrival_names_the_asked_place_when_two_share_a_node() -> None:
+    pg = build_skeleton_from_arrays(
+        walk((0, 0), (20, 0)),
+        tag_ids=[1],
+        tag_positions_m=[(1.0, 1.4, -1.0)],
+        poi_names=["Elevator", "Room 210"],
+        poi_positions_m=[(10.0, 1.4, 1.0), (10.05, 1.4, -1.0)],
+    )
+    assert pg.pois[0].node == pg.pois[1].node
+    for name in ("Elevator", "Room 210"):
+        steps = plan_guided_route(pg, TagEnd(1), PoiEnd(name)).steps
+        assert steps[-1].instruction.startswith(f"arrive at {name}, on your ")
+    left = plan_guided_route(pg, TagEnd(1), PoiEnd("Elevator")).steps[-1].instruction
+    right = plan_guided_route(pg, TagEnd(1), PoiEnd("Room 210")).steps[-1].instruction
+    assert {left.rsplit(" ", 1)[-1], right.rsplit(" ", 1)[-1]} == {"left", "right"}
