@@ -623,3 +623,36 @@ def test_worker_runs_a_queued_job_and_stops_on_sigterm(db: Database, tmp_path: P
     assert "started" in log, log
     assert f"job {inserted.job_id}" in log, log
     assert "Traceback" not in log_path.read_text()
+
+
+def test_the_listening_socket_gives_connections_tcp_nodelay() -> None:
+    """serve's own socket must be IPPROTO_TCP: asyncio turns on TCP_NODELAY only for such
+    sockets, and without it every answer waited ~40 ms for a delayed ACK (bench/http.py)."""
+    import asyncio
+
+    from app.cli.server import listening_socket
+
+    listener = listening_socket("127.0.0.1", 0)
+    assert listener.proto == socket.IPPROTO_TCP
+    nodelay: list[int] = []
+
+    async def serve_once() -> None:
+        def accepted(_reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            sock = writer.get_extra_info("socket")
+            nodelay.append(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+            writer.close()
+
+        server = await asyncio.start_server(accepted, sock=listener)
+        port = listener.getsockname()[1]
+        _reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        for _ in range(100):
+            if nodelay:
+                break
+            await asyncio.sleep(0.01)
+        writer.close()
+        server.close()
+        await server.wait_closed()
+
+    asyncio.run(serve_once())
+    assert nodelay
+    assert nodelay[0] != 0
