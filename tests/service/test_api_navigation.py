@@ -240,6 +240,17 @@ def test_app_map_neighbors_come_from_the_path_graph(nav):
         for pose_id, vertex in vertices.items()
         if pose_id <= last_pose_id
     )
+    # The app adds an edge only from the vertex whose neighbor id is smaller than its own: the
+    # skeleton lists its poses back, so the app's graph is one connected graph too.
+    as_the_app = nx.Graph()
+    as_the_app.add_nodes_from(vertices)
+    as_the_app.add_edges_from(
+        (pose_id, neighbor)
+        for pose_id, vertex in vertices.items()
+        for neighbor in vertex["neighbors"]
+        if neighbor < pose_id
+    )
+    assert nx.is_connected(as_the_app)
     assert {w["id"] for w in app_map["waypoints_vertices"]} == {"Room 209", "Elevator lobby"}
 
 

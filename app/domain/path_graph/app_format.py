@@ -45,8 +45,9 @@ def app_neighbors(
       node-id order, becomes an extra vertex with pose id ``max(pose_id) + 1 + k``, linking to
       its graph neighbours.
     - A pose that is not a node (simplified away, or a later pass merged into an earlier one)
-      links to the two ends of the nearest edge of its floor, so every vertex reaches the graph;
-      those links are one-way (the graph's nodes do not list it back).
+      links to the two ends of the nearest edge of its floor, and they list it back (the app adds
+      an edge only from the vertex with the larger id, and a corridor skeleton's nodes are all
+      extra vertices with ids above every pose), so every pose reaches the graph in the app.
     """
     ids = np.asarray(pose_id, dtype=np.int64).reshape(-1)
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
@@ -65,6 +66,7 @@ def app_neighbors(
             pose_nodes[int(row)] = node
 
     neighbors: list[list[int]] = [[] for _ in range(n)]
+    back: dict[int, list[int]] = {}  # node → the loose poses that link to it
     for row, node in pose_nodes.items():
         neighbors[row] = [app_id[m] for m in G.neighbors(node)]
     loose = [row for row in range(n) if row not in pose_nodes]
@@ -84,16 +86,21 @@ def app_neighbors(
             for row, e in zip(rows, nearest, strict=True):
                 u, v = edge_list[e]
                 neighbors[row] = [app_id[u], app_id[v]]
+                for node in (u, v):
+                    back.setdefault(node, []).append(int(ids[row]))
     elif loose and G.number_of_nodes() > 0:
-        only = app_id[next(iter(G.nodes))]
+        first = next(iter(G.nodes))
         for row in loose:
-            neighbors[row] = [only]
+            neighbors[row] = [app_id[first]]
+            back.setdefault(first, []).append(int(ids[row]))
+    for row, node in pose_nodes.items():
+        neighbors[row] += back.get(node, [])
 
     vertices = [
         AppVertex(
             pose_id=app_id[node],
             position_m=tuple3(G.nodes[node]["position_m"]),
-            neighbors=[app_id[m] for m in G.neighbors(node)],
+            neighbors=[app_id[m] for m in G.neighbors(node)] + back.get(node, []),
         )
         for node in junctions
     ]
