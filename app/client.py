@@ -281,10 +281,18 @@ class Client:
         goal: dict[str, Any],
         *,
         avoid: list[str] | None = None,
+        heading_deg: float | None = None,
+        style: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
         """A route: ends like ``{"tag": 300}``, ``{"poi": "Room 209"}``, ``{"node": 12}`` or
-        ``{"position": [x, y, z]}``; ``avoid`` ⊆ ``["stairs", "elevator"]``."""
-        body = {"from": start, "to": goal, "avoid": avoid or []}
+        ``{"position": [x, y, z]}``; ``avoid`` ⊆ ``["stairs", "elevator"]``; ``heading_deg`` the
+        phone's walking direction (0 faces −z, +90 faces −x) for a first "face the way" step;
+        ``style`` like ``{"units": "ft", "clock": True}``."""
+        body: dict[str, Any] = {"from": start, "to": goal, "avoid": avoid or []}
+        if heading_deg is not None:
+            body["heading_deg"] = heading_deg
+        if style is not None:
+            body["style"] = style
         result: dict[str, Any] = self._json("POST", f"/v1/maps/{map_id}/routes", json=body)
         return result
 

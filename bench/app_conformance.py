@@ -6,7 +6,8 @@ For each map — every session in ``data/sessions/``, ``data/archive/`` (the app
 format) and ``data/demo/floor_2_pois.json`` (points of interest), app-made variants of a real
 session (points of interest with empty and repeated names, as the app's "add location" button
 allows), and simulated buildings (two floors joined by stairs, loops, dead ends) — the session is
-optimized with the default parameters, its path graph built, and the app-map
+optimized with the default parameters, its path graph built (the corridor skeleton, as the
+worker builds it), and the app-map
 (``GET /v1/maps/{id}/app-map``, the same document as ``invisible-map process --app-map``)
 checked against the model of the app's decoder and route planner (``app.domain.app_model``):
 isolated odometry vertices, and (start vertex, destination) pairs on which the app would crash.
@@ -29,9 +30,9 @@ sys.path.insert(0, str(REPO))
 from app.domain.app_model import ConformanceReport, check_app_map  # noqa: E402
 from app.domain.errors import InvisibleMapError  # noqa: E402
 from app.domain.map_io import app_map_as_served  # noqa: E402
-from app.domain.path_graph import build_path_graph  # noqa: E402
 from app.domain.session import parse_session, read_json_document  # noqa: E402
 from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.skeleton import build_skeleton  # noqa: E402
 from app.domain.slam import optimize_session  # noqa: E402
 
 DATA = REPO / "data"
@@ -84,7 +85,7 @@ def uploads() -> Iterator[tuple[str, Callable[[], Any]]]:
 def app_map_of(upload: Any) -> dict[str, Any]:
     """The app-map the server serves for ``upload``'s first version (default parameters)."""
     result = optimize_session(parse_session(upload))
-    return app_map_as_served(result, path_graph=build_path_graph(result))
+    return app_map_as_served(result, path_graph=build_skeleton(result))
 
 
 def main() -> int:

@@ -49,14 +49,9 @@ from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import (
-    ELEVATOR,
-    JUNCTION,
-    STAIRS,
-    build_path_graph,
-    path_graph_to_json,
-)
+from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, path_graph_to_json
 from app.domain.session import Session, decode_json_bytes, parse_session, require_tags
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
@@ -306,10 +301,11 @@ def evaluate(ctx: JobContext) -> None:
 
 
 def path_graph(ctx: JobContext) -> None:
-    """Where a pedestrian can walk: the optimized path with junctions, floors, stairs and
-    elevators, and the tags and points of interest attached to it."""
+    """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
+    into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
+    tags and points of interest attached to it (app.domain.skeleton)."""
     result = _need(ctx.result, "result")
-    graph = build_path_graph(result)
+    graph = build_skeleton(result)
     ctx.path_graph = path_graph_to_json(graph)
     # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
     notes = map_to_app_format(result, path_graph=graph)["notes"]
@@ -323,7 +319,7 @@ def path_graph(ctx: JobContext) -> None:
     kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
     junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)
     ctx.log(
-        f"path graph: {walk.number_of_nodes()} nodes ({junctions} junctions), "
+        f"path graph: corridor skeleton, {walk.number_of_nodes()} nodes ({junctions} junctions), "
         f"{walk.number_of_edges()} edges ({kinds[STAIRS]} stairs, {kinds[ELEVATOR]} "
         f"elevator), {len(graph.floor_levels_m)} floor(s)"
     )

@@ -43,8 +43,8 @@ from app.domain.ground_truth import load_ground_truth
 from app.domain.map_io import app_map_as_served, map_to_json, save_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import build_path_graph
 from app.domain.session import Session, load_session
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 
 
@@ -129,8 +129,9 @@ def _process(args: argparse.Namespace) -> int:
     if args.output:
         save_json(map_to_json(result), args.output)
     if args.app_map:
-        # the document the server serves for this version: the same exporter, the same graph
-        save_json(app_map_as_served(result, path_graph=build_path_graph(result)), args.app_map)
+        # the document the server serves for this version: the same graph (the worker's corridor
+        # skeleton), the same exporter
+        save_json(app_map_as_served(result, path_graph=build_skeleton(result)), args.app_map)
     if args.plot:
         from app.render.map_plot import render_map_png
 
@@ -270,7 +271,7 @@ def _demo(args: argparse.Namespace) -> int:
         ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None
         result = optimize_session(session, params)
         save_json(map_to_json(result), args.out / f"{name}.map.json")
-        app_map = app_map_as_served(result, path_graph=build_path_graph(result))
+        app_map = app_map_as_served(result, path_graph=build_skeleton(result))
         save_json(app_map, args.out / f"{name}.app-map.json")
         render_map_png(result, session, ground_truth=ground_truth, path=args.out / f"{name}.png")
         rows.append(evaluate_map(session, result, ground_truth, dataset=name))

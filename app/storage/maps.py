@@ -12,6 +12,7 @@ import gzip
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -236,8 +237,15 @@ def list_maps(
     if tag_id is not None:
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
     total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset))
-    return [_map_info(db_session, row) for row in rows], total
+    rows = list(db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset)))
+    # the pictures of the page in one query (not one per map)
+    pictures = db_session.execute(
+        select(SessionImage.session_id, SessionImage.sha256).where(
+            SessionImage.session_id.in_([row.session_id for row in rows])
+        )
+    )
+    image_sha256: dict[int, str] = dict(pictures.all())
+    return [_map_info(db_session, row, images=image_sha256) for row in rows], total
 
 
 def list_versions(db_session: Session, map_id: int) -> list[VersionInfo]:
@@ -302,7 +310,11 @@ def _version_row(
     return row
 
 
-def _map_info(db_session: Session, row: MapRow) -> MapInfo:
+def _map_info(
+    db_session: Session, row: MapRow, *, images: Mapping[int, str] | None = None
+) -> MapInfo:
+    """The map of ``row``; ``images`` (session id → picture SHA-256) when the caller looked the
+    pictures up already."""
     count = db_session.scalar(
         select(func.count()).select_from(MapVersion).where(MapVersion.map_id == row.id)
     )
@@ -313,9 +325,12 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         .order_by(MapVersion.number.desc())
         .limit(1)
     )
-    image_sha256 = db_session.scalar(
-        select(SessionImage.sha256).where(SessionImage.session_id == row.session_id)
-    )
+    if images is None:
+        image_sha256 = db_session.scalar(
+            select(SessionImage.sha256).where(SessionImage.session_id == row.session_id)
+        )
+    else:
+        image_sha256 = images.get(row.session_id)
     return MapInfo(
         id=row.id,
         name=row.name,

@@ -497,10 +497,11 @@ def test_a_walk_that_falls_apart_is_said_on_the_version(
     """The app-map keeps the largest part of a walk that falls apart; the version says so."""
     import networkx as nx
 
-    from app.domain.path_graph import PathGraph, build_path_graph
+    from app.domain.path_graph import PathGraph
+    from app.domain.skeleton import build_skeleton
 
     def cut_in_two(result):  # the real graph with the edges across x = its median removed
-        graph = build_path_graph(result)
+        graph = build_skeleton(result)
         G = graph.graph.copy()
         x_median = float(np.median([G.nodes[n]["position_m"][0] for n in G]))
         side = {n: G.nodes[n]["position_m"][0] < x_median for n in G}
@@ -508,7 +509,7 @@ def test_a_walk_that_falls_apart_is_said_on_the_version(
         assert nx.number_connected_components(G) > 1
         return PathGraph(graph=G, floor_levels_m=graph.floor_levels_m)
 
-    monkeypatch.setattr(pipeline, "build_path_graph", cut_in_two)
+    monkeypatch.setattr(pipeline, "build_skeleton", cut_in_two)
     inserted = insert_session(db, session_bytes("occam_room"))
 
     assert worker_with(db).run_once() is True

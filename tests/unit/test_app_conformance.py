@@ -21,6 +21,7 @@ from app.domain.map_result import MapResult
 from app.domain.path_graph import PathGraph, build_path_graph, unique_waypoint_names
 from app.domain.session import parse_session, read_json_document
 from app.domain.simulate import SimulationConfig, simulate_session
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 
 DATA = Path(__file__).parents[2] / "data"
@@ -94,17 +95,23 @@ CASES = [(path, False) for path in REAL] + [
 ]
 
 
+#: The graphs an app-map is made from: the corridor skeleton (what the worker builds) and the
+#: walked path graph; the exporter must hold on either.
+BUILDERS = {"skeleton": build_skeleton, "walked": build_path_graph}
+
+
+@pytest.mark.parametrize("builder", sorted(BUILDERS))
 @pytest.mark.parametrize(
     ("path", "pois"),
     CASES,
     ids=[f"{p.parent.name}/{p.stem}{'+app-made-pois' if pois else ''}" for p, pois in CASES],
 )
-def test_the_app_survives_the_map_of_every_session_in_data(path, pois):
+def test_the_app_survives_the_map_of_every_session_in_data(path, pois, builder):
     upload = read_json_document(path)
     if pois:
         upload = with_app_made_pois(upload)
     result = optimize_session(parse_session(upload))
-    document = served(result, build_path_graph(result))
+    document = served(result, BUILDERS[builder](result))
     assert_app_survives(document)
     if pois:
         names = [w["id"] for w in document["waypoints_vertices"]]
@@ -112,11 +119,12 @@ def test_the_app_survives_the_map_of_every_session_in_data(path, pois):
         assert any("'Kitchen (2)'" in note for note in document["notes"])
 
 
+@pytest.mark.parametrize("builder", sorted(BUILDERS))
 @pytest.mark.parametrize("name", sorted(SIMULATED))
-def test_the_app_survives_simulated_buildings(name):
+def test_the_app_survives_simulated_buildings(name, builder):
     sim = simulate_session(SIMULATED[name])
     result = optimize_session(parse_session(sim.upload))
-    graph = build_path_graph(result)
+    graph = BUILDERS[builder](result)
     if SIMULATED[name].two_floors:
         kinds = {graph.graph.edges[e]["kind"] for e in graph.graph.edges}
         assert "stairs" in kinds or "elevator" in kinds
