@@ -398,14 +398,3 @@ class AppMap(BaseModel):
 
 
 # --------------------------------------------------------------------------- keys
-
-_KEY_EXAMPLE: dict[str, Any] = {
-    "id": 3,
-    "name": "lab iPhone 12",
-    "role": "device",
-    "prefix": "a1b2c3d4",
-    "created_at": AT_EXAMPLE,
-    "expires_at": None,
-    "revoked_at": None,
-    "last_used_at": LATER_EXAMPLE,
-}
