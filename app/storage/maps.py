@@ -23,6 +23,7 @@ from app.domain.evaluation import Evaluation
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
+from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
 
 #: Load options for a version's metadata without its (large) map document and plot.
@@ -137,6 +138,7 @@ def store_version(
     metrics = {
         "shift_pre": _finite_or_none(evaluation.shift_pre),
         "shift_opt": _finite_or_none(evaluation.shift_opt),
+        "shift_metric_version": SHIFT_METRIC_VERSION,
     }
     statistics = {
         "poses": int(result.pose_id.shape[0]),

@@ -25,6 +25,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -345,6 +346,9 @@ class Sweep(Base):
     ground_truth: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
     baseline: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
     state: Mapped[str] = mapped_column(String(16), default="running")
+    #: which definition of the shift metric its trials were scored with
+    #: (``app.domain.metrics.SHIFT_METRIC_VERSION``); sweeps stored before the column are 1
+    shift_metric_version: Mapped[int] = mapped_column(server_default=text("1"))
     error: Mapped[str | None] = mapped_column(Text)
     applied_job_id: Mapped[int | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)

@@ -22,6 +22,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.domain.ground_truth import parse_ground_truth_json
+from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
 from app.domain.tuning import SearchSpace, SweepSummary, Trial, summarize
 from app.storage import queue
@@ -57,6 +58,7 @@ class SweepInfo:
     error: str | None
     applied_job_id: int | None
     created_at: datetime
+    shift_metric_version: int
     finished_at: datetime | None
 
     @property
@@ -99,6 +101,7 @@ def create_sweep(
         seed=plan.seed,
         ground_truth=ground_truth,
         state="running",
+        shift_metric_version=SHIFT_METRIC_VERSION,
         created_at=utc_now(),
     )
     db_session.add(row)
@@ -314,6 +317,7 @@ def _info(db_session: Session, row: Sweep) -> SweepInfo:
         error=error,
         applied_job_id=row.applied_job_id,
         created_at=row.created_at,
+        shift_metric_version=row.shift_metric_version,
         finished_at=row.finished_at,
     )
 
