@@ -57,13 +57,7 @@ from app.domain.metrics import ShiftPairs, mean_shift_ratio, shift_pairs
 from app.domain.params import SlamParams
 from app.domain.screening import DetectionGeometry, Screening, screen_detections
 from app.domain.session import PointOfInterest, Session, TagDetections
-from app.domain.slam import (
-    GraphInputs,
-    TrialGraph,
-    local_landmark_key,
-    odometry_chi2,
-    optimize_graph_inputs,
-)
+from app.domain.slam import GraphInputs, local_landmark_key, optimize_graph_inputs
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -510,23 +504,24 @@ def optimize_sessions(
         odometry_variance_scale=odometry_variance_scale,
     )
     odometry_scales = [1.0] * len(plan.datasets)
-    if not (reweight and len(plan.datasets) > 1 and not given):
-        result = optimize_graph_inputs(inputs, params, started=started)
-    else:
-        # 1. the defaults' optimum; 2. each session's odometry weighed by its residuals there
-        start_params = params.with_default_variances()
-        _, first_iterations, start = TrialGraph(inputs).optimize(start_params)
-        chi2 = _odometry_chi2_per_dof(
-            inputs.keyframes, odometry_chi2(inputs, start_params, start), starts, combined.num_poses
-        )
-        odometry_scales = _odometry_variance_scales(chi2)
+
+    def reweigh(chi2: FloatArray) -> FloatArray | None:
+        """Each session's odometry weighed by its residuals at the defaults' optimum."""
+        per_dof = _odometry_chi2_per_dof(inputs.keyframes, chi2, starts, combined.num_poses)
+        odometry_scales[:] = _odometry_variance_scales(per_dof)
+        if all(k == 1.0 for k in odometry_scales):
+            return None
         scale_by_pose = np.ones(combined.num_poses)
         for s, k in enumerate(odometry_scales):
             scale_by_pose[starts[s] : starts[s] + plan.sessions[s].num_poses] = k
-        inputs.odometry_variance_scale = scale_by_pose[inputs.keyframes[:-1]]
-        result = optimize_graph_inputs(
-            inputs, params, started=started, start=start, start_iterations=first_iterations
-        )
+        return np.asarray(scale_by_pose[inputs.keyframes[:-1]], dtype=np.float64)
+
+    result = optimize_graph_inputs(
+        inputs,
+        params,
+        started=started,
+        reweigh_odometry=reweigh if reweight and len(plan.datasets) > 1 and not given else None,
+    )
     warnings = list(result.warnings)
     for s, dataset in enumerate(plan.datasets):
         if plan.scales[s] != 1.0:

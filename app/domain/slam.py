@@ -53,6 +53,8 @@ LINEAR_SOLVER = "SEQUENTIAL_CHOLESKY"
 
 #: Called with (iteration, error) after each LM iteration.
 IterationCallback = Callable[[int, float], None]
+#: Given the odometry factors' chi² at a first optimum, new odometry variance scales (or None).
+OdometryReweighing = Callable[[FloatArray], FloatArray | None]
 
 
 def pose_sigmas(*, rot_rad: FloatArray | float, trans_m: FloatArray | float) -> FloatArray:
@@ -136,44 +138,49 @@ def optimize_graph_inputs(
     *,
     on_iteration: IterationCallback | None = None,
     started: float | None = None,
-    start: gtsam.Values | None = None,
-    start_iterations: int = 0,
+    reweigh_odometry: OdometryReweighing | None = None,
 ) -> MapResult:
     """:func:`optimize_session` from prepared inputs (a joint map's several pose chains,
     ``joint.py``). ``started``: ``time.perf_counter()`` when preparing them began (build time).
-    ``start``: LM's starting point instead of the initial values, in one stage (a solution of
-    the same graph with other noise, made in ``start_iterations``)."""
+
+    ``reweigh_odometry``: called with the odometry factors' chi² ((K−1,), 0 between pose chains)
+    at the first stage's optimum (default variances, always run then); it returns new
+    ``inputs.odometry_variance_scale`` ((K−1,)) or None to keep them. The second stage, with
+    ``params``' variances and those scales, starts from that optimum."""
     session = inputs.session
     started = time.perf_counter() if started is None else started
     screening = inputs.screening
     problem = _build_problem(inputs, params)
     start_params = params.with_default_variances()
-    start_graph = (
-        None if params.has_default_variances else _build_problem(inputs, start_params).graph
+    start_problem = (
+        problem if params.has_default_variances else _build_problem(inputs, start_params)
     )
+    two_stages = reweigh_odometry is not None or not params.has_default_variances
     build_ms = (time.perf_counter() - started) * 1e3
 
     started = time.perf_counter()
-    initial_error = float(problem.graph.error(inputs.initial if start is None else start))
+    initial_error = float(problem.graph.error(inputs.initial))
     # every setting gives the same graph structure, so one ordering serves both stages
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(problem.graph)
-    if start is not None:
-        values, iterations, final_error = _levenberg_marquardt(
-            problem.graph,
-            start,
-            params,
-            _counting_from(start_iterations, on_iteration),
-            ordering=ordering,
-        )
-    elif start_graph is None:
+    if not two_stages:
         start_iterations = 0
         values, iterations, final_error = _levenberg_marquardt(
             problem.graph, inputs.initial, params, on_iteration, ordering=ordering
         )
     else:
         start, start_iterations, _ = _levenberg_marquardt(
-            start_graph, inputs.initial, start_params, on_iteration, ordering=ordering
+            start_problem.graph, inputs.initial, start_params, on_iteration, ordering=ordering
         )
+        if reweigh_odometry is not None:
+            chi2 = np.zeros(inputs.odometry_linked.shape[0])
+            chi2[inputs.odometry_linked] = [
+                2.0 * factor.error(start) for factor in start_problem.odometry_factors
+            ]
+            scales = reweigh_odometry(chi2)
+            if scales is not None:
+                inputs.odometry_variance_scale = np.asarray(scales, dtype=np.float64)
+                problem.odometry_factors = _odometry_factors(inputs, params)
+                problem.graph = _problem_graph(inputs, problem)
         values, iterations, final_error = _levenberg_marquardt(
             problem.graph,
             start,
@@ -240,15 +247,6 @@ def optimize_graph_inputs(
         ),
         warnings=tuple(warnings),
     )
-
-
-def odometry_chi2(inputs: GraphInputs, params: SlamParams, values: gtsam.Values) -> FloatArray:
-    """(K−1,) each odometry factor's chi² at ``values``, 0 between two pose chains."""
-    chi2 = np.zeros(inputs.odometry_linked.shape[0])
-    chi2[inputs.odometry_linked] = [
-        2.0 * factor.error(values) for factor in _odometry_factors(inputs, params)
-    ]
-    return chi2
 
 
 def local_landmark_key(index: int) -> int:
@@ -505,11 +503,18 @@ def _build_problem(inputs: GraphInputs, params: SlamParams) -> _Problem:
     problem.odometry_factors = _odometry_factors(inputs, params)
     problem.gravity_factors = _gravity_factors(inputs, params)
     problem.tag_factors, problem.tag_covariances = _tag_factors(inputs, params)
-    problem.graph.add(_gauge_prior(inputs))
+    problem.graph = _problem_graph(inputs, problem)
+    return problem
+
+
+def _problem_graph(inputs: GraphInputs, problem: _Problem) -> gtsam.NonlinearFactorGraph:
+    """The gauge prior, then the problem's odometry, gravity and tag factors, in that order."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(_gauge_prior(inputs))
     for kind in (problem.odometry_factors, problem.gravity_factors, problem.tag_factors):
         for factor in kind:
-            problem.graph.add(factor)
-    return problem
+            graph.add(factor)
+    return graph
 
 
 def _factor_graph(factors: list[Any]) -> gtsam.NonlinearFactorGraph:
@@ -670,7 +675,6 @@ __all__ = [
     "TrialGraph",
     "linearize_and_solve_ms",
     "local_landmark_key",
-    "odometry_chi2",
     "odometry_sigmas",
     "optimize_graph_inputs",
     "optimize_session",
