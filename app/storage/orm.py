@@ -174,7 +174,8 @@ class SessionUpload(Base):
 
 
 class MapRow(Base):
-    """A map: one session's map, in versions (the latest succeeded one is current)."""
+    """A map, in versions (the latest succeeded one is current). ``session_id`` is its first
+    (reference) session; ``map_session`` lists all the sessions it is made of."""
 
     __tablename__ = "map"
     __table_args__ = (NEVER_REUSE_IDS,)
@@ -185,6 +186,21 @@ class MapRow(Base):
         ForeignKey("session.id", ondelete="CASCADE"), index=True
     )
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class MapSession(Base):
+    """A session a map is made of (a building's map holds several; docs/multi-session.md). The
+    order of ``id`` is the order they are optimized in: the first is the reference frame."""
+
+    __tablename__ = "map_session"
+    __table_args__ = (UniqueConstraint("map_id", "session_id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), index=True
+    )
+    added_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
 class Job(Base):
@@ -258,6 +274,9 @@ class MapVersion(Base):
     content_sha256: Mapped[str] = mapped_column(String(64))
     #: ``app.domain.path_graph.path_graph_to_json``, gzip; null for versions built before it
     path_graph_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
+    #: the sessions it was optimized from, in order (the first is the reference frame); null for
+    #: versions built before maps held several sessions (their map's ``session_id`` alone)
+    session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
 
 
 class MapTag(Base):

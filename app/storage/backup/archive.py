@@ -26,6 +26,7 @@ from app.storage.orm import (
     Base,
     Job,
     MapRow,
+    MapSession,
     MapTag,
     MapVersion,
     SessionRow,
@@ -132,6 +133,7 @@ TABLES = (
         refs={"session_id": "session"},
     ),
     TableSpec(model=MapRow, refs={"session_id": "session"}),
+    TableSpec(model=MapSession, export_key=False, refs={"map_id": "map", "session_id": "session"}),
     TableSpec(
         model=Job,
         refs={"map_id": "map", "session_id": "session"},
