@@ -450,21 +450,50 @@ def _median_pose(poses: list[FloatArray]) -> FloatArray:
     return pose
 
 
-def optimize_sessions(
+@dataclass(slots=True, kw_only=True, eq=False)
+class JointInputs:
+    """Several sessions prepared as one factor graph: the plan, the concatenated session, where
+    each session's poses and detections start in it, and the graph's inputs (their
+    ``odometry_variance_scale`` set by :meth:`reweigh`)."""
+
+    plan: JointPlan
+    combined: Session
+    starts: list[int]
+    detection_starts: list[int]
+    screening: Screening
+    inputs: GraphInputs
+    #: (S,) each session's odometry variance factor (1 until :meth:`reweigh`)
+    odometry_scales: list[float]
+
+    def reweigh(self, chi2: FloatArray) -> FloatArray | None:
+        """Each session's odometry weighed by its residuals (``chi2``: (K−1,) the odometry
+        factors' chi² at the defaults' optimum): the new (K−1,) variance scales for
+        ``inputs.odometry_variance_scale``, or None when every session keeps 1."""
+        per_dof = _odometry_chi2_per_dof(
+            self.inputs.keyframes, chi2, self.starts, self.combined.num_poses
+        )
+        self.odometry_scales = _odometry_variance_scales(per_dof)
+        if all(k == 1.0 for k in self.odometry_scales):
+            return None
+        scale_by_pose = np.ones(self.combined.num_poses)
+        for s, k in enumerate(self.odometry_scales):
+            start = self.starts[s]
+            scale_by_pose[start : start + self.plan.sessions[s].num_poses] = k
+        return np.asarray(scale_by_pose[self.inputs.keyframes[:-1]], dtype=np.float64)
+
+
+def prepare_joint(
     sessions: Sequence[Session],
-    params: SlamParams | None = None,
+    params: SlamParams,
     *,
     names: Sequence[str] | None = None,
     scale_depths: bool = True,
     depth_scales: Mapping[str, float] | None = None,
     variance_scales: Mapping[str, tuple[float, float]] | None = None,
-    reweight: bool = True,
     min_shared_tags: int = MIN_SHARED_TAGS,
-) -> JointMap:
-    """Optimize ``sessions`` into one map (see the module docstring). One session gives the map
-    :func:`app.domain.slam.optimize_session` gives (with its depth scale applied)."""
-    params = params or SlamParams()
-    started = time.perf_counter()
+) -> JointInputs:
+    """Plan ``sessions`` (:func:`plan_sessions`) and prepare their joint factor graph's inputs;
+    ``variance_scales``: dataset → (tag, odometry) variance factors to use as given."""
     plan = plan_sessions(
         sessions,
         params,
@@ -487,6 +516,7 @@ def optimize_sessions(
     given = dict(variance_scales or {})
     tag_variance_scale = np.ones(len(combined.detections))
     odometry_variance_scale = np.ones(combined.num_poses)
+    odometry_scales = []
     for s, dataset in enumerate(plan.datasets):
         tag_k, odometry_k = given.get(dataset, (1.0, 1.0))
         detections = slice(
@@ -494,6 +524,7 @@ def optimize_sessions(
         )
         tag_variance_scale[detections] = tag_k
         odometry_variance_scale[starts[s] : starts[s] + plan.sessions[s].num_poses] = odometry_k
+        odometry_scales.append(float(odometry_k))
     inputs = GraphInputs(
         combined,
         params,
@@ -503,25 +534,54 @@ def optimize_sessions(
         tag_variance_scale=tag_variance_scale,
         odometry_variance_scale=odometry_variance_scale,
     )
-    odometry_scales = [1.0] * len(plan.datasets)
+    return JointInputs(
+        plan=plan,
+        combined=combined,
+        starts=starts,
+        detection_starts=detection_starts,
+        screening=screening,
+        inputs=inputs,
+        odometry_scales=odometry_scales,
+    )
 
-    def reweigh(chi2: FloatArray) -> FloatArray | None:
-        """Each session's odometry weighed by its residuals at the defaults' optimum."""
-        per_dof = _odometry_chi2_per_dof(inputs.keyframes, chi2, starts, combined.num_poses)
-        odometry_scales[:] = _odometry_variance_scales(per_dof)
-        if all(k == 1.0 for k in odometry_scales):
-            return None
-        scale_by_pose = np.ones(combined.num_poses)
-        for s, k in enumerate(odometry_scales):
-            scale_by_pose[starts[s] : starts[s] + plan.sessions[s].num_poses] = k
-        return np.asarray(scale_by_pose[inputs.keyframes[:-1]], dtype=np.float64)
 
+def optimize_sessions(
+    sessions: Sequence[Session],
+    params: SlamParams | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    scale_depths: bool = True,
+    depth_scales: Mapping[str, float] | None = None,
+    variance_scales: Mapping[str, tuple[float, float]] | None = None,
+    reweight: bool = True,
+    min_shared_tags: int = MIN_SHARED_TAGS,
+) -> JointMap:
+    """Optimize ``sessions`` into one map (see the module docstring). One session gives the map
+    :func:`app.domain.slam.optimize_session` gives (with its depth scale applied).
+    ``reweight``: weigh each session's odometry by its residuals (unless ``variance_scales``
+    gives the factors)."""
+    params = params or SlamParams()
+    started = time.perf_counter()
+    joint = prepare_joint(
+        sessions,
+        params,
+        names=names,
+        scale_depths=scale_depths,
+        depth_scales=depth_scales,
+        variance_scales=variance_scales,
+        min_shared_tags=min_shared_tags,
+    )
+    plan, combined, screening = joint.plan, joint.combined, joint.screening
+    starts, detection_starts = joint.starts, joint.detection_starts
     result = optimize_graph_inputs(
-        inputs,
+        joint.inputs,
         params,
         started=started,
-        reweigh_odometry=reweigh if reweight and len(plan.datasets) > 1 and not given else None,
+        reweigh_odometry=(
+            joint.reweigh if reweight and len(plan.datasets) > 1 and not variance_scales else None
+        ),
     )
+    odometry_scales = joint.odometry_scales
     warnings = list(result.warnings)
     for s, dataset in enumerate(plan.datasets):
         if plan.scales[s] != 1.0:
@@ -714,11 +774,13 @@ def _ids(ids: Sequence[int]) -> str:
 
 __all__ = [
     "AlignmentError",
+    "JointInputs",
     "JointMap",
     "SessionAlignment",
     "SessionPart",
     "align_session",
     "optimize_sessions",
     "plan_sessions",
+    "prepare_joint",
     "tag_depth_scale",
 ]
