@@ -249,6 +249,15 @@ def optimize_graph_inputs(
     )
 
 
+def odometry_chi2(inputs: GraphInputs, params: SlamParams, values: gtsam.Values) -> FloatArray:
+    """(K−1,) each odometry factor's chi² at ``values``; 0 between two pose chains."""
+    chi2 = np.zeros(inputs.odometry_linked.shape[0])
+    chi2[inputs.odometry_linked] = [
+        2.0 * factor.error(values) for factor in _odometry_factors(inputs, params)
+    ]
+    return chi2
+
+
 def local_landmark_key(index: int) -> int:
     """The graph key of the ``index``-th landmark that is not a tag of the map (``GraphInputs``'
     ``local_landmarks``)."""
@@ -675,6 +684,7 @@ __all__ = [
     "TrialGraph",
     "linearize_and_solve_ms",
     "local_landmark_key",
+    "odometry_chi2",
     "odometry_sigmas",
     "optimize_graph_inputs",
     "optimize_session",

@@ -368,6 +368,9 @@ class Sweep(Base):
     #: which definition of the shift metric its trials were scored with
     #: (``app.domain.metrics.SHIFT_METRIC_VERSION``); sweeps stored before the column are 1
     shift_metric_version: Mapped[int] = mapped_column(server_default=text("1"))
+    #: the sessions of its map when it started, in order, when there were several (the trials
+    #: are joint maps of them; ``apply`` rebuilds from them); null for a map of one session
+    session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
     error: Mapped[str | None] = mapped_column(Text)
     applied_job_id: Mapped[int | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)

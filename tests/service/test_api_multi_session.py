@@ -254,3 +254,30 @@ def test_add_a_session_and_the_bad_cases(two_walks):
     assert failed["state"] == "failed"
     assert "inconsistent_shared_tags" in failed["error"]
     assert get_map(api, map_id)["current_version"]["number"] == 3
+
+
+def test_a_sweep_of_a_merged_map_tunes_the_joint_map(two_walks):
+    api, first, second = two_walks
+    map_id = first["map_id"]
+    response = api.client.post(
+        f"/v1/maps/{map_id}/merge", json={"map_id": second["map_id"]}, headers=ADMIN
+    )
+    assert response.status_code == 202
+    build(api)
+    space = {"odom_linear_var_m2_per_s": {"low": 1e-4, "high": 1e-2, "num": 2}}
+    response = api.client.post(f"/v1/maps/{map_id}/sweeps", json={"space": space}, headers=ADMIN)
+    assert response.status_code == 202, response.text
+    sweep_id = response.json()["sweep_id"]
+    build(api)
+    sweep = api.client.get(f"/v1/sweeps/{sweep_id}?runs=true", headers=ADMIN).json()
+    assert sweep["state"] == "succeeded", sweep["error"]
+    assert sweep["session_ids"] == [first["session_id"], second["session_id"]]
+    assert sweep["shift_metric_version"] == 2
+    assert len(sweep["runs"]) == 2
+    response = api.client.post(f"/v1/sweeps/{sweep_id}/apply", headers=ADMIN)
+    assert response.status_code == 202, response.text
+    build(api)
+    version = get_map(api, map_id)["current_version"]
+    assert version["session_ids"] == [first["session_id"], second["session_id"]]
+    # the applied build is the map the best trial measured
+    assert version["shift_metric"] == pytest.approx(sweep["summary"]["best_shift"], rel=1e-9)

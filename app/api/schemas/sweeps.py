@@ -50,6 +50,7 @@ _SWEEP_EXAMPLE: dict[str, Any] = {
         "shift_gt_spearman": None,
     },
     "applied_job_id": None,
+    "session_ids": [],
     "shift_metric_version": 2,
     "created_at": "2026-11-22T07:10:00Z",
     "finished_at": None,
@@ -215,6 +216,9 @@ class SweepPublic(BaseModel):
     progress: float = Field(ge=0, le=1)
     summary: SummaryPublic
     applied_job_id: int | None = Field(description="the rebuild that applied the best parameters")
+    session_ids: list[int] = Field(
+        description="the map's sessions its trials optimize together (empty: session_id alone)"
+    )
     shift_metric_version: int = Field(
         description="the shift metric's definition its trials were scored with: 2 is "
         "docs/architecture.md §4's (origin-invariant); 1 the earlier, origin-dependent form"
@@ -243,6 +247,7 @@ class SweepPublic(BaseModel):
             progress=min(1.0, info.progress),
             summary=SummaryPublic.from_domain(summary),
             applied_job_id=info.applied_job_id,
+            session_ids=info.session_ids,
             shift_metric_version=info.shift_metric_version,
             created_at=info.created_at,
             finished_at=info.finished_at,
