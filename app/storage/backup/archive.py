@@ -98,6 +98,8 @@ class TableSpec:
     soft_refs: Mapping[str, str] = field(default_factory=dict)
     #: only these rows are exported
     only: Callable[[], ColumnElement[bool]] | None = None
+    #: archives written before the table existed lack it (it is then left empty)
+    optional: bool = False
 
     @property
     def table(self) -> Table:
@@ -133,7 +135,12 @@ TABLES = (
         refs={"session_id": "session"},
     ),
     TableSpec(model=MapRow, refs={"session_id": "session"}),
-    TableSpec(model=MapSession, export_key=False, refs={"map_id": "map", "session_id": "session"}),
+    TableSpec(
+        model=MapSession,
+        export_key=False,
+        refs={"map_id": "map", "session_id": "session"},
+        optional=True,  # added with maps of several sessions
+    ),
     TableSpec(
         model=Job,
         refs={"map_id": "map", "session_id": "session"},
@@ -237,6 +244,8 @@ class Manifest:
             ) from err
         for spec in TABLES:
             if spec.name not in manifest.counts or spec.member not in manifest.members:
+                if spec.optional and spec.name not in manifest.counts:
+                    continue
                 raise ArchiveInvalid(f"{where}: the manifest lists no table {spec.name}")
         return manifest
 
