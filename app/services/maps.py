@@ -48,6 +48,25 @@ def enqueue_rebuild(
     return info, job_id
 
 
+def checked_session_ids(db_session: Session, session_ids: list[int]) -> None:
+    """A 422 naming the first session id that is repeated or is no session."""
+    seen: set[int] = set()
+    for k, session_id in enumerate(session_ids):
+        if session_id in seen:
+            raise InvalidInput(
+                "invalid_sessions",
+                f"session {session_id} is listed twice",
+                field=f"session_ids.{k}",
+            )
+        seen.add(session_id)
+        try:
+            sessions.get_session(db_session, session_id)
+        except sessions.SessionNotFound as err:
+            raise InvalidInput(
+                "invalid_sessions", f"session {session_id} not found", field=f"session_ids.{k}"
+            ) from err
+
+
 def current_overrides(info: MapInfo) -> dict[str, Any]:
     """The current version's parameters that differ from the defaults (a rebuild after a change
     of sessions keeps them); none before the first version."""

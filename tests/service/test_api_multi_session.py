@@ -185,6 +185,25 @@ def test_merge_route_and_localize_on_the_joint_map(two_walks):
         [first["session_id"], second["session_id"]],
         [first["session_id"]],
     ]
+    # rebuilding version 2's sessions makes version 2 again
+    both = versions["data"][1]["session_ids"]
+    response = api.client.post(
+        f"/v1/maps/{first['map_id']}/rebuild", json={"session_ids": both}, headers=ADMIN
+    )
+    assert response.status_code == 202, response.text
+    assert response.json()["session_ids"] == both
+    build(api)
+    again = api.client.get(f"/v1/maps/{first['map_id']}/versions/4", headers=ADMIN).json()
+    before = api.client.get(f"/v1/maps/{first['map_id']}/versions/2", headers=ADMIN).json()
+    assert again["session_ids"] == both
+    assert again["params"] == before["params"]
+    assert [t["position_m"] for t in again["tags"]] == [t["position_m"] for t in before["tags"]]
+    for bad, field in (([first["session_id"]] * 2, "session_ids.1"), ([999_999], "session_ids.0")):
+        response = api.client.post(
+            f"/v1/maps/{first['map_id']}/rebuild", json={"session_ids": bad}, headers=ADMIN
+        )
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == field
 
 
 def test_add_a_session_and_the_bad_cases(two_walks):

@@ -53,6 +53,7 @@ from app.services.maps import (
     add_session_to_map,
     app_map_content,
     checked_overrides,
+    checked_session_ids,
     chosen_version,
     current_overrides,
     delete_map_and_jobs,
@@ -188,10 +189,19 @@ def rebuild_map(
     overrides = checked_overrides(body.params if body else {})
     if body and body.auto_tune_trials:
         overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
+    session_ids = body.session_ids if body else None
+    if session_ids is not None:
+        checked_session_ids(db_session, session_ids)
     info, job_id = enqueue_rebuild(
-        db_session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
+        db_session,
+        valid_id(map_id, "map"),
+        overrides,
+        max_attempts=settings.max_attempts,
+        session_ids=session_ids,
     )
     accepted = RebuildAccepted.queued(info, job_id, overrides)
+    if session_ids is not None:
+        accepted.session_ids = session_ids
     response.headers["Location"] = accepted.job_url
     return accepted
 

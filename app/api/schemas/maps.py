@@ -285,6 +285,13 @@ class RebuildRequest(BaseModel):
         description="first choose the noise variances by the shift metric with this many "
         "sampler trials (0: use the parameters as given)",
     )
+    session_ids: list[int] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="build from these sessions, in this order (e.g. an older version's "
+        "session_ids, to make it again); default: the map's sessions now",
+    )
 
 
 class RebuildAccepted(BaseModel):
