@@ -80,10 +80,13 @@ def map_figure(
     path_graph: PathGraph | None,
     *,
     session_starts: Sequence[int] = (),
+    session_names: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The figure of a map version (``raw_session`` and ``path_graph`` when available).
     ``session_starts``: for a map of several sessions, the first pose row of each; the optimized
-    trajectory is broken there (no line joins one walk's end to the next one's start)."""
+    trajectory is broken there (no line joins one walk's end to the next one's start), and each
+    floor also has each session's part (``sessions``: name and line), drawn in its own colour.
+    ``session_names``: their names (default "Session 1", …)."""
     heights_m = result.world_T_phone[:, 1, 3]
     if path_graph is not None and path_graph.floor_levels_m:
         levels_m = np.asarray(path_graph.floor_levels_m, dtype=np.float64)
@@ -119,6 +122,9 @@ def map_figure(
                 "optimized": _on_floor(
                     result.world_T_phone[:, [0, 2], 3], optimized_floor, floor, session_starts
                 ),
+                "sessions": _session_lines(
+                    result, optimized_floor, floor, session_starts, session_names
+                ),
                 **_graph(path_graph, floor),
                 "tags": tags,
                 "ellipses": _line(outlines),
@@ -136,6 +142,26 @@ def map_figure(
             }
         )
     return {"tag_count": len(result.tag_ids), "floors": floors}
+
+
+def _session_lines(
+    result: MapResult,
+    optimized_floor: np.ndarray,
+    floor: int,
+    session_starts: Sequence[int],
+    session_names: Sequence[str],
+) -> list[dict[str, Any]] | None:
+    """Each session's optimized trajectory on ``floor`` (None for a map of one session)."""
+    starts = sorted(int(s) for s in session_starts)
+    if len(starts) < 2:
+        return None
+    ends = [*starts[1:], result.world_T_phone.shape[0]]
+    names = list(session_names) or [f"Session {k + 1}" for k in range(len(starts))]
+    xz = result.world_T_phone[:, [0, 2], 3]
+    return [
+        {"name": name, "line": _on_floor(xz[a:b], optimized_floor[a:b], floor)}
+        for name, a, b in zip(names, starts, ends, strict=True)
+    ]
 
 
 def _tags(

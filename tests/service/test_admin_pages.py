@@ -402,8 +402,12 @@ def test_a_maps_sessions_merge_and_remove_from_the_dashboard(
     page = api.client.get(f"/admin/maps/{map_id}")
     assert f"Remove session {other['session_id']}" in page.text
     assert "2 sessions (below)" in page.text
-    optimized = [floor["optimized"] for floor in figure_of(page.text)["floors"]]
+    floors = figure_of(page.text)["floors"]
+    optimized = [floor["optimized"] for floor in floors]
     assert any(None in line["x"] for line in optimized if line)  # no line between two walks
+    names = {s["name"] for floor in floors for s in floor["sessions"] or []}
+    assert names == {f"Session {built['session_id']}", f"Session {other['session_id']}"}
+    assert "The optimized trajectory of each session in its own colour" in page.text
 
     response = post(api, f"/admin/maps/{map_id}/merge", {"map_id": str(map_id)})
     assert response.status_code == 303  # refused, said in the flash message

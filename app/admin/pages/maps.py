@@ -98,6 +98,7 @@ def version_figure(
             raw_session(db_session, info.session_id) if len(contributions) < 2 else None,
             path_graph_or_none(request, db_session, version),
             session_starts=[int(c["first_pose_row"]) for c in contributions],
+            session_names=[f"Session {c['session_id']}" for c in contributions],
         )
 
     cache: VersionCache = request.app.state.version_cache
