@@ -275,6 +275,10 @@ def replay_upload(db_session: Session, session_id: int, sha256: str) -> UploadRe
     job_id = db_session.scalar(
         select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
     )
+    if job_id is None and map_id is not None:  # uploaded into a map: that map's build
+        job_id = db_session.scalar(
+            select(func.max(Job.id)).where(Job.map_id == map_id, Job.kind == BUILD_MAP)
+        )
     if map_id is None or job_id is None:
         raise IdempotencyConflict(
             key, row.id, "its map has been deleted since; use a new key to upload again"

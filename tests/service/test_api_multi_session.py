@@ -300,3 +300,49 @@ def test_a_sweep_of_a_merged_map_tunes_the_joint_map(two_walks):
     assert version["session_ids"] == [first["session_id"], second["session_id"]]
     # the applied build is the map the best trial measured
     assert version["shift_metric"] == pytest.approx(sweep["summary"]["best_shift"], rel=1e-9)
+
+
+def test_upload_into_an_existing_map(database_url: str) -> None:
+    with running_api(database_url) as api:
+        first = api.uploaded(FLOOR_2.read_bytes())
+        build(api)
+        body = DESNAT.read_bytes()
+        device = api.device()
+        refused = api.client.post(
+            f"/v1/sessions?into_map={first['map_id']}",
+            content=body,
+            headers={**device, "Content-Type": "application/json"},
+        )
+        assert refused.status_code == 403
+        sessions_before = api.client.get("/v1/sessions", headers=ADMIN).json()["count"]
+        missing = api.client.post(
+            "/v1/sessions?into_map=999999",
+            content=body,
+            headers={**ADMIN, "Content-Type": "application/json"},
+        )
+        assert missing.status_code == 404
+        assert api.client.get("/v1/sessions", headers=ADMIN).json()["count"] == sessions_before
+
+        into = api.client.post(
+            f"/v1/sessions?into_map={first['map_id']}",
+            content=body,
+            headers={**ADMIN, "Content-Type": "application/json", "Idempotency-Key": "desnat-1"},
+        )
+        assert into.status_code == 202, into.text
+        created = into.json()
+        assert created["map_id"] == first["map_id"]
+        build(api)
+        assert job(api, created["job_id"])["state"] == "succeeded"
+        version = get_map(api, first["map_id"])["current_version"]
+        assert version["session_ids"] == [first["session_id"], created["session_id"]]
+        # the same upload again (a phone retrying) answers the same map and job
+        again = api.client.post(
+            f"/v1/sessions?into_map={first['map_id']}",
+            content=body,
+            headers={**ADMIN, "Content-Type": "application/json", "Idempotency-Key": "desnat-1"},
+        )
+        assert again.status_code == 202, again.text
+        assert (again.json()["map_id"], again.json()["session_id"]) == (
+            first["map_id"],
+            created["session_id"],
+        )
