@@ -8,7 +8,7 @@
     invisible-map sweep SESSION [--gt GT] [--grid | --trials N] [--objective shift|ground_truth]
                         [--space JSON] [--processes N] [--plot-dir DIR] [--json]
     invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
-                        [--two-floors] [--noise NAME=VALUE …] [--seed N]
+                        [--two-floors] [--noise NAME=VALUE …] [--seed N] [--sessions N]
     invisible-map serve | worker | migrate | keys …   (the server: see app/cli/server.py)
     invisible-map export OUT.zip [--include-keys] [--force]
     invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/cli/backup.py)
