@@ -31,6 +31,11 @@ metric). A session with too little parallax, or whose factor is within 5% of 1, 
 (the poses as given): on the three real mac-building sessions the parallax is too small to tell
 (docs/multi-session.md), so their poses are used as given.
 
+In a map of several sessions, a burst of k sightings of one tag (consecutive sightings less than
+3 s apart: one viewpoint, one PnP bias) weighs as √k sightings: each gets its variance multiplied
+by √k (:func:`sighting_burst_sizes`), so a walk that lingers at each tag does not outvote one that
+passes by.
+
 Each session's odometry is weighed by what its residuals support: after a first optimization with
 the default variances, a session whose odometry residuals (chi² per degree of freedom) are larger
 than the best-fitting session's gets its odometry variances raised by that ratio (a
@@ -73,6 +78,13 @@ MIN_PAIR_BASELINE_M = 2.0
 #: Largest factor by which a session's odometry variances are raised when its odometry residuals
 #: are larger than the other sessions' (see :func:`optimize_sessions`).
 MAX_ODOMETRY_VARIANCE_SCALE = 100.0
+#: Sightings of one tag less than this apart (s) are one burst (``sighting_burst_sizes``).
+BURST_GAP_S = 3.0
+#: A burst of k sightings weighs as k^(1 − power) sightings (each one's variance × k^power): 0.5,
+#: between independent sightings (0: best on simulated walks, whose noise is drawn independently
+#: per sighting) and fully correlated ones (1: best on the real mac-building walks);
+#: docs/multi-session.md has both ends' numbers.
+BURST_WEIGHT_POWER = 0.5
 #: Time between consecutive sessions in the joint map's clock, s (no odometry spans it).
 SESSION_GAP_S = 1.0
 #: Parallax (Σ‖Δ camera-to-tag vector‖² over pairs of sightings of a tag) below which a session's
@@ -349,6 +361,35 @@ def scaled_tag_depths(session: Session, scale: float) -> Session:
     )
 
 
+# --------------------------------------------------------------------------- sighting bursts
+
+
+def sighting_burst_sizes(session: Session, used: BoolArray) -> FloatArray:
+    """(M,) for each used detection, how many used sightings of its tag its *burst* holds: the
+    sightings of one tag with no gap longer than ``BURST_GAP_S`` between consecutive ones (the
+    phone looking at the tag for a while, from about one place); 1 for unused detections.
+
+    Sightings of one burst are not independent measurements (the same viewpoint, the same PnP
+    bias), so in a map of several sessions each one's tag variance is multiplied by its burst's
+    size to the power ``BURST_WEIGHT_POWER``: a burst of k weighs as √k sightings, and a walk that
+    lingers at each tag (desnat_straight_once: 10 sightings per burst) does not outvote a walk
+    that passes by (floor_2_straight: 1.1) as much.
+    """
+    detections = session.detections
+    size = np.ones(len(detections))
+    rows_used = np.flatnonzero(used)
+    for tag_id in np.unique(detections.tag_id[rows_used]):
+        rows = rows_used[detections.tag_id[rows_used] == tag_id]
+        order = np.argsort(detections.timestamp_s[rows], kind="stable")
+        rows = rows[order]
+        burst = np.concatenate(
+            [[0], np.cumsum(np.diff(detections.timestamp_s[rows]) > BURST_GAP_S)]
+        )
+        counts = np.bincount(burst)
+        size[rows] = counts[burst]
+    return size
+
+
 # --------------------------------------------------------------------------- the joint map
 
 
@@ -517,12 +558,14 @@ def prepare_joint(
     tag_variance_scale = np.ones(len(combined.detections))
     odometry_variance_scale = np.ones(combined.num_poses)
     odometry_scales = []
+    several = len(plan.datasets) > 1
     for s, dataset in enumerate(plan.datasets):
         tag_k, odometry_k = given.get(dataset, (1.0, 1.0))
         detections = slice(
             detection_starts[s], detection_starts[s] + len(plan.sessions[s].detections)
         )
-        tag_variance_scale[detections] = tag_k
+        burst = sighting_burst_sizes(plan.sessions[s], plan.screenings[s].used) if several else 1.0
+        tag_variance_scale[detections] = tag_k * np.power(burst, BURST_WEIGHT_POWER)
         odometry_variance_scale[starts[s] : starts[s] + plan.sessions[s].num_poses] = odometry_k
         odometry_scales.append(float(odometry_k))
     inputs = GraphInputs(

@@ -18,6 +18,7 @@ from app.domain.joint import (
     AlignmentError,
     align_session,
     optimize_sessions,
+    sighting_burst_sizes,
     tag_depth_scale,
     yaw_of,
 )
@@ -301,3 +302,24 @@ def _scaled_depths(session: Session, scale: float) -> Session:
             detections, phone_T_tag=phone_T_tag, camera_T_tag=camera_T_tag
         ),
     )
+
+
+def test_sighting_bursts_by_hand():
+    session = walks()[0]
+    used = np.ones(len(session.detections), dtype=bool)
+    used[::7] = False
+    sizes = sighting_burst_sizes(session, used)
+    assert np.all(sizes[~used] == 1)
+    detections = session.detections
+    for tag_id in np.unique(detections.tag_id):
+        rows = [r for r in np.argsort(detections.timestamp_s, kind="stable") if used[r]]
+        rows = [r for r in rows if detections.tag_id[r] == tag_id]
+        bursts: list[list[int]] = []
+        for r in rows:
+            if bursts and detections.timestamp_s[r] - detections.timestamp_s[bursts[-1][-1]] <= 3.0:
+                bursts[-1].append(r)
+            else:
+                bursts.append([r])
+        for burst in bursts:
+            assert all(sizes[r] == len(burst) for r in burst)
+    assert sizes[used].max() > 1  # the simulated phone sees a tag several times in a row
