@@ -26,7 +26,7 @@ that did not, which only follow the odometry), with the largest window reached a
 state's size.
 
 The second walk needs the simulator's building without its walk, so this file drives
-``app.domain.simulate``'s private steps (``_walk``, ``_drift_odometry``, …) with a building seed
+``app.domain.simulate``'s steps (``walk_route``, ``drift_odometry``, …) with a building seed
 and a walk seed; ``simulate_session`` ties both to one seed.
 """
 

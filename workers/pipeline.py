@@ -46,6 +46,8 @@ from typing import Any, TypeVar
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.joint import JointMap, optimize_sessions
+from app.domain.joint_path_graph import build_joint_path_graph
 from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
@@ -61,7 +63,13 @@ from app.storage.db import Database, database_fault, first_line
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
 from app.storage.queue import Lease, LeaseLost
-from app.storage.sessions import AUTO_TUNE_TRIALS, BUILD_MAP, SessionNotFound, raw_upload
+from app.storage.sessions import (
+    AUTO_TUNE_TRIALS,
+    BUILD_MAP,
+    SESSION_IDS,
+    SessionNotFound,
+    raw_upload,
+)
 from workers.failures import log_failure
 from workers.lease import JobControl
 
@@ -132,6 +140,12 @@ class JobContext:
     plot_png: bytes | None = None
     #: ``app.domain.path_graph.path_graph_to_json`` of the map's path graph
     path_graph: dict[str, Any] | None = None
+    #: the sessions the map is built from, in order (``SESSION_IDS``; else the job's one)
+    session_ids: list[int] = field(default_factory=list)
+    #: each of them parsed, when there are several (``session`` is then their joint session)
+    sessions: list[Session] = field(default_factory=list)
+    #: the joint optimization of several sessions (``app.domain.joint``)
+    joint: JointMap | None = None
     #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
     auto_tune_trials: int = 0
     #: sweep_trials jobs (``workers/sweep.py``): the prepared session and the finished trials
@@ -209,7 +223,20 @@ def load(ctx: JobContext) -> None:
         raise PermanentJobError(f"a {lease.kind} job needs a session and a map")
     overrides = dict(lease.params)
     ctx.auto_tune_trials = _auto_tune_trials(overrides.pop(AUTO_TUNE_TRIALS, 0))
+    ctx.session_ids = _session_ids(overrides.pop(SESSION_IDS, None), lease.session_id)
     ctx.params = SlamParams().with_overrides(overrides)
+    if len(ctx.session_ids) > 1:
+        if ctx.auto_tune_trials:
+            raise PermanentJobError(f"{AUTO_TUNE_TRIALS} is for maps of one session")
+        for session_id in ctx.session_ids:
+            raw, session = load_session_upload(ctx.db, session_id)
+            ctx.sessions.append(session)
+            ctx.log(
+                f"load: session {session_id}: {session.num_poses} poses, "
+                f"{len(session.detections)} detections of {len(session.tag_ids)} tags, "
+                f"{len(raw) / 1e6:.2f} MB"
+            )
+        return
     ctx.raw_upload, ctx.session = load_session_upload(ctx.db, lease.session_id)
     raw, session = ctx.raw_upload, ctx.session
     require_tags(session)  # before any tuning: a walk with no tag makes no map
@@ -217,6 +244,21 @@ def load(ctx: JobContext) -> None:
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"
     )
+
+
+def _session_ids(value: Any, session_id: int) -> list[int]:
+    if value is None:
+        return [session_id]
+    if (
+        not isinstance(value, list)
+        or not value
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+        or len(set(value)) != len(value)
+    ):
+        raise PermanentJobError(
+            f"{SESSION_IDS} must be a list of distinct session ids, got {value!r}"
+        )
+    return list(value)
 
 
 def _auto_tune_trials(value: Any) -> int:
@@ -266,6 +308,9 @@ def load_session_upload(db: Database, session_id: int) -> tuple[bytes, Session]:
 
 def optimize(ctx: JobContext) -> None:
     """Graph SLAM; progress per Levenberg–Marquardt iteration (an estimate: LM stops early)."""
+    if ctx.sessions:
+        _optimize_joint(ctx)
+        return
     session = _need(ctx.session, "session")
 
     def on_iteration(iteration: int, _error: float) -> None:
@@ -287,11 +332,67 @@ def optimize(ctx: JobContext) -> None:
     )
 
 
+def _optimize_joint(ctx: JobContext) -> None:
+    """Several sessions into one map (``app.domain.joint``); a session the others' tags cannot
+    place fails the job with the reason (AlignmentError is an InvisibleMapError)."""
+    started_s = time.perf_counter()
+    names = [f"session {session_id}" for session_id in ctx.session_ids]
+    joint = optimize_sessions(ctx.sessions, _need(ctx.params, "params"), names=names)
+    ctx.joint, ctx.result, ctx.session = joint, joint.map, joint.combined
+    stats = joint.map.stats
+    if joint.map.detections_used == 0:
+        raise PermanentJobError("every tag detection of every session was rejected")
+    ctx.log(
+        f"optimize: {len(ctx.sessions)} sessions, {stats.start_iterations}+{stats.iterations} "
+        f"iterations, error {stats.initial_error:.6g} → {stats.final_error:.6g}, "
+        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms"
+    )
+    for part in joint.parts:
+        ctx.log(
+            f"optimize: {part.dataset}: placed by {len(part.alignment.inlier_tags)} of "
+            f"{len(part.alignment.shared_tags)} shared tags, odometry variance "
+            f"×{part.odometry_variance_scale:.2f}, {part.detections_used} detections used"
+        )
+
+
+def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
+    """What each session of a joint map contributed (a version's ``statistics["sessions"]``)."""
+    joint = ctx.joint
+    if joint is None:
+        return None
+    out = []
+    for session_id, part in zip(ctx.session_ids, joint.parts, strict=True):
+        out.append(
+            {
+                "session_id": session_id,
+                "poses": part.pose_rows.stop - part.pose_rows.start,
+                "first_pose_row": part.pose_rows.start,
+                "tags": list(part.tag_ids),
+                "detections_used": part.detections_used,
+                "detections_rejected": part.detections_rejected,
+                "tag_chi2_mean": None if math.isnan(part.tag_chi2_mean) else part.tag_chi2_mean,
+                "shared_tags": list(part.alignment.shared_tags),
+                "placed_by_tags": list(part.alignment.inlier_tags),
+                "own_landmark_tags": list(part.local_tags),
+                "odometry_variance_scale": part.odometry_variance_scale,
+                "tag_depth_scale": part.tag_depth_scale,
+                "yaw_rad": part.alignment.yaw_rad,
+            }
+        )
+    return out
+
+
 def evaluate(ctx: JobContext) -> None:
     """Shift metric (no ground truth on the server) and the top-down plot."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     ctx.evaluation = evaluate_map(session, result)
+    if ctx.joint is not None:  # the shift metric over each session's own detections
+        ctx.evaluation = dataclasses.replace(
+            ctx.evaluation,
+            shift_pre=ctx.joint.shift_metric(result.tag_poses_pre()),
+            shift_opt=ctx.joint.shift_metric(),
+        )
     ctx.report(0.5)
     ctx.plot_png = render_map_png(result, session)
     ctx.log(
@@ -303,9 +404,15 @@ def evaluate(ctx: JobContext) -> None:
 def path_graph(ctx: JobContext) -> None:
     """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
     into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
-    tags and points of interest attached to it (app.domain.skeleton)."""
+    tags and points of interest attached to it (app.domain.skeleton). A map of several sessions
+    gets the walked paths of all of them, joined where they cross (app.domain.joint_path_graph).
+    """
     result = _need(ctx.result, "result")
-    graph = build_skeleton(result)
+    graph = (
+        build_skeleton(result)
+        if ctx.joint is None
+        else build_joint_path_graph(result, [part.pose_rows.start for part in ctx.joint.parts])
+    )
     ctx.path_graph = path_graph_to_json(graph)
     # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
     notes = map_to_app_format(result, path_graph=graph)["notes"]
@@ -340,9 +447,15 @@ def store(ctx: JobContext) -> None:
             job_id=ctx.lease.job_id,
             result=result,
             evaluation=_need(ctx.evaluation, "evaluation"),
-            path_length_m=session.path_length_m(),
+            path_length_m=(
+                sum(s.path_length_m() for s in ctx.sessions)
+                if ctx.sessions
+                else session.path_length_m()
+            ),
             plot_png=ctx.plot_png,
             path_graph=ctx.path_graph,
+            session_ids=ctx.session_ids,
+            sessions=_session_contributions(ctx),
         )
     ctx.finished = True
 

@@ -44,12 +44,17 @@ def load_sweep(ctx: JobContext) -> None:
     except sweeps.SweepNotFound as err:
         raise PermanentJobError(str(err)) from err
     if target is None:
-        _, session = load_session_upload(ctx.db, info.session_id)
-        target = TuningTarget.prepare(
-            session,
-            SlamParams().with_overrides(info.base_params),
-            parse_ground_truth_json(ground_truth) if ground_truth else None,
-        )
+        base_params = SlamParams().with_overrides(info.base_params)
+        truth = parse_ground_truth_json(ground_truth) if ground_truth else None
+        if len(info.session_ids) > 1:  # the joint map of the map's sessions
+            loaded = [load_session_upload(ctx.db, i)[1] for i in info.session_ids]
+            target = TuningTarget.prepare_joint(
+                loaded, base_params, truth, names=[f"session {i}" for i in info.session_ids]
+            )
+            session = target.session
+        else:
+            _, session = load_session_upload(ctx.db, info.session_id)
+            target = TuningTarget.prepare(session, base_params, truth)
         _targets[key] = target
         while len(_targets) > TARGET_CACHE_SIZE:
             _targets.popitem(last=False)

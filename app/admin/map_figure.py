@@ -57,10 +57,16 @@ def _line(points_xz: Iterable[Sequence[float] | None]) -> dict[str, list[float |
     return {"x": xs, "z": zs}
 
 
-def _on_floor(xz: FloatArray, floor_of: np.ndarray, floor: int) -> dict[str, list[float | None]]:
-    """The points of one floor, with breaks where the path leaves it."""
+def _on_floor(
+    xz: FloatArray, floor_of: np.ndarray, floor: int, breaks: Sequence[int] = ()
+) -> dict[str, list[float | None]]:
+    """The points of one floor, with breaks where the path leaves it (and before each row in
+    ``breaks``)."""
     points: list[Sequence[float] | None] = []
+    starts = {int(b) for b in breaks if b > 0}
     for k in range(xz.shape[0]):
+        if k in starts and points and points[-1] is not None:
+            points.append(None)
         if floor_of[k] == floor:
             points.append(xz[k].tolist())
         elif points and points[-1] is not None:
@@ -69,9 +75,18 @@ def _on_floor(xz: FloatArray, floor_of: np.ndarray, floor: int) -> dict[str, lis
 
 
 def map_figure(
-    result: MapResult, raw_session: Session | None, path_graph: PathGraph | None
+    result: MapResult,
+    raw_session: Session | None,
+    path_graph: PathGraph | None,
+    *,
+    session_starts: Sequence[int] = (),
+    session_names: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """The figure of a map version (``raw_session`` and ``path_graph`` when available)."""
+    """The figure of a map version (``raw_session`` and ``path_graph`` when available).
+    ``session_starts``: for a map of several sessions, the first pose row of each; the optimized
+    trajectory is broken there (no line joins one walk's end to the next one's start), and each
+    floor also has each session's part (``sessions``: name and line), drawn in its own colour.
+    ``session_names``: their names (default "Session 1", …)."""
     heights_m = result.world_T_phone[:, 1, 3]
     if path_graph is not None and path_graph.floor_levels_m:
         levels_m = np.asarray(path_graph.floor_levels_m, dtype=np.float64)
@@ -104,7 +119,12 @@ def map_figure(
                 "raw": None
                 if raw_xz is None or raw_floor is None
                 else _on_floor(raw_xz, raw_floor, floor),
-                "optimized": _on_floor(result.world_T_phone[:, [0, 2], 3], optimized_floor, floor),
+                "optimized": _on_floor(
+                    result.world_T_phone[:, [0, 2], 3], optimized_floor, floor, session_starts
+                ),
+                "sessions": _session_lines(
+                    result, optimized_floor, floor, session_starts, session_names
+                ),
                 **_graph(path_graph, floor),
                 "tags": tags,
                 "ellipses": _line(outlines),
@@ -122,6 +142,26 @@ def map_figure(
             }
         )
     return {"tag_count": len(result.tag_ids), "floors": floors}
+
+
+def _session_lines(
+    result: MapResult,
+    optimized_floor: np.ndarray,
+    floor: int,
+    session_starts: Sequence[int],
+    session_names: Sequence[str],
+) -> list[dict[str, Any]] | None:
+    """Each session's optimized trajectory on ``floor`` (None for a map of one session)."""
+    starts = sorted(int(s) for s in session_starts)
+    if len(starts) < 2:
+        return None
+    ends = [*starts[1:], result.world_T_phone.shape[0]]
+    names = list(session_names) or [f"Session {k + 1}" for k in range(len(starts))]
+    xz = result.world_T_phone[:, [0, 2], 3]
+    return [
+        {"name": name, "line": _on_floor(xz[a:b], optimized_floor[a:b], floor)}
+        for name, a, b in zip(names, starts, ends, strict=True)
+    ]
 
 
 def _tags(

@@ -3,11 +3,12 @@
     invisible-map process SESSION [--gt GT] [--param NAME=VALUE …] [-o MAP.json]
                           [--app-map FILE] [--plot FILE.png]
     invisible-map evaluate SESSION… --gt GT [--gt GT …] [--param NAME=VALUE …] [--json]
+    invisible-map evaluate A.json B.json … --gt GT --joint [--json]   (one map of all sessions)
     invisible-map evaluate-samples [--out DIR]
     invisible-map sweep SESSION [--gt GT] [--grid | --trials N] [--objective shift|ground_truth]
                         [--space JSON] [--processes N] [--plot-dir DIR] [--json]
     invisible-map simulate OUT.json [--gt-out GT.json] [--from-session SESSION] [--poses N]
-                        [--two-floors] [--noise NAME=VALUE …] [--seed N]
+                        [--two-floors] [--noise NAME=VALUE …] [--seed N] [--sessions N]
     invisible-map serve | worker | migrate | keys …   (the server: see app/cli/server.py)
     invisible-map export OUT.zip [--include-keys] [--force]
     invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/cli/backup.py)
@@ -37,9 +38,10 @@ from app.cli.server import add_server_commands
 from app.cli.tables import render_markdown_table
 from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
-from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.evaluation import Evaluation, evaluate_joint, evaluate_map
 from app.domain.frames import FloatArray
 from app.domain.ground_truth import load_ground_truth
+from app.domain.joint import optimize_sessions
 from app.domain.map_io import app_map_as_served, map_to_json, save_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
@@ -99,6 +101,13 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--gt", type=Path, action="append", required=True, metavar="GT")
     _add_param_option(evaluate)
     evaluate.add_argument("--json", action="store_true", help="print a JSON array, not a table")
+    evaluate.add_argument(
+        "--joint",
+        action="store_true",
+        help="also optimize all the sessions together into one map (docs/multi-session.md): one "
+        'more row, "dataset": "joint", with each session alone against the joint map '
+        '("by_session")',
+    )
     evaluate.set_defaults(handler=_evaluate)
 
     demo = commands.add_parser(
@@ -191,6 +200,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"for {len(args.sessions)} sessions"
         )
     truths = {path: load_ground_truth(path) for path in dict.fromkeys(ground_truth_paths)}
+    if args.joint:
+        return _evaluate_joint(args, params, truths)
     pairs = list(zip(args.sessions, ground_truth_paths * len(args.sessions), strict=False))
     rows = []
     for session_path, truth_path in tqdm(
@@ -207,12 +218,61 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_joint(
+    args: argparse.Namespace, params: SlamParams, truths: dict[Path, dict[int, FloatArray]]
+) -> int:
+    """Each session alone, then the joint map of all of them (``--joint``)."""
+    if len(truths) != 1:
+        raise CommandError("--joint compares every session with one ground truth: give one --gt")
+    ground_truth = next(iter(truths.values()))
+    names = [_dataset_name(path) for path in args.sessions]
+    if len(set(names)) != len(names):
+        raise CommandError(f"--joint needs sessions with different names, got {names}")
+    sessions = [load_session(path) for path in args.sessions]
+    alone = {
+        name: optimize_session(session, params)
+        for name, session in zip(names, sessions, strict=True)
+    }
+    rows: list[Evaluation] = [
+        evaluate_map(session, alone[name], ground_truth, dataset=name)
+        for name, session in zip(names, sessions, strict=True)
+    ]
+    joint = optimize_sessions(sessions, params, names=names)
+    joint_evaluation = evaluate_joint(joint, alone, ground_truth)
+    if args.json:
+        out = [row.to_dict() for row in rows] + [joint_evaluation.to_dict()]
+        print(json.dumps(out, indent=2))
+        return 0
+    print(format_table([*rows, joint_evaluation.row]))
+    lines = [["session", "tags", "GT alone", "GT joint", "RMSE alone m", "RMSE joint m"]]
+    for name, comparison in joint_evaluation.by_session.items():
+        lines.append(
+            [
+                name,
+                str(comparison.tags_compared),
+                _fmt(comparison.gt_metric_alone),
+                _fmt(comparison.gt_metric_joint),
+                _fmt(comparison.tag_rmse_alone_m, 3),
+                _fmt(comparison.tag_rmse_joint_m, 3),
+            ]
+        )
+    print()
+    print(render_markdown_table(lines))
+    for warning in joint.map.warnings:
+        print(f"warning: {warning}")
+    return 0
+
+
+def _dataset_name(path: Path) -> str:
+    return path.stem.split(".")[0]
+
+
 def _evaluate_one(
     session_path: Path, params: SlamParams, ground_truth: dict[int, FloatArray] | None
 ) -> Evaluation:
     session = load_session(session_path)
     result = optimize_session(session, params)
-    return evaluate_map(session, result, ground_truth, dataset=session_path.stem.split(".")[0])
+    return evaluate_map(session, result, ground_truth, dataset=_dataset_name(session_path))
 
 
 TABLE_COLUMNS = (

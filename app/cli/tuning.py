@@ -95,6 +95,14 @@ def add_sweep_commands(commands: Any) -> None:
         help=f"a noise level; names: {', '.join(NOISE_FIELDS)}",
     )
     simulate.add_argument("--seed", type=int, default=0)
+    simulate.add_argument(
+        "--sessions",
+        type=int,
+        default=1,
+        metavar="N",
+        help="N walks of one building, each in its own world frame (OUT-1.json … OUT-N.json, "
+        "one ground truth), for maps of several sessions (docs/multi-session.md)",
+    )
     simulate.set_defaults(handler=simulate_command)
 
 
@@ -223,6 +231,8 @@ def _space(text: str) -> SearchSpace:
 
 def simulate_command(args: argparse.Namespace) -> int:
     noise = _noise(args.noise)
+    if args.sessions != 1:
+        return _simulate_building(args, noise)
     if args.from_session:
         simulated = _simulate_from_session(args.from_session, noise, args.seed)
     else:
@@ -234,6 +244,31 @@ def simulate_command(args: argparse.Namespace) -> int:
     save_json(simulated.ground_truth_json(detected_only=True), gt_out)
     print(simulated)
     print(f"wrote {args.out}")
+    print(f"wrote {gt_out}")
+    return 0
+
+
+def _simulate_building(args: argparse.Namespace, noise: dict[str, Any]) -> int:
+    from app.cli.common import CommandError
+    from app.domain.ground_truth import ground_truth_to_json
+    from app.domain.simulate_building import simulate_building_sessions
+
+    if args.sessions < 1 or args.sessions > 100:
+        raise CommandError(f"--sessions must be 1–100, got {args.sessions}")
+    if args.from_session:
+        raise CommandError("--sessions simulates a procedural building; not with --from-session")
+    config = SimulationConfig(num_poses=args.poses, two_floors=args.two_floors, seed=args.seed)
+    building = simulate_building_sessions(dataclasses.replace(config, **noise), count=args.sessions)
+    seen: set[int] = set()
+    for k, simulated in enumerate(building.sessions, start=1):
+        parse_session(simulated.upload)  # what the server would do with it: must not raise
+        out = args.out.with_name(f"{args.out.stem}-{k}{args.out.suffix}")
+        save_json(simulated.upload, out)
+        seen.update(simulated.detected_tag_ids)
+        print(simulated)
+        print(f"wrote {out}")
+    gt_out = args.gt_out or args.out.with_suffix(".gt.json")
+    save_json(ground_truth_to_json({t: building.world_T_tag_true[t] for t in sorted(seen)}), gt_out)
     print(f"wrote {gt_out}")
     return 0
 

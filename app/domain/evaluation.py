@@ -2,6 +2,7 @@
 
     row = evaluate_map(session, result, ground_truth)     # ground_truth may be None
     row.to_dict()                                         # the ``evaluate --json`` object
+    evaluate_joint(joint, alone, ground_truth)            # a map of several sessions (joint.py)
 
 The pre-optimized and optimized maps are compared on the *same* tags: the tags in the optimized
 map (a tag whose every detection was rejected is in neither). ``gt_metric_pre_all_tags`` is the
@@ -20,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.frames import FloatArray
+from app.domain.joint import JointMap
 from app.domain.map_result import MapResult
 from app.domain.metrics import compare_tag_sets, ground_truth_metric, shift_metric, tag_rmse_m
 from app.domain.session import Session, first_observation_tag_poses
@@ -106,3 +108,83 @@ def _used_mask(session: Session, result: MapResult) -> npt.NDArray[np.bool_]:
     used = np.zeros(len(session.detections), dtype=bool)
     used[result.residuals.tag_detection_index] = True
     return used
+
+
+# --------------------------------------------------------------------------- several sessions
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SessionComparison:
+    """One session of a joint map: its map alone against the joint map, each on the tags of
+    that session that the ground truth has (NaN without ground truth or with < 2 such tags)."""
+
+    gt_metric_alone: float
+    gt_metric_joint: float
+    tag_rmse_alone_m: float
+    tag_rmse_joint_m: float
+    tags_compared: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            k: (None if isinstance(v, float) and math.isnan(v) else v)
+            for k, v in dataclasses.asdict(self).items()
+        }
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class JointEvaluation:
+    """The joint map's row (``dataset`` ``"joint"``, over all its tags) and each session's
+    comparison, by dataset name."""
+
+    row: Evaluation
+    by_session: dict[str, SessionComparison]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``evaluate --joint --json`` object: the usual fields and ``by_session``."""
+        return {
+            **self.row.to_dict(),
+            "by_session": {name: c.to_dict() for name, c in self.by_session.items()},
+        }
+
+
+def evaluate_joint(
+    joint: JointMap,
+    alone: Mapping[str, MapResult],
+    ground_truth: Mapping[int, FloatArray] | None = None,
+) -> JointEvaluation:
+    """The joint map against its pre-optimized baseline (first sightings, sessions placed by
+    their alignments) and ground truth, and each session's map alone (``alone``, by dataset)
+    against the joint map on that session's tags. The shift metrics are over every session's own
+    detections (:meth:`JointMap.shift_metric`)."""
+    row = evaluate_map(joint.combined, joint.map, ground_truth, dataset="joint")
+    row = dataclasses.replace(
+        row,
+        shift_pre=joint.shift_metric(joint.map.tag_poses_pre()),
+        shift_opt=joint.shift_metric(),
+    )
+    nan = math.nan
+    by_session = {}
+    for part in joint.parts:
+        alone_T_tag = alone[part.dataset].tag_poses()
+        joint_T_tag = joint.map.tag_poses()
+        tags = sorted(set(part.tag_ids) & set(alone_T_tag) & set(ground_truth or {}))
+        if ground_truth and len(tags) >= 2:
+            alone_tags = {t: alone_T_tag[t] for t in tags}
+            joint_tags = {t: joint_T_tag[t] for t in tags}
+            comparison = SessionComparison(
+                gt_metric_alone=ground_truth_metric(alone_tags, ground_truth),
+                gt_metric_joint=ground_truth_metric(joint_tags, ground_truth),
+                tag_rmse_alone_m=tag_rmse_m(alone_tags, ground_truth),
+                tag_rmse_joint_m=tag_rmse_m(joint_tags, ground_truth),
+                tags_compared=len(tags),
+            )
+        else:
+            comparison = SessionComparison(
+                gt_metric_alone=nan,
+                gt_metric_joint=nan,
+                tag_rmse_alone_m=nan,
+                tag_rmse_joint_m=nan,
+                tags_compared=len(tags),
+            )
+        by_session[part.dataset] = comparison
+    return JointEvaluation(row=row, by_session=by_session)

@@ -48,7 +48,8 @@ class FactorResiduals:
 
     keyframe_index: (K,) the phone poses in the graph (``SlamParams.keyframe_interval_s``), sorted;
         all N when every pose is.
-    odometry_chi2: (K−1,) between consecutive keyframes.
+    odometry_chi2: (K−1,) between consecutive keyframes; 0 where none joins them (the last pose of
+        one session and the first of the next, in a map of several sessions).
     gravity_chi2: (K,) one attitude factor per keyframe.
     tag_chi2: (U,) one per used detection, in ``detection_index`` order (before any robust kernel).
     tag_detection_index: (U,) which detection each tag factor came from.

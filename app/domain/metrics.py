@@ -3,6 +3,7 @@
     ground_truth_metric(map_T_tag, gt_T_tag)    # the authors' anchor metric, dimensionless
     tag_rmse_m(map_T_tag, gt_T_tag)             # anchor-free, m, after a best-fit rigid alignment
     shift_metric(session, map_T_tag)            # no ground truth needed, dimensionless
+    shift_metric_joint(sessions, map_T_tag)     # over several sessions' detections
     compare_tag_sets(map_T_tag, gt_T_tag)       # which tags the comparison can use
 
 Maps and ground truths are ``{tag_id: world_T_tag}`` with 4x4 float64 poses (m). Lower is better for
@@ -24,6 +25,11 @@ from app.domain.frames import FloatArray, se3_inverse
 from app.domain.session import Session
 
 BoolArray = npt.NDArray[np.bool_]
+
+#: Which definition of the shift metric the numbers were computed with. 1: the origin-dependent
+#: ``‖(rel_obs · rel_map⁻¹).t‖`` with ``rel = world_T_B · world_T_A⁻¹`` (before issue 15); 2: the
+#: paper's, anchored at tag A (docs/architecture.md §4). Stored with sweeps and map metrics.
+SHIFT_METRIC_VERSION = 2
 
 #: Two ground-truth tags closer than this (m) give no ratio in the ground-truth metric.
 COINCIDENT_TAGS_M = 1e-9
@@ -156,7 +162,8 @@ class ShiftPairs:
     taken once from a session so that many maps of it can be scored (a sweep).
 
     tag_a, tag_b: (P,) the tag seen first and the one seen next.
-    rel_obs: (P, 4, 4) ``world_T_B,obs · world_T_A,obs⁻¹``; reach_m: (P,) ``‖rel_obs.t‖`` > 0.
+    rel_obs: (P, 4, 4) ``A_T_B,obs = world_T_A,obs⁻¹ · world_T_B,obs``; reach_m: (P,)
+        ``‖rel_obs.t‖`` > 0, the observed distance from A to B, m.
     """
 
     tag_a: npt.NDArray[np.int64]
@@ -185,7 +192,7 @@ def shift_pairs(session: Session, *, detection_mask: BoolArray | None = None) ->
     tag_ids = detections.tag_id[rows].astype(np.int64)
     different = tag_ids[:-1] != tag_ids[1:]
     first, second = np.flatnonzero(different), np.flatnonzero(different) + 1
-    rel_obs = world_T_tag_obs[second] @ se3_inverse(world_T_tag_obs[first])
+    rel_obs = se3_inverse(world_T_tag_obs[first]) @ world_T_tag_obs[second]
     reach_m = np.linalg.norm(rel_obs[:, :3, 3], axis=1)
     keep = reach_m > 0.0
     return ShiftPairs(
@@ -210,9 +217,9 @@ def mean_shift_ratio(pairs: ShiftPairs, map_T_tag: Mapping[int, FloatArray]) -> 
         return math.nan
     map_T_a = _stack(map_T_tag, tuple(int(t) for t in pairs.tag_a[in_map]))
     map_T_b = _stack(map_T_tag, tuple(int(t) for t in pairs.tag_b[in_map]))
-    rel_map = map_T_b @ se3_inverse(map_T_a)
-    shift = pairs.rel_obs[in_map] @ se3_inverse(rel_map)
-    ratios = np.linalg.norm(shift[:, :3, 3], axis=1) / pairs.reach_m[in_map]
+    rel_map = se3_inverse(map_T_a) @ map_T_b
+    shift_m = pairs.rel_obs[in_map, :3, 3] - rel_map[:, :3, 3]
+    ratios = np.linalg.norm(shift_m, axis=1) / pairs.reach_m[in_map]
     return float(np.mean(ratios))
 
 
@@ -229,16 +236,18 @@ def shift_metric(
     "consecutive" means consecutive among the masked single-tag detections. For each consecutive
     pair of detections of *different* tags A then B::
 
-        rel_obs = world_T_B,obs · world_T_A,obs⁻¹    # raw observations, world_T_tag_observed()
-        rel_map = map_T_B · map_T_A⁻¹
-        shift   = rel_obs · rel_map⁻¹                # ratio = ‖shift.t‖ / ‖rel_obs.t‖
+        rel_obs = world_T_A,obs⁻¹ · world_T_B,obs    # B seen from A, raw observations
+        rel_map = map_T_A⁻¹ · map_T_B                # B predicted from A by the map
+        ratio   = ‖rel_obs.t − rel_map.t‖ / ‖rel_obs.t‖
 
     and the result is the mean ratio over pairs, dimensionless. A pair is skipped when A or B is
     not in the map (the pair is not bridged to the next detection), or when ``‖rel_obs.t‖`` is 0.
     Returns NaN when no pair is left.
 
-    Note that, as defined, ``rel_obs.t = t_B - R_B·R_Aᵀ·t_A`` depends on where the session's world
-    origin is; the metric assumes map and session share the session's world frame.
+    Both relative poses are expressed in tag A's frame, so the value is the same for any world
+    origin and heading of the session, and of the map (the paper's anchoring; version
+    :data:`SHIFT_METRIC_VERSION`). An earlier form, ``‖(rel_obs · rel_map⁻¹).t‖`` with
+    ``rel = world_T_B · world_T_A⁻¹``, depended on where the world origin was.
     """
     return mean_shift_ratio(shift_pairs(session, detection_mask=detection_mask), map_T_tag)
 

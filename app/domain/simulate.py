@@ -348,19 +348,19 @@ def simulate_session(config: SimulationConfig) -> SimulatedSession:
         np.random.default_rng(s) for s in streams
     )
     building = build_building(config, rng_building)
-    world_T_phone_true = _walk(config, building, rng_walk)
-    world_T_phone_odometry = _drift_odometry(config, world_T_phone_true, rng_odometry)
+    world_T_phone_true = walk_route(config, building, rng_walk)
+    world_T_phone_odometry = drift_odometry(config, world_T_phone_true, rng_odometry)
 
     tag_ids = np.array(sorted(building.world_T_tag), dtype=np.int64)
     world_T_tags = np.stack([building.world_T_tag[int(t)] for t in tag_ids])
-    pose_index, tag_row = _visible_pairs(config, building, world_T_phone_true, world_T_tags)
+    pose_index, tag_row = visible_pairs(config, building, world_T_phone_true, world_T_tags)
     camera_T_tag_true = (
         PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone_true[pose_index]) @ world_T_tags[tag_row]
     )
-    detections = _measure(config, camera_T_tag_true, rng_tags, rng_outliers)
-    pois = _points_of_interest(config, world_T_phone_true, rng_poi)
+    detections = measure_detections(config, camera_T_tag_true, rng_tags, rng_outliers)
+    pois = points_of_interest_of(config, world_T_phone_true, rng_poi)
 
-    upload = _upload(
+    upload = upload_document(
         config,
         world_T_phone_odometry,
         pose_index,
@@ -407,7 +407,7 @@ def simulate_along_trajectory(
         raise ParameterError("detection_pose_index must be non-decreasing pose rows")
     streams = np.random.SeedSequence(config.seed).spawn(6)
     _, _, rng_odometry, rng_tags, rng_outliers, _ = (np.random.default_rng(s) for s in streams)
-    world_T_phone_odometry = _drift_odometry(config, world_T_phone_true, rng_odometry)
+    world_T_phone_odometry = drift_odometry(config, world_T_phone_true, rng_odometry)
     tag_ids = np.asarray(detection_tag_id, dtype=np.int64)
     world_T_tags = (
         np.stack([world_T_tag_true[int(t)] for t in tag_ids])
@@ -415,8 +415,8 @@ def simulate_along_trajectory(
         else (np.empty((0, 4, 4)))
     )
     camera_T_tag_true = PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone_true[order]) @ world_T_tags
-    detections = _measure(config, camera_T_tag_true, rng_tags, rng_outliers)
-    upload = _upload(config, world_T_phone_odometry, order, tag_ids, detections, [])
+    detections = measure_detections(config, camera_T_tag_true, rng_tags, rng_outliers)
+    upload = upload_document(config, world_T_phone_odometry, order, tag_ids, detections, [])
     return SimulatedSession(
         config=config,
         upload=upload,
@@ -634,7 +634,9 @@ def _subtract_intervals(
 # --------------------------------------------------------------------------- the walk
 
 
-def _walk(config: SimulationConfig, building: Building, rng: np.random.Generator) -> FloatArray:
+def walk_route(
+    config: SimulationConfig, building: Building, rng: np.random.Generator
+) -> FloatArray:
     """(N, 4, 4) true ``world_T_phone`` along a coverage walk of the building."""
     n = config.num_poses
     step_m = config.speed_m_per_s / config.rate_hz
@@ -810,7 +812,7 @@ def _graph_distances(
     return distance_m
 
 
-def _drift_odometry(
+def drift_odometry(
     config: SimulationConfig, world_T_phone_true: FloatArray, rng: np.random.Generator
 ) -> FloatArray:
     """The odometry: the truth under an accumulating drift that is zero at the first pose.
@@ -854,7 +856,7 @@ def _drift_odometry(
 # --------------------------------------------------------------------------- detections
 
 
-def _visible_pairs(
+def visible_pairs(
     config: SimulationConfig,
     building: Building,
     world_T_phone: FloatArray,
@@ -930,7 +932,7 @@ class _Measurements:
     is_outlier: BoolArray  # (M,)
 
 
-def _measure(
+def measure_detections(
     config: SimulationConfig,
     camera_T_tag_true: FloatArray,
     rng: np.random.Generator,
@@ -1029,7 +1031,7 @@ def _joint_covariance(camera_T_tag: FloatArray, config: SimulationConfig) -> Flo
 # --------------------------------------------------------------------------- points of interest
 
 
-def _points_of_interest(
+def points_of_interest_of(
     config: SimulationConfig, world_T_phone_true: FloatArray, rng: np.random.Generator
 ) -> list[tuple[str, int, FloatArray]]:
     """(name, pose index, phone_T_poi) for each point of interest, at distinct random poses."""
@@ -1049,7 +1051,7 @@ def _points_of_interest(
 # --------------------------------------------------------------------------- upload
 
 
-def _upload(
+def upload_document(
     config: SimulationConfig,
     world_T_phone_odometry: FloatArray,
     pose_index: IntArray,

@@ -24,21 +24,20 @@ Steps:
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from app.domain.frames import FloatArray, relative_se3
+from app.domain.frames import FloatArray, se3_inverse
 from app.domain.keyframes import interpolate_poses, select_keyframes
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats
 from app.domain.params import SlamParams
-from app.domain.screening import screen_detections
+from app.domain.screening import Screening, screen_detections
 from app.domain.session import Session, first_observation_tag_poses, require_tags
 
 #: σ of the gauge prior on the first pose: rotation rad, translation m.
@@ -54,6 +53,8 @@ LINEAR_SOLVER = "SEQUENTIAL_CHOLESKY"
 
 #: Called with (iteration, error) after each LM iteration.
 IterationCallback = Callable[[int, float], None]
+#: Given the odometry factors' chi² at a first optimum, new odometry variance scales (or None).
+OdometryReweighing = Callable[[FloatArray], FloatArray | None]
 
 
 def pose_sigmas(*, rot_rad: FloatArray | float, trans_m: FloatArray | float) -> FloatArray:
@@ -130,27 +131,58 @@ def optimize_session(
         )
     started = time.perf_counter()
     inputs = GraphInputs(session, params, initial_world_T_phone)
+    return optimize_graph_inputs(inputs, params, on_iteration=on_iteration, started=started)
+
+
+def optimize_graph_inputs(
+    inputs: GraphInputs,
+    params: SlamParams,
+    *,
+    on_iteration: IterationCallback | None = None,
+    started: float | None = None,
+    reweigh_odometry: OdometryReweighing | None = None,
+) -> MapResult:
+    """:func:`optimize_session` from prepared inputs (a joint map's several pose chains,
+    ``joint.py``). ``started``: ``time.perf_counter()`` when preparing them began (build time).
+
+    ``reweigh_odometry``: called with the odometry factors' chi² ((K−1,), 0 between pose chains)
+    at the first stage's optimum (default variances, always run then); it returns new
+    ``inputs.odometry_variance_scale`` ((K−1,)) or None to keep them. The second stage, with
+    ``params``' variances and those scales, starts from that optimum."""
+    session = inputs.session
+    started = time.perf_counter() if started is None else started
     screening = inputs.screening
     problem = _build_problem(inputs, params)
     start_params = params.with_default_variances()
-    start_graph = (
-        None if params.has_default_variances else _build_problem(inputs, start_params).graph
+    start_problem = (
+        problem if params.has_default_variances else _build_problem(inputs, start_params)
     )
+    two_stages = reweigh_odometry is not None or not params.has_default_variances
     build_ms = (time.perf_counter() - started) * 1e3
 
     started = time.perf_counter()
     initial_error = float(problem.graph.error(inputs.initial))
     # every setting gives the same graph structure, so one ordering serves both stages
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(problem.graph)
-    if start_graph is None:
+    if not two_stages:
         start_iterations = 0
         values, iterations, final_error = _levenberg_marquardt(
             problem.graph, inputs.initial, params, on_iteration, ordering=ordering
         )
     else:
         start, start_iterations, _ = _levenberg_marquardt(
-            start_graph, inputs.initial, start_params, on_iteration, ordering=ordering
+            start_problem.graph, inputs.initial, start_params, on_iteration, ordering=ordering
         )
+        if reweigh_odometry is not None:
+            chi2 = np.zeros(inputs.odometry_linked.shape[0])
+            chi2[inputs.odometry_linked] = [
+                2.0 * factor.error(start) for factor in start_problem.odometry_factors
+            ]
+            scales = reweigh_odometry(chi2)
+            if scales is not None:
+                inputs.odometry_variance_scale = np.asarray(scales, dtype=np.float64)
+                problem.odometry_factors = _odometry_factors(inputs, params)
+                problem.graph = _problem_graph(inputs, problem)
         values, iterations, final_error = _levenberg_marquardt(
             problem.graph,
             start,
@@ -219,6 +251,21 @@ def optimize_session(
     )
 
 
+def odometry_chi2(inputs: GraphInputs, params: SlamParams, values: gtsam.Values) -> FloatArray:
+    """(K−1,) each odometry factor's chi² at ``values``; 0 between two pose chains."""
+    chi2 = np.zeros(inputs.odometry_linked.shape[0])
+    chi2[inputs.odometry_linked] = [
+        2.0 * factor.error(values) for factor in _odometry_factors(inputs, params)
+    ]
+    return chi2
+
+
+def local_landmark_key(index: int) -> int:
+    """The graph key of the ``index``-th landmark that is not a tag of the map (``GraphInputs``'
+    ``local_landmarks``)."""
+    return int(gtsam.symbol("m", index))
+
+
 def _counting_from(offset: int, on_iteration: IterationCallback | None) -> IterationCallback | None:
     """``on_iteration`` for a second LM stage: its iterations numbered on from ``offset``."""
     if on_iteration is None or offset == 0:
@@ -258,48 +305,99 @@ class GraphInputs:
         session: Session,
         params: SlamParams,
         initial_world_T_phone: FloatArray | None = None,
+        *,
+        screening: Screening | None = None,
+        chain_starts: Sequence[int] = (0,),
+        local_landmarks: Mapping[int, int] | None = None,
+        tag_variance_scale: FloatArray | None = None,
+        odometry_variance_scale: FloatArray | None = None,
     ) -> None:
+        """``chain_starts``: the first pose row of each pose chain (a joint map's sessions,
+        ``joint.py``): no odometry links the last pose of one chain to the first of the next, and
+        both are keyframes. ``screening``: computed by the caller (per session, for a joint map).
+        ``local_landmarks``: detection row → a landmark key other than ``L(tag_id)`` (a session's
+        sightings of a shared tag that disagree with the others'); those landmarks are solved but
+        are not tags of the map. ``tag_variance_scale`` ((M,) per detection) and
+        ``odometry_variance_scale`` ((N,) per pose, taken at the step's first keyframe) multiply
+        the noise variances (a joint map weighs each session by what its data supports)."""
         self.session = session
-        self.screening = screen_detections(session.detections, params)
+        self.screening = screening or screen_detections(session.detections, params)
         detections = session.detections
         world_T_phone = session.world_T_phone
         start_T_phone = world_T_phone if initial_world_T_phone is None else initial_world_T_phone
+        n = session.num_poses
+        starts = sorted({int(s) for s in chain_starts} | {0})
+        #: (S,) first pose row of each pose chain
+        self.chain_starts = np.array(starts, dtype=np.int64)
+        chain_ends = [s - 1 for s in starts[1:]] + [n - 1]
         #: (K,) the session's pose indices in the graph, sorted
         self.keyframes = select_keyframes(
             session.timestamp_s,
-            required=detections.pose_index[self.screening.used],
+            required=np.concatenate(
+                [detections.pose_index[self.screening.used], starts, chain_ends]
+            ).astype(np.int64),
             interval_s=params.keyframe_interval_s,
         )
         keyframes = self.keyframes.tolist()
         self.gauge_pose = to_pose3(world_T_phone[0])
+        first_of_chain = set(starts)
+        #: (K−1,) whether consecutive keyframes k, k+1 are joined by odometry (same chain)
+        self.odometry_linked = np.array(
+            [b not in first_of_chain for b in keyframes[1:]], dtype=bool
+        )
         self.odometry_dt_s = np.round(
             np.maximum(np.diff(session.timestamp_s[self.keyframes]), MIN_ODOMETRY_DT_S), 4
         )
-        self.phone_T_next = [
-            to_pose3(relative_se3(world_T_phone[a], world_T_phone[b]))
-            for a, b in itertools.pairwise(keyframes)
-        ]
+        phone_T_next = (
+            se3_inverse(world_T_phone[self.keyframes[:-1]]) @ (world_T_phone[self.keyframes[1:]])
+        )
+        self.phone_T_next = [to_pose3(T) for T in phone_T_next]
         phone_up = np.einsum("nji,j->ni", world_T_phone[self.keyframes, :3, :3], WORLD_UP)
         self.phone_up = [gtsam.Unit3(up) for up in phone_up]
         self.tag_detection_rows = [int(row) for row in np.flatnonzero(self.screening.used)]
         self.tag_ids = [int(detections.tag_id[row]) for row in self.tag_detection_rows]
+        local = dict(local_landmarks or {})
+        #: the landmark key each used detection's factor connects to
+        self.landmark_keys = [
+            local.get(row, L(tag_id))
+            for row, tag_id in zip(self.tag_detection_rows, self.tag_ids, strict=True)
+        ]
         self.tag_pose_indices = [int(detections.pose_index[row]) for row in self.tag_detection_rows]
         self.phone_T_tag = [
             to_pose3(detections.phone_T_tag[row]) for row in self.tag_detection_rows
         ]
         self.camera_T_tag = detections.camera_T_tag[self.tag_detection_rows]
+        #: (U,) and (K−1,) variance multipliers of the tag and odometry factors
+        self.tag_variance_scale = (
+            np.ones(len(self.tag_detection_rows))
+            if tag_variance_scale is None
+            else np.asarray(tag_variance_scale, dtype=np.float64)[self.tag_detection_rows]
+        )
+        self.odometry_variance_scale = (
+            np.ones(len(keyframes) - 1 if keyframes else 0)
+            if odometry_variance_scale is None
+            else np.asarray(odometry_variance_scale, dtype=np.float64)[self.keyframes[:-1]]
+        )
         self.initial = gtsam.Values()
         for i in keyframes:
             self.initial.insert(X(i), to_pose3(start_T_phone[i]))
         self.tag_rows: dict[int, list[int]] = {}
-        for row, tag_id, pose_index in zip(
-            self.tag_detection_rows, self.tag_ids, self.tag_pose_indices, strict=True
+        #: rows of the detections of each local landmark, by key
+        self.local_rows: dict[int, list[int]] = {}
+        for row, tag_id, pose_index, key in zip(
+            self.tag_detection_rows,
+            self.tag_ids,
+            self.tag_pose_indices,
+            self.landmark_keys,
+            strict=True,
         ):
-            if tag_id not in self.tag_rows:
-                self.tag_rows[tag_id] = []
+            rows = self.tag_rows if key == L(tag_id) else self.local_rows
+            label = tag_id if key == L(tag_id) else key
+            if label not in rows:
+                rows[label] = []
                 first_T_tag = start_T_phone[pose_index] @ detections.phone_T_tag[row]
-                self.initial.insert(L(tag_id), to_pose3(first_T_tag))
-            self.tag_rows[tag_id].append(row)
+                self.initial.insert(key, to_pose3(first_T_tag))
+            rows[label].append(row)
 
 
 def prepare_graph_inputs(session: Session, params: SlamParams | None = None) -> GraphInputs:
@@ -416,11 +514,18 @@ def _build_problem(inputs: GraphInputs, params: SlamParams) -> _Problem:
     problem.odometry_factors = _odometry_factors(inputs, params)
     problem.gravity_factors = _gravity_factors(inputs, params)
     problem.tag_factors, problem.tag_covariances = _tag_factors(inputs, params)
-    problem.graph.add(_gauge_prior(inputs))
+    problem.graph = _problem_graph(inputs, problem)
+    return problem
+
+
+def _problem_graph(inputs: GraphInputs, problem: _Problem) -> gtsam.NonlinearFactorGraph:
+    """The gauge prior, then the problem's odometry, gravity and tag factors, in that order."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(_gauge_prior(inputs))
     for kind in (problem.odometry_factors, problem.gravity_factors, problem.tag_factors):
         for factor in kind:
-            problem.graph.add(factor)
-    return problem
+            graph.add(factor)
+    return graph
 
 
 def _factor_graph(factors: list[Any]) -> gtsam.NonlinearFactorGraph:
@@ -441,15 +546,20 @@ def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
 def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.BetweenFactorPose3]:
     """2b. Odometry between consecutive keyframes, noise growing with the time between them (one
     noise model per distinct duration)."""
-    noise_by_dt: dict[float, gtsam.noiseModel.Base] = {}
+    noise_by_dt: dict[tuple[float, float], gtsam.noiseModel.Base] = {}
     factors = []
     keyframes = inputs.keyframes.tolist()
     for k, phone_T_next in enumerate(inputs.phone_T_next):
+        if not inputs.odometry_linked[k]:
+            continue  # the next keyframe starts another pose chain (session)
         key_dt = float(inputs.odometry_dt_s[k])
-        noise = noise_by_dt.get(key_dt)
+        scale = float(inputs.odometry_variance_scale[k])
+        noise = noise_by_dt.get((key_dt, scale))
         if noise is None:
-            noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(key_dt, params))
-            noise_by_dt[key_dt] = noise
+            noise = gtsam.noiseModel.Diagonal.Sigmas(
+                odometry_sigmas(key_dt, params) * math.sqrt(scale)
+            )
+            noise_by_dt[key_dt, scale] = noise
         factors.append(
             gtsam.BetweenFactorPose3(X(keyframes[k]), X(keyframes[k + 1]), phone_T_next, noise)
         )
@@ -473,14 +583,15 @@ def _tag_factors(
     """2d. Tags, under a Huber kernel; and each factor's covariance (tag frame)."""
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
     factors, covariances = [], []
-    for k, tag_id in enumerate(inputs.tag_ids):
+    for k, landmark_key in enumerate(inputs.landmark_keys):
         covariance = tag_covariance_in_tag_frame(inputs.camera_T_tag[k], params)
+        covariance = covariance * inputs.tag_variance_scale[k]
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(covariance)
         if huber is not None:
             noise = gtsam.noiseModel.Robust.Create(huber, noise)
         factors.append(
             gtsam.BetweenFactorPose3(
-                X(inputs.tag_pose_indices[k]), L(tag_id), inputs.phone_T_tag[k], noise
+                X(inputs.tag_pose_indices[k]), landmark_key, inputs.phone_T_tag[k], noise
             )
         )
         covariances.append(covariance)
@@ -541,7 +652,11 @@ def _tag_marginals(
 
 
 def _residuals(inputs: GraphInputs, problem: _Problem, values: gtsam.Values) -> FactorResiduals:
-    odometry_chi2 = np.array([2.0 * factor.error(values) for factor in problem.odometry_factors])
+    # (K−1,) one per pair of consecutive keyframes; 0 where no odometry joins them (two chains)
+    odometry_chi2 = np.zeros(inputs.odometry_linked.shape[0])
+    odometry_chi2[inputs.odometry_linked] = [
+        2.0 * factor.error(values) for factor in problem.odometry_factors
+    ]
     gravity_chi2 = np.array([2.0 * factor.error(values) for factor in problem.gravity_factors])
     tag_errors = (
         np.stack([factor.unwhitenedError(values) for factor in problem.tag_factors])
@@ -570,7 +685,10 @@ __all__ = [
     "GraphInputs",
     "TrialGraph",
     "linearize_and_solve_ms",
+    "local_landmark_key",
+    "odometry_chi2",
     "odometry_sigmas",
+    "optimize_graph_inputs",
     "optimize_session",
     "optimize_tag_poses",
     "pose_sigmas",

@@ -51,6 +51,7 @@ import numpy as np
 
 from app.domain.errors import ParameterError
 from app.domain.frames import FloatArray
+from app.domain.joint import joint_shift_pairs, prepare_joint
 from app.domain.metrics import (
     ShiftPairs,
     ground_truth_metric,
@@ -60,7 +61,13 @@ from app.domain.metrics import (
 )
 from app.domain.params import NOISE_VARIANCE_FIELDS, SlamParams
 from app.domain.session import Session, first_observation_tag_poses
-from app.domain.slam import GraphInputs, TrialGraph, optimize_session, prepare_graph_inputs
+from app.domain.slam import (
+    GraphInputs,
+    TrialGraph,
+    odometry_chi2,
+    optimize_session,
+    prepare_graph_inputs,
+)
 
 if TYPE_CHECKING:
     import gtsam
@@ -259,6 +266,9 @@ class TuningTarget:
         self.inputs = inputs
         self.pairs = pairs
         self.graph = TrialGraph(inputs)
+        #: whether a trial with the default variances is the warm start itself (one session);
+        #: a joint map's build goes on from there with each session's odometry reweighed
+        self.first_stage_is_map = True
         self._warm_start: gtsam.Values | None = None
         self._start_map: dict[int, FloatArray] = {}
         self._start_iterations = 0
@@ -276,6 +286,41 @@ class TuningTarget:
         inputs = prepare_graph_inputs(session, params)
         pairs = shift_pairs(session, detection_mask=inputs.screening.used)
         return cls(session, params, ground_truth, inputs, pairs)
+
+    @classmethod
+    def prepare_joint(
+        cls,
+        sessions: Sequence[Session],
+        base_params: SlamParams | None = None,
+        ground_truth: Mapping[int, FloatArray] | None = None,
+        *,
+        names: Sequence[str] | None = None,
+    ) -> TuningTarget:
+        """A map of several sessions prepared for trials (``app.domain.joint``): the shift
+        metric over every session's own detections, and each trial the map a build with its
+        setting makes: from the defaults' optimum, each session's odometry weighed by its
+        residuals there (once, as a build does), LM with the trial's variances."""
+        params = base_params or SlamParams()
+        joint = prepare_joint(sessions, params, names=names)
+        masks = [
+            joint.screening.used[start : start + len(session.detections)]
+            for start, session in zip(joint.detection_starts, joint.plan.sessions, strict=True)
+        ]
+        pairs = joint_shift_pairs(joint.plan.sessions, masks)
+        target = cls(joint.combined, params, ground_truth, joint.inputs, pairs)
+        start = params.with_default_variances().with_overrides({"compute_marginals": False})
+        target._start_map, target._start_iterations, target._warm_start = TrialGraph(
+            joint.inputs
+        ).optimize(start)
+        if len(joint.plan.sessions) > 1:
+            scales = joint.reweigh(odometry_chi2(joint.inputs, start, target._warm_start))
+            if scales is not None:
+                joint.inputs.odometry_variance_scale = scales
+            target.graph = TrialGraph(joint.inputs)
+            target.first_stage_is_map = False
+        pre_all = first_observation_tag_poses(joint.combined)
+        target.pre_map = {tag_id: pre_all[tag_id] for tag_id in joint.inputs.tag_rows}
+        return target
 
     @property
     def warm_start(self) -> gtsam.Values:
@@ -327,7 +372,8 @@ class TuningTarget:
         max_iterations = params.max_iterations
         try:
             start = self.warm_start
-            if params.has_default_variances:  # a build makes the first stage its map
+            if params.has_default_variances and self.first_stage_is_map:
+                # a build makes the first stage its map
                 map_T_tag, iterations = self._start_map, self._start_iterations
                 max_iterations = self.base_params.max_iterations
             else:

@@ -15,28 +15,118 @@ from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
 from app.domain.path_graph import path_graph_from_json
 from app.services.errors import Conflict, InvalidInput, NotFound
-from app.storage import images, maps, queue
+from app.storage import images, maps, queue, sessions
 from app.storage.images import MapImage, StoredImage
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
-from app.storage.sessions import BUILD_MAP
+from app.storage.sessions import BUILD_MAP, SESSION_IDS
 
 
 def enqueue_rebuild(
-    db_session: Session, map_id: int, overrides: dict[str, Any], *, max_attempts: int
+    db_session: Session,
+    map_id: int,
+    overrides: dict[str, Any],
+    *,
+    max_attempts: int,
+    session_ids: list[int] | None = None,
 ) -> tuple[MapInfo, int]:
-    """Queue a build of map ``map_id``'s session with ``overrides`` (already checked, see
-    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound."""
+    """Queue a build of map ``map_id`` with ``overrides`` (already checked, see
+    :func:`checked_overrides`) from its sessions, or from ``session_ids`` (an older version's,
+    to make it again); returns the map and the job's id. Raises MapNotFound."""
     info = maps.get_map(db_session, map_id)
+    ids = list(session_ids or info.session_ids)
+    params = dict(overrides)
+    if len(ids) > 1:
+        params[SESSION_IDS] = ids
     job_id = queue.enqueue(
         db_session,
         kind=BUILD_MAP,
         map_id=info.id,
-        session_id=info.session_id,
-        params=overrides,
+        session_id=ids[0],
+        params=params,
         max_attempts=max_attempts,
     )
     return info, job_id
+
+
+def checked_session_ids(db_session: Session, session_ids: list[int]) -> None:
+    """A 422 naming the first session id that is repeated or is no session."""
+    seen: set[int] = set()
+    for k, session_id in enumerate(session_ids):
+        if session_id in seen:
+            raise InvalidInput(
+                "invalid_sessions",
+                f"session {session_id} is listed twice",
+                field=f"session_ids.{k}",
+            )
+        seen.add(session_id)
+        try:
+            sessions.get_session(db_session, session_id)
+        except sessions.SessionNotFound as err:
+            raise InvalidInput(
+                "invalid_sessions", f"session {session_id} not found", field=f"session_ids.{k}"
+            ) from err
+
+
+def current_overrides(info: MapInfo) -> dict[str, Any]:
+    """The current version's parameters that differ from the defaults (a rebuild after a change
+    of sessions keeps them); none before the first version."""
+    if info.current is None:
+        return {}
+    defaults = SlamParams().to_dict()
+    return {
+        name: value
+        for name, value in info.current.params.items()
+        if name in defaults and value != defaults[name]
+    }
+
+
+def add_session_to_map(
+    db_session: Session, map_id: int, session_id: int, *, max_attempts: int
+) -> tuple[MapInfo, int]:
+    """Add an uploaded session to a map and queue the rebuild that makes the version of all its
+    sessions; the map and the job id. 404 for no such map or session, 409 ``already_in_map``."""
+    sessions.get_session(db_session, session_id)  # SessionNotFound: 404
+    try:
+        maps.add_session(db_session, map_id, session_id)
+    except maps.MapMembershipError as err:
+        raise Conflict(err.code, str(err)) from err
+    info = maps.get_map(db_session, map_id)
+    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
+
+
+def remove_session_from_map(
+    db_session: Session, map_id: int, session_id: int, *, max_attempts: int
+) -> tuple[MapInfo, int]:
+    """Take a session out of a map (the upload stays) and queue the rebuild without it. 404 for
+    no such map, 409 ``not_in_map`` or ``last_session``."""
+    try:
+        maps.remove_session(db_session, map_id, session_id)
+    except maps.MapMembershipError as err:
+        if err.code == "not_in_map":
+            raise NotFound(err.code, str(err)) from err
+        raise Conflict(err.code, str(err)) from err
+    info = maps.get_map(db_session, map_id)
+    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
+
+
+def merge_maps(
+    db_session: Session, map_id: int, other_map_id: int, *, max_attempts: int
+) -> tuple[MapInfo, int]:
+    """Merge map ``other_map_id`` into ``map_id``: its sessions join this map's (after them) and
+    it is deleted (its sessions' uploads stay); queues the rebuild of this map. 404 for either
+    map missing, 409 ``same_map`` for a map merged into itself."""
+    if map_id == other_map_id:
+        raise Conflict("same_map", f"map {map_id} cannot be merged into itself")
+    ids = maps.map_session_ids(db_session, map_id)
+    other_ids = maps.map_session_ids(db_session, other_map_id)
+    for session_id in other_ids:
+        if session_id not in ids:
+            maps.add_session(db_session, map_id, session_id)
+            ids.append(session_id)
+    delete_map_and_jobs(db_session, other_map_id)
+    info = maps.get_map(db_session, map_id)
+    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
 
 
 def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:

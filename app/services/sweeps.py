@@ -85,7 +85,11 @@ def apply_best(
         raise Conflict(NO_BEST[0], f"sweep {info.id} has no converged trial yet")
     overrides = checked_overrides({**info.base_params, **best.values})
     map_info, job_id = enqueue_rebuild(
-        db_session, info.map_id, overrides, max_attempts=max_attempts
+        db_session,
+        info.map_id,
+        overrides,
+        max_attempts=max_attempts,
+        session_ids=info.session_ids or [info.session_id],
     )
     sweeps.set_applied(db_session, info.id, job_id)
     return map_info, job_id, overrides

@@ -24,8 +24,9 @@ from app.domain.evaluation import Evaluation
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
+from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.session import display_name_of
-from app.storage.orm import MapRow, MapTag, MapVersion, SessionImage, utc_now
+from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
 from app.storage.rows import info_from_row
 
 #: Load options for a version's metadata without its (large) map document and plot.
@@ -64,10 +65,13 @@ class VersionInfo:
     rejections: list[dict[str, Any]]
     warnings: list[str]
     content_sha256: str
+    #: the sessions it was optimized from, in order (the first is the reference frame); empty for
+    #: versions made before maps held several sessions (made from the map's ``session_id``)
+    session_ids: list[int]
 
     @classmethod
     def from_row(cls, row: MapVersion) -> VersionInfo:
-        return info_from_row(cls, row)
+        return info_from_row(cls, row, session_ids=list(row.session_ids or []))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -87,6 +91,8 @@ class MapInfo:
     current: VersionInfo | None
     display_name: str = ""
     image_sha256: str | None = None
+    #: the sessions it is made of now, in order (the next build uses them)
+    session_ids: list[int]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -106,8 +112,11 @@ class TagPose:
 def create_map(
     db_session: Session, *, name: str, session_id: int, display_name: str | None = None
 ) -> int:
-    row = MapRow(name=name, display_name=display_name, session_id=session_id, created_at=utc_now())
+    now = utc_now()
+    row = MapRow(name=name, display_name=display_name, session_id=session_id, created_at=now)
     db_session.add(row)
+    db_session.flush()
+    db_session.add(MapSession(map_id=row.id, session_id=session_id, added_at=now))
     db_session.flush()
     return row.id
 
@@ -122,6 +131,119 @@ def set_display_name(db_session: Session, map_id: int, display_name: str) -> Map
     return _map_info(db_session, row)
 
 
+# --------------------------------------------------------------------------- sessions of a map
+
+
+class MapMembershipError(ValueError):
+    """A change of a map's sessions that cannot be made. ``code``: ``already_in_map``,
+    ``not_in_map``, ``last_session``, ``same_map``."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def map_session_ids(db_session: Session, map_id: int) -> list[int]:
+    """The sessions map ``map_id`` is made of, in order (the first is the reference frame).
+    Raises MapNotFound."""
+    row = db_session.get(MapRow, map_id)
+    if row is None:
+        raise MapNotFound(map_id)
+    return _session_ids(db_session, row)
+
+
+def _session_ids(db_session: Session, row: MapRow) -> list[int]:
+    ids = list(
+        db_session.scalars(
+            select(MapSession.session_id).where(MapSession.map_id == row.id).order_by(MapSession.id)
+        )
+    )
+    return ids or [row.session_id]  # a map restored from an archive made before map_session
+
+
+def add_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
+    """Add a session to a map (last in the order); the map's sessions after. Raises MapNotFound,
+    MapMembershipError ``already_in_map`` (the session must exist: the caller checks)."""
+    ids = map_session_ids(db_session, map_id)
+    if session_id in ids:
+        raise MapMembershipError(
+            "already_in_map", f"session {session_id} is already in map {map_id}"
+        )
+    _ensure_rows(db_session, map_id, ids)
+    db_session.add(MapSession(map_id=map_id, session_id=session_id, added_at=utc_now()))
+    db_session.flush()
+    return [*ids, session_id]
+
+
+def remove_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
+    """Take a session out of a map (its upload and other maps stay); the map's sessions after.
+    The first remaining session becomes the map's reference. Raises MapNotFound,
+    MapMembershipError ``not_in_map`` or ``last_session``."""
+    ids = map_session_ids(db_session, map_id)
+    if session_id not in ids:
+        raise MapMembershipError("not_in_map", f"session {session_id} is not in map {map_id}")
+    if len(ids) == 1:
+        raise MapMembershipError(
+            "last_session",
+            f"session {session_id} is the only session of map {map_id}: a map needs one; "
+            f"delete the map instead",
+        )
+    _ensure_rows(db_session, map_id, ids)
+    db_session.execute(
+        delete(MapSession).where(MapSession.map_id == map_id, MapSession.session_id == session_id)
+    )
+    remaining = [i for i in ids if i != session_id]
+    row = db_session.get(MapRow, map_id)
+    assert row is not None
+    row.session_id = remaining[0]
+    db_session.flush()
+    return remaining
+
+
+def _ensure_rows(db_session: Session, map_id: int, ids: list[int]) -> None:
+    """Write the membership rows of a map that has none yet (restored from an old archive)."""
+    present = db_session.scalar(
+        select(func.count()).select_from(MapSession).where(MapSession.map_id == map_id)
+    )
+    if not present:
+        for session_id in ids:
+            db_session.add(MapSession(map_id=map_id, session_id=session_id, added_at=utc_now()))
+        db_session.flush()
+
+
+def maps_sharing_tags(
+    db_session: Session, tag_ids: list[int], *, exclude_map_id: int | None = None
+) -> list[tuple[int, str, list[int]]]:
+    """Maps whose current version holds any of ``tag_ids``: (map id, name, the shared tag ids),
+    most shared first."""
+    if not tag_ids:
+        return []
+    newest = (
+        select(MapVersion.map_id, func.max(MapVersion.number).label("number"))
+        .group_by(MapVersion.map_id)
+        .subquery()
+    )
+    rows = db_session.execute(
+        select(MapRow.id, MapRow.name, MapTag.tag_id)
+        .join(MapVersion, MapVersion.map_id == MapRow.id)
+        .join(
+            newest,
+            (newest.c.map_id == MapVersion.map_id) & (newest.c.number == MapVersion.number),
+        )
+        .join(MapTag, MapTag.map_version_id == MapVersion.id)
+        .where(MapTag.tag_id.in_(sorted(set(tag_ids))))
+        .order_by(MapRow.id, MapTag.tag_id)
+    ).all()
+    shared: dict[int, tuple[str, list[int]]] = {}
+    for map_id, name, tag_id in rows:
+        if map_id != exclude_map_id:
+            shared.setdefault(map_id, (name, []))[1].append(int(tag_id))
+    return sorted(
+        ((map_id, name, tags) for map_id, (name, tags) in shared.items()),
+        key=lambda item: (-len(item[2]), item[0]),
+    )
+
+
 def store_version(
     db_session: Session,
     *,
@@ -132,9 +254,12 @@ def store_version(
     path_length_m: float,
     plot_png: bytes | None,
     path_graph: dict[str, Any] | None = None,
+    session_ids: list[int] | None = None,
+    sessions: list[dict[str, Any]] | None = None,
 ) -> VersionInfo:
     """Add the next version of ``map_id`` in the caller's transaction; ``path_graph`` is
-    ``app.domain.path_graph.path_graph_to_json`` of it."""
+    ``app.domain.path_graph.path_graph_to_json`` of it. ``session_ids``: the sessions it was made
+    from, in order; ``sessions``: what each contributed (``statistics["sessions"]``)."""
     number = 1 + (
         db_session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id))
         or 0
@@ -144,6 +269,7 @@ def store_version(
     metrics = {
         "shift_pre": _finite_or_none(evaluation.shift_pre),
         "shift_opt": _finite_or_none(evaluation.shift_opt),
+        "shift_metric_version": SHIFT_METRIC_VERSION,
     }
     statistics = {
         "poses": int(result.pose_id.shape[0]),
@@ -161,6 +287,8 @@ def store_version(
         "optimize_ms": result.stats.optimize_ms,
         "marginals_ms": result.stats.marginals_ms,
     }
+    if sessions is not None:
+        statistics["sessions"] = sessions
     row = MapVersion(
         map_id=map_id,
         number=number,
@@ -179,6 +307,7 @@ def store_version(
         plot_png=plot_png,
         content_sha256=hashlib.sha256(encoded).hexdigest(),
         path_graph_gzip=None if path_graph is None else _gzip_json(path_graph),
+        session_ids=session_ids,
     )
     db_session.add(row)
     db_session.flush()
@@ -340,6 +469,7 @@ def _map_info(
         current=VersionInfo.from_row(current) if current is not None else None,
         display_name=row.display_name or display_name_of(row.name),
         image_sha256=image_sha256,
+        session_ids=_session_ids(db_session, row),
     )
 
 

@@ -26,6 +26,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -174,7 +175,8 @@ class SessionUpload(Base):
 
 
 class MapRow(Base):
-    """A map: one session's map, in versions (the latest succeeded one is current)."""
+    """A map, in versions (the latest succeeded one is current). ``session_id`` is its first
+    (reference) session; ``map_session`` lists all the sessions it is made of."""
 
     __tablename__ = "map"
     __table_args__ = (NEVER_REUSE_IDS,)
@@ -203,6 +205,21 @@ class SessionImage(Base):
     size_bytes: Mapped[int]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class MapSession(Base):
+    """A session a map is made of (a building's map holds several; docs/multi-session.md). The
+    order of ``id`` is the order they are optimized in: the first is the reference frame."""
+
+    __tablename__ = "map_session"
+    __table_args__ = (UniqueConstraint("map_id", "session_id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), index=True
+    )
+    added_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
 class Job(Base):
@@ -276,6 +293,9 @@ class MapVersion(Base):
     content_sha256: Mapped[str] = mapped_column(String(64))
     #: ``app.domain.path_graph.path_graph_to_json``, gzip; null for versions built before it
     path_graph_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
+    #: the sessions it was optimized from, in order (the first is the reference frame); null for
+    #: versions built before maps held several sessions (their map's ``session_id`` alone)
+    session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
 
 
 class MapTag(Base):
@@ -364,6 +384,12 @@ class Sweep(Base):
     ground_truth: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
     baseline: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
     state: Mapped[str] = mapped_column(String(16), default="running")
+    #: which definition of the shift metric its trials were scored with
+    #: (``app.domain.metrics.SHIFT_METRIC_VERSION``); sweeps stored before the column are 1
+    shift_metric_version: Mapped[int] = mapped_column(server_default=text("1"))
+    #: the sessions of its map when it started, in order, when there were several (the trials
+    #: are joint maps of them; ``apply`` rebuilds from them); null for a map of one session
+    session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
     error: Mapped[str | None] = mapped_column(Text)
     applied_job_id: Mapped[int | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)

@@ -31,13 +31,16 @@ from sqlalchemy.orm import Session
 
 from app.domain.session import Session as ParsedSession
 from app.storage import maps, queue
-from app.storage.orm import Job, MapRow, SessionRow, SessionUpload, utc_now
+from app.storage.orm import Job, MapRow, MapSession, SessionRow, SessionUpload, utc_now
 from app.storage.rows import info_from_row
 
 #: The job kind that turns a session into a map version.
 BUILD_MAP = "build_map"
 #: A build_map job parameter: tune the noise variances by the shift metric first (trial count).
 AUTO_TUNE_TRIALS = "auto_tune_trials"
+#: A build_map job parameter: the sessions of a map of several, in order (absent: the job's one
+#: ``session_id``). The job, and so the version it makes, records exactly which it used.
+SESSION_IDS = "session_ids"
 #: Longest ``map_id`` (the app's map name) a session may have, characters.
 MAX_MAP_NAME_LENGTH = 200
 #: Longest idempotency key, characters.
@@ -150,6 +153,9 @@ class UploadResult:
     map_name: str
     statistics: SessionStatistics
     replayed: bool
+    #: maps (other than its own) whose current version has some of its tags: (map id, name,
+    #: shared tag ids), most shared first. Nothing merges by itself; an admin may merge them.
+    shares_tags_with: tuple[tuple[int, str, list[int]], ...] = ()
 
 
 # --------------------------------------------------------------------------- writing
@@ -232,6 +238,9 @@ def create_session(
         map_name=row.map_name,
         statistics=statistics,
         replayed=False,
+        shares_tags_with=tuple(
+            maps.maps_sharing_tags(db_session, statistics.tag_ids, exclude_map_id=map_id)
+        ),
     )
 
 
@@ -256,20 +265,32 @@ def replay_upload(db_session: Session, session_id: int, sha256: str) -> UploadRe
             key, row.id, "the body differs from that upload; use a new key for a new upload"
         )
     map_id = db_session.scalar(select(func.min(MapRow.id)).where(MapRow.session_id == row.id))
+    if map_id is None:  # its own map was merged into another: the map that holds it now
+        map_id = db_session.scalar(
+            select(func.min(MapSession.map_id)).where(MapSession.session_id == row.id)
+        )
     job_id = db_session.scalar(
         select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
     )
+    if job_id is None and map_id is not None:  # uploaded into a map: that map's build
+        job_id = db_session.scalar(
+            select(func.max(Job.id)).where(Job.map_id == map_id, Job.kind == BUILD_MAP)
+        )
     if map_id is None or job_id is None:
         raise IdempotencyConflict(
             key, row.id, "its map has been deleted since; use a new key to upload again"
         )
+    statistics = SessionStatistics.from_row(row)
     return UploadResult(
         session_id=row.id,
         map_id=map_id,
         job_id=job_id,
         map_name=row.map_name,
-        statistics=SessionStatistics.from_row(row),
+        statistics=statistics,
         replayed=True,
+        shares_tags_with=tuple(
+            maps.maps_sharing_tags(db_session, statistics.tag_ids, exclude_map_id=map_id)
+        ),
     )
 
 

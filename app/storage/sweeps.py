@@ -22,9 +22,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.domain.ground_truth import parse_ground_truth_json
+from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
 from app.domain.tuning import SearchSpace, SweepSummary, Trial, summarize
-from app.storage import queue
+from app.storage import maps, queue
 from app.storage.orm import Job, JobState, Sweep, SweepTrial, utc_now
 
 #: The job kind that runs some trials of a sweep.
@@ -57,6 +58,9 @@ class SweepInfo:
     error: str | None
     applied_job_id: int | None
     created_at: datetime
+    shift_metric_version: int
+    #: the map's sessions its trials optimize together (empty: the one ``session_id``)
+    session_ids: list[int]
     finished_at: datetime | None
 
     @property
@@ -84,9 +88,11 @@ def create_sweep(
     ground_truth: dict[str, Any] | None,
     max_attempts: int,
 ) -> int:
-    """Add a sweep and the jobs of its first trials (all of a grid's); returns its id."""
+    """Add a sweep and the jobs of its first trials (all of a grid's); returns its id. A map of
+    several sessions is swept as their joint map (its sessions now, recorded on the sweep)."""
     if ground_truth is not None:
         parse_ground_truth_json(ground_truth)  # raises InvisibleMapError naming the problem
+    session_ids = maps.map_session_ids(db_session, map_id)
     row = Sweep(
         map_id=map_id,
         session_id=session_id,
@@ -99,6 +105,8 @@ def create_sweep(
         seed=plan.seed,
         ground_truth=ground_truth,
         state="running",
+        shift_metric_version=SHIFT_METRIC_VERSION,
+        session_ids=session_ids if len(session_ids) > 1 else None,
         created_at=utc_now(),
     )
     db_session.add(row)
@@ -314,6 +322,8 @@ def _info(db_session: Session, row: Sweep) -> SweepInfo:
         error=error,
         applied_job_id=row.applied_job_id,
         created_at=row.created_at,
+        shift_metric_version=row.shift_metric_version,
+        session_ids=list(row.session_ids or []),
         finished_at=row.finished_at,
     )
 

@@ -554,6 +554,44 @@ def test_evaluate_one_gt_per_session(capsys):
     assert rows[1]["gt_metric_opt"] is None
 
 
+@pytest.mark.slow
+def test_evaluate_joint_json_as_issue_15_pins_it(capsys):
+    """``evaluate A B C --gt GT --joint --json``: one row per session alone, then the joint row
+    with the usual fields and ``by_session``."""
+    argv = ["evaluate", *map(str, MAC_ARGS), "--gt", str(GROUND_TRUTH_DIR / "rtabmap_mac_1_2.txt")]
+    assert cli.main([*argv, "--joint", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [row["dataset"] for row in rows] == [*MAC_SESSIONS, "joint"]
+    joint = rows[-1]
+    assert set(joint) >= EVALUATION_KEYS | {"by_session"}
+    assert joint["poses"] == sum(poses for poses, _ in MAC_SESSIONS.values())
+    assert set(joint["by_session"]) == set(MAC_SESSIONS)
+    for name, row in joint["by_session"].items():
+        alone = next(r for r in rows if r["dataset"] == name)
+        assert row["gt_metric_alone"] == pytest.approx(alone["gt_metric_opt"], rel=1e-9)
+        assert row["gt_metric_joint"] < row["gt_metric_alone"], name
+        assert row["tag_rmse_joint_m"] < row["tag_rmse_alone_m"], name
+    # the rows alone are what evaluate prints without --joint (but for the timings)
+    assert cli.main([*argv, "--json"]) == 0
+    untimed = [{k: v for k, v in r.items() if k != "optimize_ms"} for r in rows[:-1]]
+    again = json.loads(capsys.readouterr().out)
+    assert [{k: v for k, v in r.items() if k != "optimize_ms"} for r in again] == untimed
+
+
+def test_evaluate_joint_table_and_its_errors(capsys):
+    desnat, straight = SESSIONS_DIR / "desnat_straight_once.json", MAC_ARGS[1]
+    rtabmap = str(GROUND_TRUTH_DIR / "rtabmap_mac_1_2.txt")
+    assert cli.main(["evaluate", str(desnat), str(straight), "--gt", rtabmap, "--joint"]) == 0
+    out = capsys.readouterr().out
+    assert "| joint " in out
+    assert "RMSE joint m" in out
+    reference = str(GROUND_TRUTH_DIR / "mac_1_2_yup_reference.json")
+    proc = run_cli("evaluate", desnat, straight, "--gt", rtabmap, "--gt", reference, "--joint")
+    assert_one_line_error(proc.returncode, proc.stderr, "--joint", "one --gt")
+    proc = run_cli("evaluate", desnat, ONETAG, "--gt", rtabmap, "--joint")
+    assert_one_line_error(proc.returncode, proc.stderr, "'onetag'", "too_few_shared_tags")
+
+
 # --------------------------------------------------------------------------- demo
 
 

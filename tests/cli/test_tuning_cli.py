@@ -410,3 +410,30 @@ def test_simulate_rejects_bad_noise(tmp_path, capsys, noise, parts) -> None:
 def test_simulate_rejects_too_few_poses(tmp_path, capsys) -> None:
     code, _, err = run(capsys, "simulate", tmp_path / "sim.json", "--poses", 1)
     assert_one_line_error(code, err, "num_poses must be at least 2")
+
+
+def test_simulate_several_walks_of_one_building_and_evaluate_them_jointly(tmp_path, capsys):
+    out = tmp_path / "building.json"
+    assert cli.main(["simulate", str(out), "--sessions", "3", "--poses", "600"]) == 0
+    walks = [tmp_path / f"building-{k}.json" for k in (1, 2, 3)]
+    assert all(path.exists() for path in walks)
+    ground_truth = tmp_path / "building.gt.json"
+    truth = load_ground_truth(ground_truth)
+    seen = set().union(*(load_session(path).tag_ids for path in walks))
+    assert set(truth) == seen
+    # each walk has its own world frame: the first poses differ
+    first = [load_session(path).world_T_phone[0] for path in walks]
+    assert not all(abs(first[0][0, 3] - f[0, 3]) < 1e-6 for f in first[1:])
+    capsys.readouterr()
+    argv = ["evaluate", *map(str, walks), "--gt", str(ground_truth), "--joint", "--json"]
+    assert cli.main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["dataset"] for r in rows] == ["building-1", "building-2", "building-3", "joint"]
+    assert set(rows[-1]["by_session"]) == {"building-1", "building-2", "building-3"}
+
+
+def test_simulate_sessions_refuses_a_real_session(tmp_path, capsys) -> None:
+    session = Path(__file__).parents[2] / "data" / "sessions" / "onetag.json"
+    argv = ["simulate", str(tmp_path / "x.json"), "--sessions", "2", "--from-session", str(session)]
+    assert cli.main(argv) == 1
+    assert "--sessions" in capsys.readouterr().err

@@ -446,3 +446,47 @@ def test_picture_and_rename_of_missing_maps_and_without_csrf(
         follow_redirects=False,
     )
     assert forged.status_code == 403
+
+
+# --------------------------------------------------------------------------- several sessions
+
+
+def test_a_maps_sessions_merge_and_remove_from_the_dashboard(
+    api: Api, built: dict[str, Any]
+) -> None:
+    from app.config import Settings
+    from workers.main import Worker
+
+    other = api.uploaded(SESSIONS_DIR / "desnat_straight_once.json")
+    assert [s["map_id"] for s in other["shares_tags_with"]] == [built["map_id"]]
+    assert run_next_job(api.db, path_graph=True) == other["job_id"]
+    map_id = built["map_id"]
+    page = api.client.get(f"/admin/maps/{map_id}")
+    assert page.status_code == 200
+    assert 'id="map-sessions"' in page.text
+    assert "the only session" in page.text
+    assert f"Merge map {other['map_id']} into map {map_id}" in page.text  # shares 302–305
+
+    response = post(api, f"/admin/maps/{map_id}/merge", {"map_id": str(other["map_id"])})
+    assert response.status_code == 303
+    worker = Worker(api.db, Settings(database_url="sqlite://", lease_s=60, heartbeat_s=5))
+    while worker.run_once():
+        pass
+    page = api.client.get(f"/admin/maps/{map_id}")
+    assert f"Remove session {other['session_id']}" in page.text
+    assert "2 sessions (below)" in page.text
+    floors = figure_of(page.text)["floors"]
+    optimized = [floor["optimized"] for floor in floors]
+    assert any(None in line["x"] for line in optimized if line)  # no line between two walks
+    names = {s["name"] for floor in floors for s in floor["sessions"] or []}
+    assert names == {f"Session {built['session_id']}", f"Session {other['session_id']}"}
+    assert "The optimized trajectory of each session in its own colour" in page.text
+
+    response = post(api, f"/admin/maps/{map_id}/merge", {"map_id": str(map_id)})
+    assert response.status_code == 303  # refused, said in the flash message
+    response = post(api, f"/admin/maps/{map_id}/sessions/{other['session_id']}/remove")
+    assert response.status_code == 303
+    while worker.run_once():
+        pass
+    page = api.client.get(f"/admin/maps/{map_id}")
+    assert "the only session" in page.text

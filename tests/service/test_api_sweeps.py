@@ -151,6 +151,9 @@ def test_apply_rebuilds_the_map_with_the_best_parameters_as_a_new_version(
         assert newest["params"][name] == pytest.approx(value)
     # the version is the map the best trial measured, exactly
     assert newest["shift_metric"] == summary["best_shift"]
+    # both scored with the origin-invariant shift metric (docs/architecture.md §4)
+    assert sweep(api, sweep_id)["shift_metric_version"] == 2
+    assert newest["metrics"]["shift_metric_version"] == 2
     assert newest["statistics"]["start_iterations"] > 0
     assert sweep(api, sweep_id)["applied_job_id"] == response.json()["job_id"]
 

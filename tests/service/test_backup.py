@@ -670,3 +670,42 @@ def test_a_failed_export_leaves_no_file(source_db: Database, tmp_path: Path) -> 
     with pytest.raises(KeyboardInterrupt):
         backup.export_archive(source_db, tmp_path / "out.zip", on_progress=interrupt)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_archive_from_before_maps_of_several_sessions_still_imports(
+    source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """No ``map_session`` table, no ``session_ids`` / ``shift_metric_version`` columns: each map
+    holds its one session, versions and sweeps record none, and the sweeps were scored with the
+    first shift metric (version 1)."""
+
+    def drop_new_columns(name: str, data: bytes) -> bytes | None:
+        if name == "tables/map_session.jsonl":
+            return None
+        new_columns = {
+            "tables/map_version.jsonl": ("session_ids",),
+            "tables/sweep.jsonl": ("session_ids", "shift_metric_version"),
+        }.get(name)
+        if new_columns is None:
+            return data
+        rows = [json.loads(line) for line in data.splitlines()]
+        for row in rows:
+            for column in new_columns:
+                row.pop(column)
+        return b"".join(json.dumps(row).encode() + b"\n" for row in rows)
+
+    def drop_count(document: dict[str, Any]) -> None:
+        document["counts"].pop("map_session")
+
+    old = rewrite(
+        source.archive, tmp_path / "old.zip", member=drop_new_columns, manifest=drop_count
+    )
+    db = Database(database_url)
+    backup.import_archive(db, old)
+    with db.read() as tx:
+        for info in maps.list_maps(tx)[0]:
+            assert info.session_ids == [info.session_id]
+        assert maps.get_version(tx, 1, 1).session_ids == []
+        sweep = sweeps.get_sweep(tx, 1)
+        assert (sweep.shift_metric_version, sweep.session_ids) == (1, [])
+    db.dispose()

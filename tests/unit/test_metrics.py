@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from pathlib import Path
@@ -341,11 +342,58 @@ def shift_metric_by_loops(session, map_T_tag):
         tag_a, tag_b = int(session.detections.tag_id[k_a]), int(session.detections.tag_id[k_b])
         if tag_a == tag_b or tag_a not in map_T_tag or tag_b not in map_T_tag:
             continue
-        rel_obs = world_T_tag_obs[k_b] @ np.linalg.inv(world_T_tag_obs[k_a])
-        rel_map = map_T_tag[tag_b] @ np.linalg.inv(map_T_tag[tag_a])
-        shift = rel_obs @ np.linalg.inv(rel_map)
-        ratios.append(np.linalg.norm(shift[:3, 3]) / np.linalg.norm(rel_obs[:3, 3]))
+        rel_obs = np.linalg.inv(world_T_tag_obs[k_a]) @ world_T_tag_obs[k_b]
+        rel_map = np.linalg.inv(map_T_tag[tag_a]) @ map_T_tag[tag_b]
+        shift_m = rel_obs[:3, 3] - rel_map[:3, 3]
+        ratios.append(np.linalg.norm(shift_m) / np.linalg.norm(rel_obs[:3, 3]))
     return float(np.mean(ratios))
+
+
+def session_in_another_world(session: Session, other_T_world: FloatArray) -> Session:
+    """The same walk recorded with another world origin and heading."""
+    return dataclasses.replace(session, world_T_phone=other_T_world @ session.world_T_phone)
+
+
+#: A gravity-preserving change of world (a turn about +y and a move) and a general rigid one.
+TURN_AND_MOVE = make_pose(rotation_about_y(2.1), [40.0, -3.0, -75.0])
+
+
+@pytest.mark.parametrize("world_change", [TURN_AND_MOVE, SOME_RIGID_MOTION])
+def test_shift_metric_does_not_depend_on_the_world_origin(world_change):
+    """Move and turn the session's world, or the map's, or both: the same value (§4)."""
+    session = make_shift_session()
+    # a map whose tags are turned as well as moved, so rotations take part
+    map_T_tag = {
+        1: make_pose(rotation_about_y(0.2), [0.1, 0.0, -2.0]),
+        2: make_pose(rotation_about_y(-0.3), [3.3, 0.2, -2.1]),
+        3: make_pose(rotation_about_y(0.5), [4.2, -0.1, -1.9]),
+    }
+    value = shift_metric(session, map_T_tag)
+    assert value > 0.01
+    moved_session = session_in_another_world(session, world_change)
+    assert shift_metric(moved_session, map_T_tag) == pytest.approx(value, rel=1e-9)
+    assert shift_metric(session, moved(map_T_tag, world_change)) == pytest.approx(value, rel=1e-9)
+    assert shift_metric(moved_session, moved(map_T_tag, TURN_AND_MOVE)) == pytest.approx(
+        value, rel=1e-9
+    )
+
+
+def test_the_old_shift_form_depended_on_the_origin():
+    """What the correction fixed: ``‖(rel_obs · rel_map⁻¹).t‖`` with ``rel = T_B · T_A⁻¹``."""
+    session = make_shift_session()
+    map_T_tag = {1: make_pose(rotation_about_y(0.2), [0.1, 0, -2]), 2: translation(3.3, 0, -2)}
+
+    def old_form(session: Session) -> float:
+        obs = session.world_T_tag_observed()
+        rel_obs = obs[2] @ np.linalg.inv(obs[1])
+        rel_map = map_T_tag[2] @ np.linalg.inv(map_T_tag[1])
+        return float(
+            np.linalg.norm((rel_obs @ np.linalg.inv(rel_map))[:3, 3])
+            / np.linalg.norm(rel_obs[:3, 3])
+        )
+
+    moved_session = session_in_another_world(session, TURN_AND_MOVE)
+    assert old_form(moved_session) != pytest.approx(old_form(session), rel=1e-3)
 
 
 # --------------------------------------------------------------------------- real sessions

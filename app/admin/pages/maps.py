@@ -1,7 +1,8 @@
 """``/admin/maps``: maps with their quality at a glance; a map's top-down plot per floor (raw and
 optimized trajectory, tags with their uncertainty, the path graph, points of interest), its
-versions with parameters and metrics, a rebuild form, delete, and downloads (the app's map file
-and the path graph as GeoJSON).
+versions with parameters and metrics, its sessions with what each contributed (add, remove, merge
+another map in; maps sharing its tags are offered), a rebuild form, delete, and downloads (the
+app's map file and the path graph as GeoJSON).
 
 The plot's data is built once per map version and kept in the process's version cache (versions
 never change).
@@ -21,17 +22,21 @@ from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
+from app.api.schemas.maps import MapSessionsPublic
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import PathGraph
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
 from app.services.errors import ServiceError
 from app.services.maps import (
+    add_session_to_map,
     app_map_content,
     chosen_version,
     delete_map_and_jobs,
     enqueue_rebuild,
+    merge_maps,
     picture_of_map,
+    remove_session_from_map,
     rename_map,
 )
 from app.services.navigation import geojson_content, version_path_graph
@@ -88,10 +93,14 @@ def version_figure(
 
     def build() -> dict[str, Any]:
         result = map_from_json(maps.map_document(db_session, info.id, version.number))
+        contributions = version.statistics.get("sessions") or []
+        # several sessions: their raw odometry is each in its own frame, so none is drawn
         return map_figure(
             result,
-            raw_session(db_session, info.session_id),
+            raw_session(db_session, info.session_id) if len(contributions) < 2 else None,
             path_graph_or_none(request, db_session, version),
+            session_starts=[int(c["first_pose_row"]) for c in contributions],
+            session_names=[f"Session {c['session_id']}" for c in contributions],
         )
 
     cache: VersionCache = request.app.state.version_cache
@@ -137,6 +146,81 @@ def map_page(
         shown_current=info.current.number if info.current else 0,
         rename_error=rename_error.detail if rename_error else None,
         submitted_name=submitted_name,
+        map_sessions=MapSessionsPublic.from_domain(info).data,
+        sharing=_maps_sharing_tags(db_session, info),
+    )
+
+
+def _maps_sharing_tags(db_session: Session, info: MapInfo) -> list[tuple[int, str, list[int]]]:
+    """Other maps whose current version has some of this map's current tags (merge candidates)."""
+    if info.current is None:
+        return []
+    tag_ids = [tag.tag_id for tag in maps.tag_poses(db_session, info.current.id)]
+    return maps.maps_sharing_tags(db_session, tag_ids, exclude_map_id=info.id)
+
+
+@router.post("/maps/{map_id}/sessions/add")
+def add_session(
+    request: Request, form: CheckedFormDep, db: DbDep, settings: SettingsDep, map_id: int
+) -> Response:
+    map_id = valid_id(map_id, "map")
+    try:
+        session_id = valid_id(int(str(form.get("session_id") or "0")), "session")
+        with db.transaction() as db_session:
+            _, job_id = add_session_to_map(
+                db_session, map_id, session_id, max_attempts=settings.max_attempts
+            )
+    except (ServiceError, ValueError, LookupError) as err:
+        return redirect(request, f"/admin/maps/{map_id}", flash=f"Not added: {err}")
+    return redirect(
+        request,
+        f"/admin/maps/{map_id}",
+        flash=f"Session {session_id} added to map {map_id}; rebuild queued as job {job_id}.",
+    )
+
+
+@router.post("/maps/{map_id}/sessions/{session_id}/remove")
+def remove_session(
+    request: Request,
+    _form: CheckedFormDep,
+    db: DbDep,
+    settings: SettingsDep,
+    map_id: int,
+    session_id: int,
+) -> Response:
+    map_id = valid_id(map_id, "map")
+    try:
+        with db.transaction() as db_session:
+            _, job_id = remove_session_from_map(
+                db_session,
+                map_id,
+                valid_id(session_id, "session"),
+                max_attempts=settings.max_attempts,
+            )
+    except (ServiceError, LookupError) as err:
+        return redirect(request, f"/admin/maps/{map_id}", flash=f"Not removed: {err}")
+    return redirect(
+        request,
+        f"/admin/maps/{map_id}",
+        flash=f"Session {session_id} taken out of map {map_id}; rebuild queued as job {job_id}.",
+    )
+
+
+@router.post("/maps/{map_id}/merge")
+def merge(
+    request: Request, form: CheckedFormDep, db: DbDep, settings: SettingsDep, map_id: int
+) -> Response:
+    map_id = valid_id(map_id, "map")
+    try:
+        other = valid_id(int(str(form.get("map_id") or "0")), "map")
+        with db.transaction() as db_session:
+            _, job_id = merge_maps(db_session, map_id, other, max_attempts=settings.max_attempts)
+    except (ServiceError, ValueError, LookupError) as err:
+        return redirect(request, f"/admin/maps/{map_id}", flash=f"Not merged: {err}")
+    return redirect(
+        request,
+        f"/admin/maps/{map_id}",
+        flash=f"Map {other} merged into map {map_id}; rebuild queued as job {job_id}.",
     )
 
 

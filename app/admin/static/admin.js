@@ -103,6 +103,8 @@
     pois: "#1b1b1b",
     route: "#d35400",
   };
+  // one colour per session of a map of several (distinct for common colour blindness)
+  const SESSION_COLOURS = ["#0b4fa8", "#e69f00", "#009e73", "#cc79a7", "#56b4e9", "#8c564b"];
 
   function lineTrace(line, name, colour, extra) {
     return Object.assign({
@@ -114,7 +116,14 @@
   function floorTraces(floor) {
     const traces = [];
     if (floor.raw) traces.push(lineTrace(floor.raw, "Raw odometry", COLOURS.raw, { line: { color: COLOURS.raw, width: 1 } }));
-    traces.push(lineTrace(floor.optimized, "Optimized trajectory", COLOURS.optimized, { hoverinfo: "x+y" }));
+    if (floor.sessions) {
+      floor.sessions.forEach((session, k) => {
+        const colour = SESSION_COLOURS[k % SESSION_COLOURS.length];
+        traces.push(lineTrace(session.line, session.name + " (optimized)", colour, { hoverinfo: "x+y" }));
+      });
+    } else {
+      traces.push(lineTrace(floor.optimized, "Optimized trajectory", COLOURS.optimized, { hoverinfo: "x+y" }));
+    }
     if (floor.walk) traces.push(lineTrace(floor.walk, "Path graph", COLOURS.walk, { line: { color: COLOURS.walk, width: 1.5, dash: "dot" } }));
     if (floor.stairs) traces.push(lineTrace(floor.stairs, "Stairs and elevators", COLOURS.stairs, { line: { color: COLOURS.stairs, width: 3 } }));
     traces.push(lineTrace(floor.ellipses, "Tag uncertainty (2σ)", COLOURS.tags, { line: { color: COLOURS.tags, width: 1 } }));

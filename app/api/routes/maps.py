@@ -12,6 +12,10 @@ Choices:
   exists, it has nothing to download yet), not a 404, which means "no such map (or version)".
 - A rebuild queues a new ``build_map`` job for the map's session with the given parameter
   overrides; the raw session is never modified. It answers 202 with ``Location`` of the job.
+- A map may be made of several sessions (docs/multi-session.md): ``/{id}/sessions`` lists them,
+  ``POST`` adds one, ``DELETE /{id}/sessions/{session_id}`` takes one out, ``POST /{id}/merge``
+  merges another map in. Each change queues the rebuild that makes the version of the new set
+  (202, like a rebuild); the version records exactly which sessions it used.
 """
 
 from __future__ import annotations
@@ -33,11 +37,14 @@ from app.api.errors import ApiError, error_responses
 from app.api.http import accepts_gzip, if_none_match_hits, strong_etag
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.maps import (
+    AddSessionRequest,
     AppMap,
     MapPublic,
+    MapSessionsPublic,
     MapsPublic,
     MapSummary,
     MapUpdate,
+    MergeRequest,
     RebuildAccepted,
     RebuildRequest,
     VersionDetail,
@@ -46,15 +53,21 @@ from app.api.schemas.maps import (
 )
 from app.services.maps import (
     APP_MAP_EXPORT,
+    add_session_to_map,
     app_map_content,
     checked_overrides,
+    checked_session_ids,
     chosen_version,
+    current_overrides,
     delete_map_and_jobs,
     enqueue_rebuild,
+    merge_maps,
     picture_of_map,
+    remove_session_from_map,
     rename_map,
 )
 from app.storage import maps, queue
+from app.storage.maps import MapInfo
 from app.storage.sessions import AUTO_TUNE_TRIALS
 
 router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute)
@@ -181,10 +194,114 @@ def rebuild_map(
     overrides = checked_overrides(body.params if body else {})
     if body and body.auto_tune_trials:
         overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
+    session_ids = body.session_ids if body else None
+    if session_ids is not None:
+        checked_session_ids(db_session, session_ids)
     info, job_id = enqueue_rebuild(
-        db_session, valid_id(map_id, "map"), overrides, max_attempts=settings.max_attempts
+        db_session,
+        valid_id(map_id, "map"),
+        overrides,
+        max_attempts=settings.max_attempts,
+        session_ids=session_ids,
     )
     accepted = RebuildAccepted.queued(info, job_id, overrides)
+    if session_ids is not None:
+        accepted.session_ids = session_ids
+    response.headers["Location"] = accepted.job_url
+    return accepted
+
+
+@router.get(
+    "/{map_id}/sessions",  # noqa: FAST003 (map_id is read by MapDep)
+    summary="The sessions of a map",
+    description="In order (the first is the map frame), each with what it contributed to the "
+    "current version.",
+    responses=error_responses(401, 404, 422),
+)
+def list_map_sessions(info: MapDep) -> MapSessionsPublic:
+    return MapSessionsPublic.from_domain(info)
+
+
+@router.post(
+    "/{map_id}/sessions",
+    status_code=202,
+    summary="Add a session to a map",
+    description="Add an uploaded session (it stays in its own map too) and queue the rebuild "
+    "of the map from all its sessions. 409 already_in_map. A session whose tags cannot place it "
+    "in the map fails that build with the reason (no_shared_tags, too_few_shared_tags, "
+    "inconsistent_shared_tags); the map keeps its current version (admin).",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def add_map_session(
+    map_id: int,
+    body: AddSessionRequest,
+    _admin: AdminPrincipal,
+    db_session: WriteDbSessionDep,
+    settings: SettingsDep,
+    response: Response,
+) -> RebuildAccepted:
+    info, job_id = add_session_to_map(
+        db_session,
+        valid_id(map_id, "map"),
+        valid_id(body.session_id, "session"),
+        max_attempts=settings.max_attempts,
+    )
+    return _accepted(response, info, job_id)
+
+
+@router.delete(
+    "/{map_id}/sessions/{session_id}",
+    status_code=202,
+    summary="Take a session out of a map",
+    description="The session and its upload stay; queues the rebuild without it. 404 not_in_map; "
+    "409 last_session (a map needs one: delete the map instead) (admin).",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def remove_map_session(
+    map_id: int,
+    session_id: int,
+    _admin: AdminPrincipal,
+    db_session: WriteDbSessionDep,
+    settings: SettingsDep,
+    response: Response,
+) -> RebuildAccepted:
+    info, job_id = remove_session_from_map(
+        db_session,
+        valid_id(map_id, "map"),
+        valid_id(session_id, "session"),
+        max_attempts=settings.max_attempts,
+    )
+    return _accepted(response, info, job_id)
+
+
+@router.post(
+    "/{map_id}/merge",
+    status_code=202,
+    summary="Merge another map into this one",
+    description="The other map's sessions join this map's (after them) and the other map is "
+    "deleted (its uploads stay); queues the rebuild. The upload's answer names the maps a new "
+    "session shares tags with. 409 same_map (admin).",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def merge_map(
+    map_id: int,
+    body: MergeRequest,
+    _admin: AdminPrincipal,
+    db_session: WriteDbSessionDep,
+    settings: SettingsDep,
+    response: Response,
+) -> RebuildAccepted:
+    info, job_id = merge_maps(
+        db_session,
+        valid_id(map_id, "map"),
+        valid_id(body.map_id, "map"),
+        max_attempts=settings.max_attempts,
+    )
+    return _accepted(response, info, job_id)
+
+
+def _accepted(response: Response, info: MapInfo, job_id: int) -> RebuildAccepted:
+    accepted = RebuildAccepted.queued(info, job_id, current_overrides(info))
     response.headers["Location"] = accepted.job_url
     return accepted
 

@@ -12,6 +12,7 @@ storing nothing; the same key with different bytes is a 409 ``idempotency_confli
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Response
@@ -24,6 +25,7 @@ from app.api.deps import (
     SessionDep,
     SettingsDep,
     UploadBodyDep,
+    admin_principal,
 )
 from app.api.errors import error_responses
 from app.api.http import raw_upload_response
@@ -33,7 +35,7 @@ from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
-from app.services.maps import image_url, store_session_image
+from app.services.maps import image_url, merge_maps, store_session_image
 from app.storage import maps, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
@@ -138,12 +140,17 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
     description="Validate the session, store it (raw bytes kept, gzip-compressed, never "
     "changed), create its map and queue the job that builds it. Answers 202 with the ids and "
     "`Location: /v1/jobs/{job_id}`. A retry with the same `Idempotency-Key` answers 202 with the "
-    "first upload's body and `Idempotent-Replayed: true`.",
+    "first upload's body and `Idempotent-Replayed: true`. The answer's `shares_tags_with` names "
+    "other maps with some of its tags (nothing merges by itself). `?into_map=N` (admin) puts the "
+    "session into existing map N instead, which is rebuilt from all its sessions "
+    "(docs/multi-session.md); 404 if there is no map N, and nothing is stored.",
     response_description="Accepted: the map is being built; follow job_url.",
     openapi_extra={"requestBody": UPLOAD_REQUEST_BODY},
     responses=error_responses(
         400,
         401,
+        403,
+        404,
         409,
         413,
         415,
@@ -174,7 +181,19 @@ def upload_session(
             "trials before building (0: the default parameters)",
         ),
     ] = 0,
+    into_map: Annotated[
+        int | None,
+        Query(
+            ge=1,
+            le=2**31,
+            description="admin: upload into this existing map (a building's map of several "
+            "sessions): the session joins its sessions and the map is rebuilt; without it the "
+            "upload makes a map of its own",
+        ),
+    ] = None,
 ) -> SessionCreated:
+    if into_map is not None:
+        admin_principal(principal)  # 403 for a device key
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
     result = _replayed(db, principal, idempotency_key, upload.sha256)
     if result is None:
@@ -190,6 +209,17 @@ def upload_session(
                 max_attempts=settings.max_attempts,
                 auto_tune_trials=auto_tune_trials,
             )
+            if into_map is not None and not result.replayed:
+                # its own map merged into the one named (404 there rolls the upload back)
+                info, job_id = merge_maps(
+                    db_session, into_map, result.map_id, max_attempts=settings.max_attempts
+                )
+                result = dataclasses.replace(
+                    result,
+                    map_id=info.id,
+                    job_id=job_id,
+                    shares_tags_with=tuple(t for t in result.shares_tags_with if t[0] != info.id),
+                )
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:
         response.headers["Idempotent-Replayed"] = "true"

@@ -33,6 +33,7 @@ _VERSION_EXAMPLE: dict[str, Any] = {
     "detections_rejected": 9,
     "warnings": [],
     "content_sha256": SHA_EXAMPLE,
+    "session_ids": [17],
 }
 
 
@@ -70,6 +71,10 @@ class VersionSummary(BaseModel):
     detections_rejected: int
     warnings: list[str]
     content_sha256: str = Field(description="SHA-256 of the stored map document")
+    session_ids: list[int] = Field(
+        description="the sessions it was optimized from, in order (the first is the map frame); "
+        "empty for versions made before maps held several sessions (the map's session_id)"
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -137,6 +142,7 @@ def _version_fields(version: VersionInfo) -> dict[str, Any]:
         "detections_rejected": version.detections_rejected,
         "warnings": version.warnings,
         "content_sha256": version.content_sha256,
+        "session_ids": version.session_ids,
     }
 
 
@@ -155,6 +161,7 @@ _MAP_EXAMPLE: dict[str, Any] = {
     "display_name": "occam_room",
     "image_url": "/v1/maps/12/image?v=3f1c2a9e0b7d4c21",
     "session_id": 17,
+    "session_ids": [17],
     "created_at": AT_EXAMPLE,
     "version_count": 1,
     "latest_job": {"id": 31, "kind": "build_map", "state": "succeeded"},
@@ -189,7 +196,10 @@ class MapSummary(BaseModel):
     name: str = Field(description="the session's map_id")
     display_name: str = Field(description=DISPLAY_NAME_DESCRIPTION)
     image_url: str | None = Field(description=IMAGE_URL_DESCRIPTION)
-    session_id: int
+    session_id: int = Field(description="its first session (the map frame)")
+    session_ids: list[int] = Field(
+        description="every session it is made of, in order; the next build uses them"
+    )
     created_at: datetime
     version_count: int
     current_version: VersionSummary | None
@@ -202,6 +212,7 @@ class MapSummary(BaseModel):
             display_name=info.display_name,
             image_url=image_url(info),
             session_id=info.session_id,
+            session_ids=info.session_ids,
             created_at=info.created_at,
             version_count=info.version_count,
             current_version=VersionSummary.model_validate(info.current) if info.current else None,
@@ -226,7 +237,10 @@ class MapPublic(BaseModel):
     name: str = Field(description="the session's map_id")
     display_name: str = Field(description=DISPLAY_NAME_DESCRIPTION)
     image_url: str | None = Field(description=IMAGE_URL_DESCRIPTION)
-    session_id: int
+    session_id: int = Field(description="its first session (the map frame)")
+    session_ids: list[int] = Field(
+        description="every session it is made of, in order; the next build uses them"
+    )
     created_at: datetime
     version_count: int
     current_version: VersionPublic | None
@@ -242,6 +256,7 @@ class MapPublic(BaseModel):
             display_name=info.display_name,
             image_url=image_url(info),
             session_id=info.session_id,
+            session_ids=info.session_ids,
             created_at=info.created_at,
             version_count=info.version_count,
             current_version=VersionPublic.with_tags(info.current, tags) if info.current else None,
@@ -292,6 +307,13 @@ class RebuildRequest(BaseModel):
         description="first choose the noise variances by the shift metric with this many "
         "sampler trials (0: use the parameters as given)",
     )
+    session_ids: list[int] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="build from these sessions, in this order (e.g. an older version's "
+        "session_ids, to make it again); default: the map's sessions now",
+    )
 
 
 class RebuildAccepted(BaseModel):
@@ -302,6 +324,7 @@ class RebuildAccepted(BaseModel):
             "job_id": 40,
             "map_id": 12,
             "session_id": 17,
+            "session_ids": [17],
             "params": {"tag_position_var_m2": 0.001},
             "job_url": "/v1/jobs/40",
         }
@@ -310,6 +333,7 @@ class RebuildAccepted(BaseModel):
     job_id: int
     map_id: int
     session_id: int
+    session_ids: list[int] = Field(description="the sessions the build uses, in order")
     params: dict[str, Any] = Field(description="the overrides, as the job will use them")
     job_url: str
 
@@ -320,6 +344,7 @@ class RebuildAccepted(BaseModel):
             job_id=job_id,
             map_id=info.id,
             session_id=info.session_id,
+            session_ids=info.session_ids,
             params=params,
             job_url=f"/v1/jobs/{job_id}",
         )
@@ -398,3 +423,90 @@ class AppMap(BaseModel):
 
 
 # --------------------------------------------------------------------------- keys
+
+
+class AddSessionRequest(BaseModel):
+    """Add an uploaded session to a map."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"session_id": 18}]})
+
+    session_id: int = Field(ge=1, le=2**31, description="a session uploaded before")
+
+
+class MergeRequest(BaseModel):
+    """Merge another map (its sessions) into this one."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"map_id": 13}]})
+
+    map_id: int = Field(ge=1, le=2**31, description="the map to merge in; it is deleted")
+
+
+class MapSessionPublic(BaseModel):
+    """A session of a map and, if the current version used it, what it contributed."""
+
+    model_config = examples(
+        {
+            "session_id": 18,
+            "in_current_version": True,
+            "contribution": {
+                "session_id": 18,
+                "poses": 1007,
+                "first_pose_row": 1004,
+                "tags": [1, 2, 302, 303],
+                "detections_used": 120,
+                "detections_rejected": 30,
+                "tag_chi2_mean": 0.004,
+                "shared_tags": [302, 303],
+                "placed_by_tags": [302, 303],
+                "own_landmark_tags": [],
+                "odometry_variance_scale": 1.0,
+                "tag_depth_scale": 1.0,
+                "yaw_rad": 3.0,
+            },
+        }
+    )
+
+    session_id: int
+    in_current_version: bool = Field(description="whether the current version was made with it")
+    contribution: dict[str, Any] | None = Field(
+        description="from the current version: its poses, tags, detections used and rejected, "
+        "mean tag chi², shared tags and those that placed it, tags given a landmark of their own "
+        "(they disagreed with the map), odometry variance factor; null when the version did not "
+        "use it or has one session"
+    )
+
+
+class MapSessionsPublic(BaseModel):
+    """The sessions a map is made of, in order (the first is the map frame)."""
+
+    model_config = examples(
+        {
+            "map_id": 12,
+            "data": [
+                {"session_id": 17, "in_current_version": True, "contribution": None},
+                {"session_id": 18, "in_current_version": False, "contribution": None},
+            ],
+            "count": 2,
+        }
+    )
+
+    map_id: int
+    data: list[MapSessionPublic]
+    count: int
+
+    @classmethod
+    def from_domain(cls, info: MapInfo) -> MapSessionsPublic:
+        used = (info.current.session_ids or [info.session_id]) if info.current else []
+        contributions = {
+            int(item["session_id"]): item
+            for item in (info.current.statistics.get("sessions", []) if info.current else [])
+        }
+        data = [
+            MapSessionPublic(
+                session_id=session_id,
+                in_current_version=session_id in used,
+                contribution=contributions.get(session_id),
+            )
+            for session_id in info.session_ids
+        ]
+        return cls(map_id=info.id, data=data, count=len(data))

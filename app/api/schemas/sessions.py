@@ -37,6 +37,25 @@ class SessionStatisticsPublic(BaseModel):
     warnings: list[str]
 
 
+class SharedTagsPublic(BaseModel):
+    """A map that has some of the upload's tags: merge the upload's map into it with one
+    ``POST merge_url`` (body ``{"map_id": <the upload's map_id>}``); nothing merges by itself."""
+
+    model_config = examples(
+        {
+            "map_id": 9,
+            "name": "mac floor 2",
+            "shared_tags": [302, 303, 304],
+            "merge_url": "/v1/maps/9/merge",
+        }
+    )
+
+    map_id: int
+    name: str
+    shared_tags: list[int] = Field(description="tag ids in both")
+    merge_url: str
+
+
 class SessionCreated(BaseModel):
     """The answer to an upload (202): where to follow the build of its map."""
 
@@ -49,6 +68,14 @@ class SessionCreated(BaseModel):
             "job_url": "/v1/jobs/31",
             "map_url": "/v1/maps/12",
             "statistics": STATS_EXAMPLE,
+            "shares_tags_with": [
+                {
+                    "map_id": 9,
+                    "name": "mac floor 2",
+                    "shared_tags": [302, 303, 304],
+                    "merge_url": "/v1/maps/9/merge",
+                }
+            ],
         }
     )
 
@@ -59,6 +86,10 @@ class SessionCreated(BaseModel):
     job_url: str
     map_url: str
     statistics: SessionStatisticsPublic
+    shares_tags_with: list[SharedTagsPublic] = Field(
+        description="other maps whose current version has some of its tags, most shared first "
+        "(the same building, probably): an admin may merge this upload's map into one of them"
+    )
 
     @classmethod
     def from_domain(cls, result: UploadResult) -> SessionCreated:
@@ -70,6 +101,12 @@ class SessionCreated(BaseModel):
             job_url=f"/v1/jobs/{result.job_id}",
             map_url=f"/v1/maps/{result.map_id}",
             statistics=SessionStatisticsPublic.model_validate(result.statistics),
+            shares_tags_with=[
+                SharedTagsPublic(
+                    map_id=map_id, name=name, shared_tags=tags, merge_url=f"/v1/maps/{map_id}/merge"
+                )
+                for map_id, name, tags in result.shares_tags_with
+            ],
         )
 
 

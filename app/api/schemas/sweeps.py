@@ -50,6 +50,8 @@ _SWEEP_EXAMPLE: dict[str, Any] = {
         "shift_gt_spearman": None,
     },
     "applied_job_id": None,
+    "session_ids": [],
+    "shift_metric_version": 2,
     "created_at": "2026-11-22T07:10:00Z",
     "finished_at": None,
     "runs": [],
@@ -214,6 +216,13 @@ class SweepPublic(BaseModel):
     progress: float = Field(ge=0, le=1)
     summary: SummaryPublic
     applied_job_id: int | None = Field(description="the rebuild that applied the best parameters")
+    session_ids: list[int] = Field(
+        description="the map's sessions its trials optimize together (empty: session_id alone)"
+    )
+    shift_metric_version: int = Field(
+        description="the shift metric's definition its trials were scored with: 2 is "
+        "docs/architecture.md §4's (origin-invariant); 1 the earlier, origin-dependent form"
+    )
     created_at: datetime
     finished_at: datetime | None
     runs: list[TrialPublic] | None = Field(description="every finished trial (with ?runs=true)")
@@ -238,6 +247,8 @@ class SweepPublic(BaseModel):
             progress=min(1.0, info.progress),
             summary=SummaryPublic.from_domain(summary),
             applied_job_id=info.applied_job_id,
+            session_ids=info.session_ids,
+            shift_metric_version=info.shift_metric_version,
             created_at=info.created_at,
             finished_at=info.finished_at,
             runs=None if trials is None else [TrialPublic.from_domain(k, t) for k, t in trials],

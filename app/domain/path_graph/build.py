@@ -45,7 +45,7 @@ How the graph is built (:func:`build_path_graph_from_arrays`; every threshold is
    segments overlap: then both ends of the overlap are such touches), the junction takes that
    node's place and its edges; overlapping collinear pieces then become one edge.
    *Knots*: junctions joined by an edge shorter than ``contract_junctions_within_m`` (passes
-   turning one corner) become one junction at their centroid (``_contract_junctions``).
+   turning one corner) become one junction at their centroid (``contract_junctions``).
    So a ``junction`` node is a crossing, a point where a merged pass joins or leaves an earlier
    one, or where a loop closes on a segment: any place where ways meet that is not a pose.
 6. **Anchors.** Each tag and point of interest is attached to its nearest node (3-D), preferring
@@ -226,16 +226,16 @@ def build_path_graph_from_arrays(
     walk = _erase_small_loops(_Walk.of(world_p_phone, levels_m, params), world_p_phone, params)
     merged = _merge_passes(walk, params)
     G = _chain_graph(walk, merged, first_junction_id=total)
-    _insert_crossings(G, first_junction_id=total)
-    _contract_junctions(G, params.contract_junctions_within_m)
+    insert_crossings(G, first_junction_id=total)
+    contract_junctions(G, params.contract_junctions_within_m)
     tags = dict(
         zip(
             tag_ids,
-            _attach(G, [str(t) for t in tag_ids], world_p_tag, levels_m, params),
+            attach_anchors(G, [str(t) for t in tag_ids], world_p_tag, levels_m, params),
             strict=True,
         )
     )
-    pois = tuple(_attach(G, list(poi_names), world_p_poi, levels_m, params))
+    pois = tuple(attach_anchors(G, list(poi_names), world_p_poi, levels_m, params))
     anchored = {a.node for a in tags.values()} | {a.node for a in pois}
     _simplify(G, anchored, params.simplify_tolerance_m)
     return PathGraph(
@@ -696,7 +696,7 @@ def _add_edge(G: nx.Graph[int], u: int, v: int, *, length_m: float, kind: str, f
 # --------------------------------------------------------------------------- crossings
 
 
-def _insert_crossings(G: nx.Graph[int], *, first_junction_id: int) -> None:
+def insert_crossings(G: nx.Graph[int], *, first_junction_id: int) -> None:
     """Junctions where walk edges of one floor sharing no node meet in x–z (module step 5)."""
     edges = [(u, v, d) for u, v, d in G.edges(data=True) if d["kind"] == WALK]
     if len(edges) < 2:
@@ -970,7 +970,7 @@ def _point_segment_candidates(
     )
 
 
-def _contract_junctions(G: nx.Graph[int], within_m: float) -> None:
+def contract_junctions(G: nx.Graph[int], within_m: float) -> None:
     """Merge knots of junctions (module step 5b): junctions joined by a walk edge shorter than
     ``within_m`` (horizontal) are grouped, shortest edges first, as long as every member of a
     group stays within ``within_m / 2`` of the group's centroid; a group becomes one junction at
@@ -1032,7 +1032,7 @@ def _contract_junctions(G: nx.Graph[int], within_m: float) -> None:
 # --------------------------------------------------------------------------- anchors
 
 
-def _attach(
+def attach_anchors(
     G: nx.Graph[int],
     names: list[str],
     world_p_thing: FloatArray,

@@ -26,6 +26,7 @@ from app.storage.orm import (
     Base,
     Job,
     MapRow,
+    MapSession,
     MapTag,
     MapVersion,
     SessionImage,
@@ -98,6 +99,8 @@ class TableSpec:
     soft_refs: Mapping[str, str] = field(default_factory=dict)
     #: only these rows are exported
     only: Callable[[], ColumnElement[bool]] | None = None
+    #: archives written before the table existed lack it (it is then left empty)
+    optional: bool = False
 
     @property
     def table(self) -> Table:
@@ -138,6 +141,13 @@ TABLES = (
         key="session_id",
         blobs={"jpeg": "images/{session_id}.jpg"},
         refs={"session_id": "session"},
+        optional=True,  # added with the app's pictures
+    ),
+    TableSpec(
+        model=MapSession,
+        export_key=False,
+        refs={"map_id": "map", "session_id": "session"},
+        optional=True,  # added with maps of several sessions
     ),
     TableSpec(
         model=Job,
@@ -242,6 +252,8 @@ class Manifest:
             ) from err
         for spec in TABLES:
             if spec.name not in manifest.counts or spec.member not in manifest.members:
+                if spec.optional and spec.name not in manifest.counts:
+                    continue
                 raise ArchiveInvalid(f"{where}: the manifest lists no table {spec.name}")
         return manifest
 

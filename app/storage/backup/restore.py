@@ -183,6 +183,8 @@ class _ImportRun:
 
     def run(self) -> None:
         for spec in TABLES:
+            if spec.optional and spec.name not in self.archive.manifest.counts:
+                continue  # an archive from before the table existed
             batch: list[dict[str, Any]] = []
             read = 0
             for where, raw in self.archive.rows(spec):
@@ -219,7 +221,11 @@ class _ImportRun:
         expected = {column.name for column in columns}
         if set(raw) != expected:
             missing, extra = sorted(expected - set(raw)), sorted(set(raw) - expected)
-            raise ArchiveInvalid(f"{where}: columns differ (missing {missing}, unexpected {extra})")
+            if extra or any(not _added_later(spec, name) for name in missing):
+                raise ArchiveInvalid(
+                    f"{where}: columns differ (missing {missing}, unexpected {extra})"
+                )
+            columns = [column for column in columns if column.name in raw]
         if spec.name == "api_key" and not self.include_keys:
             self._note_key_prefix(raw, where)
             return None
@@ -404,3 +410,10 @@ def _check_upload(raw_gzip: bytes | None, sha256: str, size_bytes: int, where: s
         raise ArchiveInvalid(
             f"{where}: the upload does not match its session (sha256 or size differs)"
         )
+
+
+def _added_later(spec: TableSpec, name: str) -> bool:
+    """Whether an archive written before column ``name`` existed may lack it: the column is
+    nullable or has a server default, which the row then gets."""
+    column = spec.table.columns[name]
+    return bool(column.nullable) or column.server_default is not None

@@ -1,0 +1,325 @@
+"""Maps of several sessions (app/domain/joint.py): alignment, the joint graph, its evaluation."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.domain.errors import InvisibleMapError
+from app.domain.evaluation import evaluate_joint
+from app.domain.frames import FloatArray, make_pose, rotation_about_y
+from app.domain.ground_truth import load_ground_truth
+from app.domain.joint import (
+    AlignmentError,
+    align_session,
+    optimize_sessions,
+    sighting_burst_sizes,
+    tag_depth_scale,
+    yaw_of,
+)
+from app.domain.metrics import shift_metric, tag_rmse_m
+from app.domain.params import SlamParams
+from app.domain.session import Session, load_session, parse_session
+from app.domain.simulate import SimulationConfig
+from app.domain.simulate_building import SimulatedBuilding, simulate_building_sessions
+from app.domain.slam import optimize_session
+
+DATA_DIR = Path(__file__).parents[2] / "data"
+
+#: A building frame turned by 0.7 rad about +y and moved.
+MAP_T_WORLD = make_pose(rotation_about_y(0.7), [12.0, 0.3, -40.0])
+
+
+def tags_at(positions: dict[int, tuple[float, float, float]], yaw: float = 0.0) -> dict:
+    return {t: make_pose(rotation_about_y(yaw), p) for t, p in positions.items()}
+
+
+SOME_TAGS = {1: (0.0, 1.4, 0.0), 2: (8.0, 1.5, 0.5), 3: (8.5, 1.3, 12.0), 4: (-3.0, 1.4, 9.0)}
+
+
+# --------------------------------------------------------------------------- alignment
+
+
+def test_yaw_of_a_turn_about_y():
+    for angle in (-3.0, -0.5, 0.0, 1.2, 3.1):
+        assert yaw_of(rotation_about_y(angle)) == pytest.approx(angle, abs=1e-12)
+
+
+def test_alignment_recovers_a_turn_and_a_move():
+    world_T_tag = tags_at(SOME_TAGS)
+    map_T_tag = {t: MAP_T_WORLD @ pose for t, pose in world_T_tag.items()}
+    alignment = align_session("b", world_T_tag, map_T_tag)
+    np.testing.assert_allclose(alignment.map_T_world, MAP_T_WORLD, atol=1e-9)
+    assert alignment.shared_tags == (1, 2, 3, 4)
+    assert alignment.inlier_tags == (1, 2, 3, 4)
+    assert alignment.outlier_tags == ()
+
+
+def test_alignment_survives_a_moved_tag_and_names_it():
+    world_T_tag = tags_at(SOME_TAGS)
+    map_T_tag = {t: MAP_T_WORLD @ pose for t, pose in world_T_tag.items()}
+    map_T_tag[3] = make_pose(rotation_about_y(2.0), map_T_tag[3][:3, 3] + [3.0, 0.0, -2.0])
+    alignment = align_session("b", world_T_tag, map_T_tag)
+    np.testing.assert_allclose(alignment.map_T_world, MAP_T_WORLD, atol=1e-9)
+    assert alignment.outlier_tags == (3,)
+    assert alignment.residual_m[2] == pytest.approx(math.hypot(3.0, 2.0), abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("session_tags", "reason"),
+    [({7: (0, 1, 0), 8: (5, 1, 0)}, "no_shared_tags"), ({1: (0, 1.4, 0)}, "too_few_shared_tags")],
+)
+def test_alignment_refuses_too_little_overlap(session_tags, reason):
+    with pytest.raises(AlignmentError) as raised:
+        align_session("b", tags_at(session_tags), tags_at(SOME_TAGS))
+    assert raised.value.reason == reason
+    assert raised.value.dataset == "b"
+    assert "'b'" in str(raised.value)
+
+
+def test_alignment_refuses_inconsistent_shared_tags():
+    """Two shared tags, 8 m apart in the map and 20 m apart in the session: no placement fits
+    both within 1 m, and the error lists each tag's distance."""
+    session = tags_at({1: (0.0, 1.4, 0.0), 2: (20.0, 1.4, 0.0)})
+    with pytest.raises(AlignmentError) as raised:
+        align_session("b", session, tags_at(SOME_TAGS))
+    assert raised.value.reason == "inconsistent_shared_tags"
+    assert "1: " in raised.value.detail
+    assert "2: " in raised.value.detail
+
+
+# --------------------------------------------------------------------------- simulated walks
+
+
+@cache
+def building(count: int = 4) -> SimulatedBuilding:
+    return simulate_building_sessions(SimulationConfig(num_poses=800, seed=5), count=count)
+
+
+@cache
+def walks() -> tuple[Session, ...]:
+    return tuple(parse_session(s.upload) for s in building().sessions)
+
+
+def test_simulated_walks_have_their_own_frames():
+    sim = building()
+    assert sim.world_T_building[0] == pytest.approx(np.eye(4))
+    for frame in sim.world_T_building[1:]:
+        assert frame[:3, 1] == pytest.approx([0, 1, 0])  # gravity-aligned
+        assert np.linalg.norm(frame[:3, 3]) > 1.0
+    assert len({s.config.seed for s in sim.sessions}) == len(sim.sessions)
+
+
+def test_one_session_makes_the_map_optimize_session_makes():
+    session = walks()[0]
+    joint = optimize_sessions([session], names=["only"])
+    alone = optimize_session(session)
+    np.testing.assert_allclose(joint.map.world_T_tag, alone.world_T_tag, atol=1e-9)
+    assert joint.parts[0].pose_rows == slice(0, session.num_poses)
+
+
+def test_joint_map_of_simulated_walks_beats_each_walk_alone():
+    sessions = walks()
+    truth = building().world_T_tag_true
+    joint = optimize_sessions(sessions)
+    assert joint.map.world_T_phone.shape[0] == sum(s.num_poses for s in sessions)
+    # no odometry across sessions: the boundary pairs carry no factor
+    starts = [p.pose_rows.start for p in joint.parts[1:]]
+    keyframes = joint.map.residuals.keyframe_index
+    for start in starts:
+        k = int(np.flatnonzero(keyframes == start)[0])
+        assert joint.map.residuals.odometry_chi2[k - 1] == 0.0
+    for part, session in zip(joint.parts, sessions, strict=True):
+        alone = optimize_session(session).tag_poses()
+        mine = joint.session_tag_poses(part.dataset)
+        assert tag_rmse_m(mine, truth) < tag_rmse_m(alone, truth), part.dataset
+    # the pose ids stay unique (the app's format keys vertices by them)
+    assert np.unique(joint.map.pose_id).size == joint.map.pose_id.size
+
+
+def test_the_map_does_not_depend_on_the_session_order_beyond_its_frame():
+    sessions = walks()[:3]
+    truth = building().world_T_tag_true
+    forward = optimize_sessions(sessions, names=["a", "b", "c"])
+    backward = optimize_sessions(sessions[::-1], names=["c", "b", "a"])
+    assert next(p.dataset for p in backward.parts) == "c"
+    assert tag_rmse_m(forward.map.tag_poses(), truth) == pytest.approx(
+        tag_rmse_m(backward.map.tag_poses(), truth), rel=1e-3
+    )
+
+
+def test_a_session_that_shares_nothing_is_refused_with_its_reason():
+    other_building = simulate_building_sessions(SimulationConfig(num_poses=300, seed=9), count=1)
+    stranger = parse_session(other_building.sessions[0].upload)
+    stranger = _renumbered_tags(stranger, offset=10_000)
+    with pytest.raises(AlignmentError) as raised:
+        optimize_sessions([walks()[0], stranger], names=["home", "stranger"])
+    assert (raised.value.dataset, raised.value.reason) == ("stranger", "no_shared_tags")
+
+
+def test_a_moved_tag_in_one_session_does_not_drag_the_map():
+    sessions = list(walks()[:2])
+    truth = building().world_T_tag_true
+    shared = sorted(set(sessions[0].tag_ids) & set(sessions[1].tag_ids))
+    moved_tag = shared[0]
+    sessions[1] = _moved_tag(sessions[1], moved_tag, offset_m=(2.5, 0.0, 0.0))
+    # the corners were not moved with the pose: keep screening from rejecting the sightings
+    params = SlamParams(max_reprojection_px=1e6, max_distance_m=100.0)
+    joint = optimize_sessions(sessions, params, names=["a", "b"])
+    assert joint.parts[1].local_tags == (moved_tag,)
+    assert moved_tag not in joint.parts[1].tag_ids
+    assert any(f"tags {moved_tag} (" in w for w in joint.map.warnings)
+    clean = optimize_sessions(list(walks()[:2]), params, names=["a", "b"])
+    error_m = np.linalg.norm(
+        joint.map.tag_poses()[moved_tag][:3, 3] - clean.map.tag_poses()[moved_tag][:3, 3]
+    )
+    assert error_m < 0.2
+    assert tag_rmse_m(joint.map.tag_poses(), truth) < 0.2
+
+
+def test_a_session_in_the_map_twice_is_refused():
+    with pytest.raises(InvisibleMapError, match="twice"):
+        optimize_sessions([walks()[0], walks()[0]], names=["a", "a"])
+    with pytest.raises(InvisibleMapError, match="at least one"):
+        optimize_sessions([])
+
+
+def test_depth_scale_is_one_when_the_sizes_are_right_and_found_when_wrong():
+    session = walks()[0]
+    assert tag_depth_scale(session) == 1.0
+    shrunk = _scaled_depths(session, 0.8)  # as if the app had assumed a smaller tag
+    assert tag_depth_scale(shrunk) == pytest.approx(1 / 0.8, rel=0.05)
+
+
+def test_joint_shift_metric_uses_each_session_in_its_own_frame():
+    sessions = walks()[:2]
+    joint = optimize_sessions(sessions, names=["a", "b"])
+    moved = dataclasses.replace(sessions[1], world_T_phone=MAP_T_WORLD @ sessions[1].world_T_phone)
+    again = optimize_sessions([sessions[0], moved], names=["a", "b"])
+    # the same map up to LM's tolerance, and the same metric
+    assert again.shift_metric() == pytest.approx(joint.shift_metric(), rel=1e-4)
+    per_session = [
+        shift_metric(s, joint.map.tag_poses(), detection_mask=m)
+        for s, m in zip(sessions, joint.session_masks(), strict=True)
+    ]
+    assert min(per_session) <= joint.shift_metric() <= max(per_session)
+
+
+def test_evaluate_joint_reports_each_session_and_the_whole():
+    sessions = walks()[:3]
+    names = ["a", "b", "c"]
+    truth = building().world_T_tag_true
+    alone = {n: optimize_session(s) for n, s in zip(names, sessions, strict=True)}
+    joint = optimize_sessions(sessions, names=names)
+    evaluation = evaluate_joint(joint, alone, truth)
+    out = evaluation.to_dict()
+    assert out["dataset"] == "joint"
+    assert out["tags"] == len(joint.map.tag_ids)
+    assert out["poses"] == sum(s.num_poses for s in sessions)
+    assert set(out["by_session"]) == set(names)
+    for name in names:
+        row = out["by_session"][name]
+        assert set(row) >= {
+            "gt_metric_alone",
+            "gt_metric_joint",
+            "tag_rmse_alone_m",
+            "tag_rmse_joint_m",
+        }
+        assert row["tag_rmse_joint_m"] < row["tag_rmse_alone_m"]
+    assert out["shift_opt"] == pytest.approx(joint.shift_metric())
+
+
+def test_simulated_joint_error_falls_as_walks_are_added():
+    sim = simulate_building_sessions(SimulationConfig(num_poses=1200), count=5)
+    sessions = [parse_session(s.upload) for s in sim.sessions]
+    errors = [
+        tag_rmse_m(optimize_sessions(sessions[:n]).map.tag_poses(), sim.world_T_tag_true)
+        for n in (1, 2, 5)
+    ]
+    assert errors[0] > errors[1] > errors[2]
+
+
+# --------------------------------------------------------------------------- real sessions
+
+
+@pytest.mark.slow
+def test_mac_building_sessions_each_get_better_in_the_joint_map():
+    names = ["floor_2_straight", "desnat_straight_once", "straight_209_occam"]
+    sessions = [load_session(DATA_DIR / "sessions" / f"{n}.json") for n in names]
+    truth = load_ground_truth(DATA_DIR / "ground_truth" / "rtabmap_mac_1_2.txt")
+    alone = {n: optimize_session(s) for n, s in zip(names, sessions, strict=True)}
+    joint = optimize_sessions(sessions, SlamParams(), names=names)
+    evaluation = evaluate_joint(joint, alone, truth)
+    for name, row in evaluation.by_session.items():
+        assert row.gt_metric_joint < row.gt_metric_alone, name
+        assert row.tag_rmse_joint_m < row.tag_rmse_alone_m, name
+    desnat = joint.part("desnat_straight_once")
+    assert desnat.odometry_variance_scale > 2  # its odometry fits worst: it bends most
+    assert joint.part("straight_209_occam").odometry_variance_scale == 1.0  # fits best
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _renumbered_tags(session: Session, *, offset: int) -> Session:
+    detections = dataclasses.replace(session.detections, tag_id=session.detections.tag_id + offset)
+    return dataclasses.replace(session, detections=detections)
+
+
+def _moved_tag(session: Session, tag_id: int, *, offset_m: tuple[float, float, float]) -> Session:
+    """``session`` as if tag ``tag_id`` had hung ``offset_m`` away (world frame) when it was
+    walked."""
+    detections = session.detections
+    rows = detections.tag_id == tag_id
+    world_T_phone = session.world_T_phone[detections.pose_index[rows]]
+    phone_t_offset = np.einsum("nji,j->ni", world_T_phone[:, :3, :3], np.asarray(offset_m))
+    phone_T_tag = detections.phone_T_tag.copy()
+    phone_T_tag[rows, :3, 3] += phone_t_offset
+    camera_T_tag = detections.camera_T_tag.copy()
+    camera_T_tag[rows, :3, 3] += phone_t_offset * [1.0, -1.0, -1.0]
+    return dataclasses.replace(
+        session,
+        detections=dataclasses.replace(
+            detections, phone_T_tag=phone_T_tag, camera_T_tag=camera_T_tag
+        ),
+    )
+
+
+def _scaled_depths(session: Session, scale: float) -> Session:
+    detections = session.detections
+    phone_T_tag: FloatArray = detections.phone_T_tag.copy()
+    camera_T_tag: FloatArray = detections.camera_T_tag.copy()
+    phone_T_tag[:, :3, 3] *= scale
+    camera_T_tag[:, :3, 3] *= scale
+    return dataclasses.replace(
+        session,
+        detections=dataclasses.replace(
+            detections, phone_T_tag=phone_T_tag, camera_T_tag=camera_T_tag
+        ),
+    )
+
+
+def test_sighting_bursts_by_hand():
+    session = walks()[0]
+    used = np.ones(len(session.detections), dtype=bool)
+    used[::7] = False
+    sizes = sighting_burst_sizes(session, used)
+    assert np.all(sizes[~used] == 1)
+    detections = session.detections
+    for tag_id in np.unique(detections.tag_id):
+        rows = [r for r in np.argsort(detections.timestamp_s, kind="stable") if used[r]]
+        rows = [r for r in rows if detections.tag_id[r] == tag_id]
+        bursts: list[list[int]] = []
+        for r in rows:
+            if bursts and detections.timestamp_s[r] - detections.timestamp_s[bursts[-1][-1]] <= 3.0:
+                bursts[-1].append(r)
+            else:
+                bursts.append([r])
+        for burst in bursts:
+            assert all(sizes[r] == len(burst) for r in burst)
+    assert sizes[used].max() > 1  # the simulated phone sees a tag several times in a row
