@@ -32,7 +32,7 @@ from app.api.routes import (
     system,
 )
 from app.config import Settings, get_settings
-from app.services.system import package_version
+from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
 from app.storage.db import Database
 from app.storage.migrate import head_revision
@@ -74,8 +74,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         database.dispose()
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The API with its routes and error handlers; ``settings`` default to the environment's."""
+def create_app(
+    settings: Settings | None = None, *, worker_pool: WorkerPool | None = None
+) -> FastAPI:
+    """The API with its routes and error handlers; ``settings`` default to the environment's.
+    ``worker_pool``: the worker processes this server supervises (``serve --workers N``), whose
+    liveness ``/readyz`` and ``/v1/info`` report."""
     app = FastAPI(
         title="Invisible Map",
         version=package_version(),
@@ -88,6 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
     app.state.version_cache = VersionCache()
+    app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(
         BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]

@@ -377,9 +377,12 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
         db.dispose()
 
 
-def start_worker_processes(settings: Settings, processes: int) -> list[BaseProcess]:
+def start_worker_processes(
+    settings: Settings, processes: int, *, first_number: int = 1
+) -> list[BaseProcess]:
     """Start ``processes`` worker processes (spawn context, preloading jemalloc where the
-    machine has it: ``workers.allocator``) and return them (none for 0)."""
+    machine has it: ``workers.allocator``), named ``worker-{first_number}``, …, and return them
+    (none for 0)."""
     if processes < 0:
         raise ValueError(f"processes must be at least 0, got {processes}")
     context = multiprocessing.get_context("spawn")
@@ -387,7 +390,7 @@ def start_worker_processes(settings: Settings, processes: int) -> list[BaseProce
         context.Process(
             target=_worker_process_main,
             args=(settings, os.getpid()),
-            name=f"worker-{k + 1}",
+            name=f"worker-{first_number + k}",
         )
         for k in range(processes)
     ]

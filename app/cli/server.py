@@ -105,7 +105,7 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.main import create_app
-    from workers.main import start_worker_processes, stop_worker_processes
+    from workers.supervisor import WorkerSupervisor
 
     if not 0 < args.port < 65536:
         raise CommandError(f"--port must be 1–65535, got {args.port}")
@@ -132,13 +132,14 @@ def _serve(args: argparse.Namespace) -> int:
         listener.close()
         raise
 
-    processes = start_worker_processes(settings, settings.workers)
+    supervisor = WorkerSupervisor(settings, settings.workers)  # restarts any that dies
+    supervisor.start()
     url = f"http://{args.host}:{args.port}"
     print(f"Invisible Map server at {url}  (API docs: {url}/docs)")
     if generated_key:
         print(f"admin key for this run: {settings.admin_key}")
         print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
-    print(f"worker processes: {len(processes)}", flush=True)
+    print(f"worker processes: {supervisor.configured}", flush=True)
     if args.demo:
         assert settings.admin_key is not None
         threading.Thread(
@@ -148,7 +149,7 @@ def _serve(args: argparse.Namespace) -> int:
         ).start()
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(settings),
+            create_app(settings, worker_pool=supervisor if settings.workers else None),
             host=args.host,
             port=args.port,
             log_level="info",
@@ -170,7 +171,7 @@ def _serve(args: argparse.Namespace) -> int:
         if server.started:
             raise
     finally:
-        stop_worker_processes(processes, timeout_s=30.0)
+        supervisor.stop(timeout_s=30.0)
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)
     if not server.started:
