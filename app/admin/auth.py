@@ -1,9 +1,11 @@
 """Who is logged in to the dashboard, and the checks every request and form goes through.
 
 Logging in takes an admin API key (a key with role admin, or ``INVISIBLE_MAP_ADMIN_KEY``); a
-device key is refused. The login is a signed cookie (:mod:`app.admin.signing`) carrying the key's
-identity, a random nonce and an expiry — no table. On every request the key is checked again: a
-key revoked or expired since (or a changed ``INVISIBLE_MAP_ADMIN_KEY``) ends the login at once.
+device key is refused. The login is a row of ``admin_login`` (:mod:`app.storage.admin_logins`)
+and a signed cookie (:mod:`app.admin.signing`) carrying its token, the key's identity, a random
+nonce and an expiry. On every request both are checked again: a login ended since (logout,
+"end all dashboard sessions", the key revoked) or a key revoked or expired since (or a changed
+``INVISIBLE_MAP_ADMIN_KEY``) is no login, so a cookie copied before logout opens nothing.
 
     user: DashboardUserDep          # a page: 303 to /admin/login?next=… without a valid login
     form: CheckedFormDep            # a form post: the login, then its CSRF token (403 if wrong)
@@ -31,7 +33,7 @@ from starlette.datastructures import FormData
 from app.admin.signing import Signer, load_or_create_secret
 from app.api.deps import DbDep, SettingsDep
 from app.config import Settings
-from app.storage import keys
+from app.storage import admin_logins, keys
 from app.storage.db import Database
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
 from app.storage.orm import Role
@@ -133,18 +135,40 @@ class DashboardUser:
 
 
 def start_login(
-    response: Response, request: Request, state: AdminState, principal: Principal, key: str
+    response: Response,
+    request: Request,
+    state: AdminState,
+    db: Database,
+    principal: Principal,
+    key: str,
 ) -> None:
-    """Set the login cookie for ``principal``, who logged in with ``key``. The cookie names a
-    stored key by id; the environment's admin key (which has none) by a keyed fingerprint."""
-    payload = {"sub": principal.subject, "kid": principal.key_id, "nonce": secrets.token_hex(16)}
+    """Store a login of ``principal``, who logged in with ``key``, and set its cookie. The cookie
+    carries the login's token and names a stored key by id; the environment's admin key (which
+    has none) by a keyed fingerprint."""
+    with db.transaction() as db_session:
+        login_token = admin_logins.start_login(
+            db_session, subject=principal.subject, key_id=principal.key_id, ttl_s=LOGIN_TTL_S
+        )
+    payload = {
+        "sub": principal.subject,
+        "kid": principal.key_id,
+        "sid": login_token,
+        "nonce": secrets.token_hex(16),
+    }
     if principal.key_id is None:
         payload["fp"] = state.signer.fingerprint(key)
     token = state.signer.sign("login", payload, ttl_s=LOGIN_TTL_S)
     set_cookie(response, request, LOGIN_COOKIE, token, max_age_s=LOGIN_TTL_S)
 
 
-def end_login(response: Response) -> None:
+def end_login(response: Response, request: Request, state: AdminState, db: Database) -> None:
+    """End the request's login on the server (its cookie opens nothing from now on) and drop the
+    cookie."""
+    payload = state.signer.unsign("login", request.cookies.get(LOGIN_COOKIE))
+    login_token = None if payload is None else payload.get("sid")
+    if isinstance(login_token, str):
+        with db.transaction() as db_session:
+            admin_logins.end_login(db_session, login_token)
     response.delete_cookie(LOGIN_COOKIE, path=COOKIE_PATH, httponly=True, samesite="strict")
 
 
@@ -212,8 +236,18 @@ def dashboard_user(
 def _still_valid(
     payload: dict[str, object], state: AdminState, settings: Settings, db: Database
 ) -> Principal | None:
-    """The principal the login cookie's payload stands for, if its key still works."""
-    key_id = payload.get("kid")
+    """The principal the login cookie's payload stands for, if its login has not ended and its
+    key still works."""
+    login_token, key_id = payload.get("sid"), payload.get("kid")
+    if not isinstance(login_token, str):
+        return None
+    with db.read() as db_session:
+        login = admin_logins.find_login(db_session, login_token)
+        if login is None or login.key_id != key_id or login.subject != payload.get("sub"):
+            return None
+        principal = (
+            None if login.key_id is None else keys.active_principal(db_session, login.key_id)
+        )
     if key_id is None:
         fingerprint = payload.get("fp")
         admin_key = settings.admin_key
@@ -224,10 +258,6 @@ def _still_valid(
         if not hmac.compare_digest(fingerprint, state.signer.fingerprint(admin_key)):
             return None
         return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
-    if not isinstance(key_id, int):
-        return None
-    with db.read() as db_session:
-        principal = keys.active_principal(db_session, key_id)
     return principal if principal is not None and principal.is_admin else None
 
 

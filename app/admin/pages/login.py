@@ -1,9 +1,11 @@
-"""``/admin/login`` and ``/admin/logout``.
+"""``/admin/login``, ``/admin/logout`` and ``/admin/logins/end-all``.
 
 A login takes an admin API key. The answers: a device key 403 ("a device key cannot log in"), an
 unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` attempts a
-minute from one address 429 with ``Retry-After``, a form without its CSRF token 403. Success sets
-the login cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+minute from one address 429 with ``Retry-After``, a form without its CSRF token 403. Success stores
+the login and sets its cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+Logging out ends the login on the server; ``/admin/logins/end-all`` (on the API keys page) ends
+every login.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from app.admin.auth import (
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, KeyUsage, SettingsDep
-from app.storage import keys
+from app.storage import admin_logins, keys
 
 router = admin_router()
 
@@ -117,12 +119,25 @@ def log_in(
             with db.transaction() as db_session:
                 keys.touch(db_session, principal.key_id)
     response = redirect(request, safe_next(next_url), flash="You are logged in.")
-    start_login(response, request, state, principal, key)
+    start_login(response, request, state, db, principal, key)
     return response
 
 
 @router.post("/logout")
-def log_out(request: Request, _form: CheckedFormDep) -> Response:
+def log_out(request: Request, state: AdminStateDep, db: DbDep, _form: CheckedFormDep) -> Response:
     response = redirect(request, "/admin/login", flash="You are logged out.")
-    end_login(response)
+    end_login(response, request, state, db)
     return response
+
+
+@router.post("/logins/end-all")
+def end_all_logins(request: Request, db: DbDep, _form: CheckedFormDep) -> Response:
+    """End every dashboard login, this one included (a cookie someone copied, a shared
+    computer, …)."""
+    with db.transaction() as db_session:
+        ended = admin_logins.end_all_logins(db_session)
+    return redirect(
+        request,
+        "/admin/login",
+        flash=f"Every dashboard session is ended ({ended}), yours too. Log in again.",
+    )
