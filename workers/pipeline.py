@@ -449,7 +449,10 @@ def run_job(
     except Exception as err:
         error = f"{ctx.stage or 'start'}: {type(err).__name__}: {err}"
         permanent = is_permanent(err)
-        ctx.log(f"{'permanent' if permanent else 'transient'} error in {error}")
+        # the log tail is readable with a device key: only the core's own messages go there in
+        # full (app.services.jobs.public_job_error); the whole error is in job.error and the log
+        shown = error if permanent else f"{ctx.stage or 'start'}: {type(err).__name__}"
+        ctx.log(f"{'permanent' if permanent else 'transient'} error in {shown}")
         try:
             state = retrying(
                 lambda: queue.fail(
