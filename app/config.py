@@ -13,12 +13,14 @@ body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
 ``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
 doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
 ``admin-session-secret`` of the data directory (mode 0600), so that every API process sharing
-that directory agrees; it signs the admin dashboard's login cookies].
+that directory agrees; it signs the admin dashboard's login cookies],
+``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed].
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
+from ipaddress import ip_network
 from pathlib import Path
 
 from pydantic import AliasChoices, Field, field_validator, model_validator
@@ -68,6 +70,11 @@ class Settings(BaseSettings):
         default=None,
         description="signs the admin dashboard's cookies; unset: a random secret in data_dir",
     )
+    #: The proxies in front of ``serve`` whose ``X-Forwarded-For`` / ``X-Forwarded-Proto`` are
+    #: believed: addresses or networks, comma-separated (``"127.0.0.1,10.0.0.0/8"``). Empty (the
+    #: default): none; the client address is the TCP peer's, and forwarded headers are ignored
+    #: (anyone could send them).
+    trusted_proxies: str = ""
 
     @field_validator("database_url")
     @classmethod
@@ -77,6 +84,19 @@ class Settings(BaseSettings):
             if url.startswith(prefix):
                 return "postgresql+psycopg://" + url.removeprefix(prefix)
         return url
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _addresses(cls, proxies: str) -> str:
+        entries = [entry.strip() for entry in proxies.split(",") if entry.strip()]
+        for entry in entries:
+            try:
+                ip_network(entry, strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"INVISIBLE_MAP_TRUSTED_PROXIES: {entry!r} is no IP address or network"
+                ) from None
+        return ",".join(entries)
 
     @field_validator("admin_key")
     @classmethod

@@ -12,8 +12,8 @@ nonce and an expiry. On every request both are checked again: a login ended sinc
 
 CSRF: every form carries ``csrf_token``, an HMAC of the login's nonce, checked against the cookie
 (synchronizer token; the cookie is also ``SameSite=Strict``). The login form itself, made before
-there is a login, uses a double-submit cookie. Login attempts are limited per client address
-(:class:`LoginThrottle`, in memory per process).
+there is a login, uses a double-submit cookie. Failed logins are limited per key tried and in
+all (:class:`LoginThrottle`, in memory per process), never per client address.
 """
 
 from __future__ import annotations
@@ -45,8 +45,10 @@ COOKIE_PATH = "/admin"
 LOGIN_TTL_S = 8 * 3600
 #: How long the login form's CSRF cookie lasts, s.
 LOGIN_FORM_TTL_S = 3600
-#: Login attempts allowed per client address per window.
+#: Failed logins allowed per key tried per window (:class:`LoginThrottle`).
 LOGIN_ATTEMPTS = 10
+#: Failed logins allowed in all per window, per API process.
+LOGIN_ATTEMPTS_OVERALL = 100
 LOGIN_WINDOW_S = 60.0
 
 
@@ -68,28 +70,70 @@ class CsrfRefused(Exception):
 
 
 class LoginThrottle:
-    """At most ``attempts`` login attempts per client address in any ``window_s`` seconds."""
+    """Limits failed logins by what an attacker cannot vary freely: at most ``per_key`` failures
+    per key tried (an ``im_<prefix>_…`` key by its prefix; any other string, such as
+    ``INVISIBLE_MAP_ADMIN_KEY``, counts as one key) and at most ``overall`` failures in all, in
+    any ``window_s`` seconds (per API process).
 
-    def __init__(self, attempts: int = LOGIN_ATTEMPTS, window_s: float = LOGIN_WINDOW_S) -> None:
-        self.attempts = attempts
+    Not by client address: an address is free to choose for whoever can send
+    ``X-Forwarded-For`` through a trusted proxy, and one shared by many (a NAT, the proxy itself)
+    would let ten wrong tries lock the real admin out. A guesser of one key's secret is held to
+    ``per_key`` tries a window; guessing across keys is held to ``overall``; an admin whose own
+    key nobody is guessing logs in unless the overall budget is spent (a flood of wrong keys;
+    the answer says so)."""
+
+    def __init__(
+        self,
+        per_key: int = LOGIN_ATTEMPTS,
+        overall: int = LOGIN_ATTEMPTS_OVERALL,
+        window_s: float = LOGIN_WINDOW_S,
+    ) -> None:
+        self.per_key = per_key
+        self.overall = overall
         self.window_s = window_s
-        self._times: dict[str, deque[float]] = {}
+        self._failures: dict[str, deque[float]] = {}
+        self._all: deque[float] = deque()
         self._lock = threading.Lock()
 
-    def retry_after_s(self, client: str) -> int | None:
-        """Record an attempt from ``client``; None if allowed, else the seconds to wait."""
+    @staticmethod
+    def target(key: str) -> str:
+        """What a login attempt counts against: the key's prefix, or one bucket for the rest."""
+        scheme, _, rest = key.partition("_")
+        prefix = rest.partition("_")[0]
+        return f"{scheme}_{prefix}"[:40] if scheme == keys.KEY_SCHEME and prefix else "other"
+
+    def retry_after_s(self, key: str) -> int | None:
+        """None if an attempt with ``key`` may be checked now, else the seconds to wait."""
         now_s = time.monotonic()
         with self._lock:
-            times = self._times.setdefault(client, deque())
-            while times and times[0] <= now_s - self.window_s:
+            self._forget(now_s)
+            waits = [
+                times[0] + self.window_s - now_s
+                for times, limit in (
+                    (self._failures.get(self.target(key), deque()), self.per_key),
+                    (self._all, self.overall),
+                )
+                if len(times) >= limit
+            ]
+        return max(1, int(max(waits) + 1)) if waits else None
+
+    def failed(self, key: str) -> None:
+        """Record a failed attempt with ``key``."""
+        now_s = time.monotonic()
+        with self._lock:
+            self._failures.setdefault(self.target(key), deque()).append(now_s)
+            self._all.append(now_s)
+
+    def _forget(self, now_s: float) -> None:
+        horizon_s = now_s - self.window_s
+        while self._all and self._all[0] <= horizon_s:
+            self._all.popleft()
+        for target in list(self._failures):
+            times = self._failures[target]
+            while times and times[0] <= horizon_s:
                 times.popleft()
-            if len(times) >= self.attempts:
-                return max(1, int(times[0] + self.window_s - now_s + 1))
-            times.append(now_s)
-            if len(self._times) > 10_000:  # forget idle addresses
-                for address in [a for a, t in self._times.items() if not t]:
-                    del self._times[address]
-            return None
+            if not times:
+                del self._failures[target]
 
 
 class AdminState:
@@ -209,10 +253,6 @@ def login_form_token_ok(request: Request, state: AdminState, submitted: object) 
     if payload is None or not isinstance(submitted, str):
         return False
     return hmac.compare_digest(str(payload.get("token", "")), submitted)
-
-
-def client_address(request: Request) -> str:
-    return request.client.host if request.client else "unknown"
 
 
 # --------------------------------------------------------------------------- every request

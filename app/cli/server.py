@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     import uvicorn
 
     from app.client import Client
+    from app.config import Settings
 
 
 #: The longest ``keys create --expires-in-days`` (100 years).
@@ -154,6 +155,7 @@ def _serve(args: argparse.Namespace) -> int:
             port=args.port,
             log_level="info",
             timeout_keep_alive=settings.keep_alive_s,
+            **proxy_options(settings),
         )
     )
     # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
@@ -177,6 +179,16 @@ def _serve(args: argparse.Namespace) -> int:
     if not server.started:
         raise CommandError(f"the server could not start at {url} (see the log above)")
     return 0
+
+
+def proxy_options(settings: Settings) -> dict[str, Any]:
+    """uvicorn's options for forwarded headers: believed only from
+    ``INVISIBLE_MAP_TRUSTED_PROXIES`` (uvicorn's own default believes any from 127.0.0.1, so
+    anything on the machine, or a proxy passing a client's header on, could choose the client
+    address the server sees)."""
+    if not settings.trusted_proxies:
+        return {"proxy_headers": False}
+    return {"proxy_headers": True, "forwarded_allow_ips": settings.trusted_proxies}
 
 
 async def _serve_with_threads(

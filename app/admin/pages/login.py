@@ -1,8 +1,9 @@
 """``/admin/login``, ``/admin/logout`` and ``/admin/logins/end-all``.
 
 A login takes an admin API key. The answers: a device key 403 ("a device key cannot log in"), an
-unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` attempts a
-minute from one address 429 with ``Retry-After``, a form without its CSRF token 403. Success stores
+unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` failures a
+minute with one key (or :data:`~app.admin.auth.LOGIN_ATTEMPTS_OVERALL` with any) 429 with
+``Retry-After``, a form without its CSRF token 403. Success stores
 the login and sets its cookie and goes (303) to ``next`` (a dashboard path) or the overview.
 Logging out ends the login on the server; ``/admin/logins/end-all`` (on the API keys page) ends
 every login.
@@ -18,7 +19,6 @@ from app.admin.auth import (
     AdminStateDep,
     CheckedFormDep,
     PostedFormDep,
-    client_address,
     end_login,
     login_form_token,
     login_form_token_ok,
@@ -70,17 +70,6 @@ def login_form(
 def log_in(
     request: Request, state: AdminStateDep, settings: SettingsDep, db: DbDep, form: PostedFormDep
 ) -> Response:
-    wait_s = state.throttle.retry_after_s(client_address(request))
-    if wait_s is not None:
-        response = _login_page(
-            request,
-            state,
-            next_url="/admin",
-            error=f"Too many login attempts from your address. Wait {wait_s} s and try again.",
-            status_code=429,
-        )
-        response.headers["Retry-After"] = str(wait_s)
-        return response
     next_url = str(form.get("next") or "/admin")
     if not login_form_token_ok(request, state, form.get("form_token")):
         return _login_page(
@@ -95,8 +84,22 @@ def log_in(
         return _login_page(
             request, state, next_url=next_url, error="Enter an admin API key.", status_code=422
         )
+    wait_s = state.throttle.retry_after_s(key)
+    if wait_s is not None:
+        response = _login_page(
+            request,
+            state,
+            next_url=next_url,
+            error=f"Too many failed logins with this key, or with any key. Wait {wait_s} s and "
+            "try again.",
+            status_code=429,
+        )
+        response.headers["Retry-After"] = str(wait_s)
+        return response
     with db.read() as db_session:
         principal = keys.authenticate(db_session, key, admin_key=settings.admin_key)
+    if principal is None or not principal.is_admin:
+        state.throttle.failed(key)
     if principal is None:
         return _login_page(
             request,
