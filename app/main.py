@@ -31,6 +31,7 @@ from app.api.routes import (
     sweeps,
     system,
 )
+from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
 from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
@@ -97,6 +98,7 @@ def create_app(
     app.add_middleware(
         BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]
     )
+    app.add_middleware(SecurityHeaders)  # outermost: every answer, errors included
     app.include_router(system.router)
     install_docs(app)  # /docs, /redoc: Swagger UI and ReDoc from the installed package
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key

@@ -105,6 +105,7 @@ def add_server_commands(commands: Any) -> None:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from app.api import access_log
     from app.main import create_app
     from workers.supervisor import WorkerSupervisor
 
@@ -148,16 +149,16 @@ def _serve(args: argparse.Namespace) -> int:
             args=(url, settings.admin_key, settings.workers),
             daemon=True,
         ).start()
-    server = uvicorn.Server(
-        uvicorn.Config(
-            create_app(settings, worker_pool=supervisor if settings.workers else None),
-            host=args.host,
-            port=args.port,
-            log_level="info",
-            timeout_keep_alive=settings.keep_alive_s,
-            **proxy_options(settings),
-        )
+    config = uvicorn.Config(
+        create_app(settings, worker_pool=supervisor if settings.workers else None),
+        host=args.host,
+        port=args.port,
+        log_level="info",
+        timeout_keep_alive=settings.keep_alive_s,
+        **proxy_options(settings),
     )
+    access_log.install()  # after uvicorn configured its loggers: no key in the access log
+    server = uvicorn.Server(config)
     # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
     # previous handler: with the default one the process would die right there, before stopping
     # its workers (and exit by the signal). This handler makes that a no-op, and makes a SIGTERM

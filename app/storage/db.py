@@ -10,6 +10,7 @@ the file is in WAL mode so readers never wait for a writer. On PostgreSQL both a
 from __future__ import annotations
 
 import enum
+import os
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -151,8 +152,27 @@ def first_line(err: BaseException) -> str:
 
 
 def _ensure_sqlite_folder(database: str | None) -> None:
+    """Make the SQLite file's folder, and the file itself readable by its owner only (0600:
+    it holds every upload and the keys' digests; SQLite gives its ``-wal`` and ``-shm`` files
+    the database file's mode). An existing file of ours that others may read is made 0600."""
     if database and database != ":memory:" and not database.startswith("file:"):
-        Path(database).expanduser().resolve().parent.mkdir(parents=True, exist_ok=True)
+        path = Path(database).expanduser().resolve()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o600))
+            for file in (
+                path,
+                path.with_name(path.name + "-wal"),
+                path.with_name(path.name + "-shm"),
+            ):
+                if (
+                    file.exists()
+                    and file.stat().st_mode & 0o077
+                    and file.stat().st_uid == os.getuid()
+                ):
+                    file.chmod(0o600)
+        except OSError:
+            pass  # a read-only folder or file: opening it says so, naming the file
 
 
 def _sqlite_engine(url: str, *, echo: bool, begin: str) -> Engine:

@@ -639,10 +639,16 @@ def test_serve_believes_forwarded_headers_only_from_configured_proxies(
     with ServerProcess(url, workers=0, env=env, log_path=log) as server:
         answer = httpx.get(server.url + "/healthz", headers={"X-Forwarded-For": "203.0.113.7"})
         assert answer.status_code == 200
+        # a key in the query string is refused, and never written to the access log
+        leaked = httpx.get(server.url + "/v1/info?api_key=im_0a1b2c3d_query-secret")
+        assert leaked.status_code == 401
         server.stop()
-    lines = [line for line in log.read_text().splitlines() if "GET /healthz" in line]
-    assert lines, log.read_text()
+    text = log.read_text()
+    lines = [line for line in text.splitlines() if "GET /healthz" in line]
+    assert lines, text
     assert all(f"{seen}:" in line for line in lines), lines
+    assert "query-secret" not in text
+    assert "GET /v1/info?api_key=*** " in text
 
 
 def test_a_trusted_proxy_must_be_an_address(env: pytest.MonkeyPatch, run_main: RunMain) -> None:
