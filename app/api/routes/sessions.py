@@ -24,7 +24,7 @@ from app.api.deps import (
     SettingsDep,
     UploadBodyDep,
 )
-from app.api.errors import error_responses
+from app.api.errors import error_responses, unauthorized
 from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.sessions import SessionCreated, SessionPublic, SessionsPublic
@@ -32,7 +32,8 @@ from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
-from app.storage import sessions
+from app.services.uploads import check_storable
+from app.storage import keys, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
@@ -179,6 +180,12 @@ def upload_session(
         parsed = _parse(upload.json_bytes)
         # The write transaction starts only now: parsing never holds SQLite's write lock.
         with db.transaction() as db_session:
+            # the key may have been revoked while the body arrived: check it again, in the
+            # transaction that stores
+            if principal.key_id is not None and not keys.active_principal(
+                db_session, principal.key_id
+            ):
+                raise unauthorized("API key revoked or expired while uploading")
             result = sessions.create_session(
                 db_session,
                 parsed=parsed,
@@ -213,6 +220,7 @@ def _parse(json_bytes: bytes) -> ParsedSession:
         raise SessionFormatError(
             "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
         )
+    check_storable(parsed)
     return parsed
 
 
