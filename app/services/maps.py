@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.domain.errors import ParameterError
@@ -18,6 +19,7 @@ from app.services.errors import Conflict, InvalidInput
 from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
+from app.storage.orm import MapRow
 from app.storage.sessions import BUILD_MAP
 
 
@@ -25,7 +27,11 @@ def enqueue_rebuild(
     db_session: Session, map_id: int, overrides: dict[str, Any], *, max_attempts: int
 ) -> tuple[MapInfo, int]:
     """Queue a build of map ``map_id``'s session with ``overrides`` (already checked, see
-    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound."""
+    :func:`checked_overrides`); returns the map and the job's id. Raises MapNotFound, also when
+    a delete of the map commits meanwhile: the map row is share-locked first (PostgreSQL
+    ``FOR KEY SHARE``), so a delete waits for this transaction, or this one for the delete and
+    then finds no map (never a job referring to a deleted map)."""
+    lock_map(db_session, map_id, for_delete=False)
     info = maps.get_map(db_session, map_id)
     job_id = queue.enqueue(
         db_session,
@@ -36,6 +42,16 @@ def enqueue_rebuild(
         max_attempts=max_attempts,
     )
     return info, job_id
+
+
+def lock_map(db_session: Session, map_id: int, *, for_delete: bool) -> None:
+    """Lock map ``map_id``'s row to the end of the transaction (PostgreSQL; SQLite's writers run
+    one at a time anyway): ``FOR UPDATE`` to delete it, else ``FOR KEY SHARE`` (it must go on
+    existing). No row, no lock: the caller's read then says MapNotFound."""
+    lock = select(MapRow.id).where(MapRow.id == map_id)
+    db_session.execute(
+        lock.with_for_update() if for_delete else lock.with_for_update(read=True, key_share=True)
+    )
 
 
 def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -66,7 +82,9 @@ def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
     """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel)."""
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The map row is
+    locked first, so a rebuild racing the delete waits for it (:func:`enqueue_rebuild`)."""
+    lock_map(db_session, map_id, for_delete=True)
     queue.cancel_unfinished_for_map(db_session, map_id)
     maps.delete_map(db_session, map_id)
 
