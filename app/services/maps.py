@@ -31,7 +31,7 @@ def enqueue_rebuild(
     a delete of the map commits meanwhile: the map row is share-locked first (PostgreSQL
     ``FOR KEY SHARE``), so a delete waits for this transaction, or this one for the delete and
     then finds no map (never a job referring to a deleted map)."""
-    lock_map(db_session, map_id, for_delete=False)
+    lock_map(db_session, map_id)
     info = maps.get_map(db_session, map_id)
     job_id = queue.enqueue(
         db_session,
@@ -44,13 +44,12 @@ def enqueue_rebuild(
     return info, job_id
 
 
-def lock_map(db_session: Session, map_id: int, *, for_delete: bool) -> None:
-    """Lock map ``map_id``'s row to the end of the transaction (PostgreSQL; SQLite's writers run
-    one at a time anyway): ``FOR UPDATE`` to delete it, else ``FOR KEY SHARE`` (it must go on
-    existing). No row, no lock: the caller's read then says MapNotFound."""
-    lock = select(MapRow.id).where(MapRow.id == map_id)
+def lock_map(db_session: Session, map_id: int) -> None:
+    """Share-lock map ``map_id``'s row to the end of the transaction so that it goes on existing
+    (PostgreSQL ``FOR KEY SHARE``: a delete waits; SQLite's writers run one at a time anyway).
+    No row, no lock: the caller's read then says MapNotFound."""
     db_session.execute(
-        lock.with_for_update() if for_delete else lock.with_for_update(read=True, key_share=True)
+        select(MapRow.id).where(MapRow.id == map_id).with_for_update(read=True, key_share=True)
     )
 
 
@@ -82,9 +81,10 @@ def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
     """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The map row is
-    locked first, so a rebuild racing the delete waits for it (:func:`enqueue_rebuild`)."""
-    lock_map(db_session, map_id, for_delete=True)
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The delete
+    locks the map row, so a rebuild racing it waits for it (:func:`enqueue_rebuild`). (Jobs are
+    updated before the map is locked: a worker storing a version updates its job first, then
+    locks the map, and the other order would deadlock with it.)"""
     queue.cancel_unfinished_for_map(db_session, map_id)
     maps.delete_map(db_session, map_id)
 
