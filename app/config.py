@@ -14,7 +14,9 @@ body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
 doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
 ``admin-session-secret`` of the data directory (mode 0600), so that every API process sharing
 that directory agrees; it signs the admin dashboard's login cookies],
-``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed].
+``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed],
+``INVISIBLE_MAP_HEADER_TIMEOUT_S`` [10], ``INVISIBLE_MAP_BODY_TIMEOUT_S`` [30],
+``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``).
 """
 
 from __future__ import annotations
@@ -57,6 +59,14 @@ class Settings(BaseSettings):
     #: nginx's upstream keepalive and AWS load balancers: 60 s), and they are the ones that
     #: close them. Keep it above the idle timeout of any proxy in front of the API.
     keep_alive_s: int = Field(default=75, ge=1)
+    #: ``serve``: a request's line and headers must arrive within this, s (0: no limit;
+    #: ``app.api.connection_guard``).
+    header_timeout_s: float = Field(default=10.0, ge=0)
+    #: ``serve``: the longest pause in a request's body while it is read, s.
+    body_timeout_s: float = Field(default=30.0, gt=0)
+    #: ``serve``: connections one client address may hold open (0: no cap; the trusted proxies'
+    #: addresses are exempt).
+    max_connections_per_address: int = Field(default=128, ge=0)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
     #: any other request's body (routes, localization updates, keys, sweeps, dashboard forms)

@@ -106,6 +106,7 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.api import access_log
+    from app.api.connection_guard import guarded_protocol
     from app.main import create_app
     from workers.supervisor import WorkerSupervisor
 
@@ -155,6 +156,7 @@ def _serve(args: argparse.Namespace) -> int:
         port=args.port,
         log_level="info",
         timeout_keep_alive=settings.keep_alive_s,
+        http=guarded_protocol(settings),  # header/body timeouts, connections per address
         **proxy_options(settings),
     )
     access_log.install()  # after uvicorn configured its loggers: no key in the access log
