@@ -16,7 +16,8 @@ doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret 
 that directory agrees; it signs the admin dashboard's login cookies],
 ``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed],
 ``INVISIBLE_MAP_HEADER_TIMEOUT_S`` [10], ``INVISIBLE_MAP_BODY_TIMEOUT_S`` [30],
-``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``).
+``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``),
+``INVISIBLE_MAP_JOB_TIME_BUDGET_S`` [3600: a job attempt running longer fails for good].
 """
 
 from __future__ import annotations
@@ -76,6 +77,8 @@ class Settings(BaseSettings):
     poll_s: float = Field(default=0.25, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     retry_backoff_s: float = Field(default=2.0, ge=0)
+    #: A job attempt that runs longer than this fails for good, with the reason (0: no budget).
+    job_time_budget_s: float = Field(default=3600.0, ge=0)
     session_secret: str | None = Field(
         default=None,
         description="signs the admin dashboard's cookies; unset: a random secret in data_dir",

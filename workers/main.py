@@ -152,6 +152,7 @@ class Worker:
                     stages=self.pipelines[lease.kind],
                     control=control,
                     retry_backoff_s=self.settings.retry_backoff_s,
+                    time_budget_s=self.settings.job_time_budget_s,
                 )
         except Exception as err:
             # Recording the outcome failed (the database went away for longer than the lease):
