@@ -17,7 +17,9 @@ that directory agrees; it signs the admin dashboard's login cookies],
 ``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed],
 ``INVISIBLE_MAP_HEADER_TIMEOUT_S`` [10], ``INVISIBLE_MAP_BODY_TIMEOUT_S`` [30],
 ``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``),
-``INVISIBLE_MAP_JOB_TIME_BUDGET_S`` [3600: a job attempt running longer fails for good].
+``INVISIBLE_MAP_JOB_TIME_BUDGET_S`` [3600: a job attempt running longer fails for good],
+``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` [30 per device key],
+``INVISIBLE_MAP_DEVICE_MAX_AUTO_TUNE_TRIALS`` [20].
 """
 
 from __future__ import annotations
@@ -77,6 +79,11 @@ class Settings(BaseSettings):
     poll_s: float = Field(default=0.25, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     retry_backoff_s: float = Field(default=2.0, ge=0)
+    #: Uploads one device key may make per minute (per API process; 0: no limit): 429 with
+    #: Retry-After beyond.
+    uploads_per_minute: int = Field(default=30, ge=0)
+    #: The most auto-tuning trials a device key may ask for with an upload (admins: 1000).
+    device_max_auto_tune_trials: int = Field(default=20, ge=0, le=1000)
     #: A job attempt that runs longer than this fails for good, with the reason (0: no budget).
     job_time_budget_s: float = Field(default=3600.0, ge=0)
     session_secret: str | None = Field(

@@ -18,7 +18,7 @@ from fastapi import Depends, FastAPI
 
 from app.admin.router import router as admin_router
 from app.api.body_limit import BodyLimit
-from app.api.deps import KeyUsage, current_principal
+from app.api.deps import KeyUsage, UploadRate, current_principal
 from app.api.docs_pages import install_docs
 from app.api.errors import install_error_handlers
 from app.api.routes import (
@@ -92,6 +92,7 @@ def create_app(
     )
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
+    app.state.upload_rate = UploadRate(app.state.settings.uploads_per_minute)
     app.state.version_cache = VersionCache()
     app.state.worker_pool = worker_pool
     install_error_handlers(app)

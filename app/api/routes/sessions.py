@@ -23,8 +23,9 @@ from app.api.deps import (
     SessionDep,
     SettingsDep,
     UploadBodyDep,
+    UploadRateDep,
 )
-from app.api.errors import error_responses, unauthorized
+from app.api.errors import ApiError, error_responses, unauthorized
 from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.sessions import SessionCreated, SessionPublic, SessionsPublic
@@ -147,6 +148,7 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
         413,
         415,
         422,
+        429,
         examples={
             409: (
                 "idempotency_conflict",
@@ -159,6 +161,7 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
 def upload_session(
     principal: CurrentPrincipal,
     body: UploadBodyDep,
+    rate: UploadRateDep,
     db: DbDep,
     settings: SettingsDep,
     response: Response,
@@ -174,6 +177,15 @@ def upload_session(
         ),
     ] = 0,
 ) -> SessionCreated:
+    if not principal.is_admin and auto_tune_trials > settings.device_max_auto_tune_trials:
+        raise ApiError(
+            422,
+            "validation_error",
+            f"auto_tune_trials: a device key may ask for at most "
+            f"{settings.device_max_auto_tune_trials} trials (an admin key up to 1000), got "
+            f"{auto_tune_trials}",
+            field="auto_tune_trials",
+        )
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
     result = _replayed(db, principal, idempotency_key, upload.sha256)
     if result is None:
@@ -195,6 +207,8 @@ def upload_session(
                 max_attempts=settings.max_attempts,
                 auto_tune_trials=auto_tune_trials,
             )
+        if not result.replayed:
+            rate.accepted(principal.subject)
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:
         response.headers["Idempotent-Replayed"] = "true"
