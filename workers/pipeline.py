@@ -43,6 +43,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from sqlalchemy.exc import DataError
+
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.map_result import MapResult
@@ -323,10 +325,16 @@ def evaluate(ctx: JobContext) -> None:
     result = _need(ctx.result, "result")
     ctx.evaluation = evaluate_map(session, result)
     ctx.report(0.5)
-    ctx.plot_png = render_map_png(result, session)
+    try:
+        ctx.plot_png = render_map_png(result, session)
+    except Exception as err:  # a plot is a picture of the map: the map is built without one
+        logger.warning("job %d: the plot failed", ctx.lease.job_id, exc_info=True)
+        ctx.log(f"evaluate: no plot ({type(err).__name__}); the map is stored without one")
+        ctx.plot_png = None
     ctx.log(
         f"evaluate: shift metric {ctx.evaluation.shift_opt:.4g} "
-        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), plot {len(ctx.plot_png) / 1e3:.0f} kB"
+        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), "
+        + (f"plot {len(ctx.plot_png) / 1e3:.0f} kB" if ctx.plot_png is not None else "no plot")
     )
 
 
@@ -384,8 +392,12 @@ PIPELINES: Mapping[str, Sequence[Stage]] = {BUILD_MAP: BUILD_MAP_STAGES}
 
 
 def is_permanent(err: BaseException) -> bool:
-    """Whether retrying cannot help: the core refused the input, or a stored input is bad."""
-    return isinstance(err, InvisibleMapError | PermanentJobError)
+    """Whether retrying cannot help: the core refused the input, a stored input is bad, or the
+    error is deterministic (the database refusing a value as such, SQLSTATE class 22; text
+    that cannot be encoded; a number that overflows): the same input fails the same way."""
+    return isinstance(
+        err, InvisibleMapError | PermanentJobError | DataError | UnicodeError | OverflowError
+    )
 
 
 def through_outages(control: JobControl, job_id: int, what: str, call: Callable[[], T]) -> T:
