@@ -19,7 +19,9 @@ that directory agrees; it signs the admin dashboard's login cookies],
 ``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``),
 ``INVISIBLE_MAP_JOB_TIME_BUDGET_S`` [3600: a job attempt running longer fails for good],
 ``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` [30 per device key],
-``INVISIBLE_MAP_DEVICE_MAX_AUTO_TUNE_TRIALS`` [20].
+``INVISIBLE_MAP_DEVICE_MAX_AUTO_TUNE_TRIALS`` [20], ``INVISIBLE_MAP_DB_LOCK_TIMEOUT_S`` [5],
+``INVISIBLE_MAP_DB_STATEMENT_TIMEOUT_S`` [120], ``INVISIBLE_MAP_DB_IDLE_IN_TRANSACTION_TIMEOUT_S``
+[60] (PostgreSQL's limits on the API's and the workers' connections).
 """
 
 from __future__ import annotations
@@ -79,6 +81,13 @@ class Settings(BaseSettings):
     poll_s: float = Field(default=0.25, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     retry_backoff_s: float = Field(default=2.0, ge=0)
+    #: PostgreSQL: the longest an API request or a worker waits for a row lock, s.
+    db_lock_timeout_s: float = Field(default=5.0, gt=0)
+    #: PostgreSQL: the longest one statement runs, s.
+    db_statement_timeout_s: float = Field(default=120.0, gt=0)
+    #: PostgreSQL: a connection idle this long inside a transaction (its process stalled) is
+    #: ended by the server, and the locks it held are released, s.
+    db_idle_in_transaction_timeout_s: float = Field(default=60.0, gt=0)
     #: Uploads one device key may make per minute (per API process; 0: no limit): 429 with
     #: Retry-After beyond.
     uploads_per_minute: int = Field(default=30, ge=0)

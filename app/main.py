@@ -35,7 +35,7 @@ from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
 from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
-from app.storage.db import Database
+from app.storage.db import Database, ServerTimeouts
 from app.storage.migrate import head_revision
 
 DESCRIPTION = """\
@@ -66,7 +66,7 @@ OPENAPI_TAGS = [
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Open the database for the app's life; close its pools at shutdown."""
     settings: Settings = app.state.settings
-    database = Database(settings.resolved_database_url)
+    database = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     app.state.db = database
     app.state.head_revision = head_revision()
     try:

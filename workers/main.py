@@ -41,7 +41,7 @@ from types import FrameType
 
 from app.config import Settings
 from app.storage import queue
-from app.storage.db import Database, database_fault, first_line
+from app.storage.db import Database, ServerTimeouts, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
 from workers.allocator import preloading_jemalloc
@@ -343,7 +343,7 @@ def configure_logging() -> None:
 
 def run_worker(settings: Settings, *, signums: Sequence[int]) -> int:
     """Run one worker in this process until a signal in ``signums`` stops it; returns 0."""
-    db = Database(settings.resolved_database_url)
+    db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)
         handle_signals(worker, signums)
@@ -366,7 +366,7 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
     forwards it as SIGTERM, which must count once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     configure_logging()
-    db = Database(settings.resolved_database_url)
+    db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)
         handle_signals(worker, [signal.SIGTERM])
