@@ -27,7 +27,7 @@ from sqlalchemy import ColumnElement, Update, and_, func, select, update
 from sqlalchemy.orm import Session
 
 from app.storage.db import Database
-from app.storage.orm import TERMINAL_STATES, Job, JobState, WorkerRow, utc_now
+from app.storage.orm import TERMINAL_STATES, Job, JobState, SessionRow, WorkerRow, utc_now
 from app.storage.rows import info_from_row
 
 #: How many lines of a job's log are kept on its row.
@@ -271,17 +271,53 @@ def claim(
     kinds: tuple[str, ...] | None = None,
     now: datetime | None = None,
 ) -> Lease | None:
-    """Take the next runnable job (highest priority, then oldest), or None if there is none."""
+    """Take the next runnable job, or None if there is none: the highest priority first, then
+    in turns across uploaders, then the oldest.
+
+    Turns: a waiting job's turn is its place among its uploader's waiting jobs (1 for the oldest)
+    plus how many of that uploader's jobs were started since the oldest waiting job was queued.
+    So a key that was just served waits for the others' next job, and one key's hundred queued
+    uploads do not make another key's one wait behind them (sweeps' trials count as their
+    session's uploader's). Computed per claim over the waiting jobs and the jobs started since
+    the oldest waiting one: a scan of the queue, not of the job table's history."""
     now = now or utc_now()
+    uploader = func.coalesce(SessionRow.uploaded_by, "")
+    queued = and_(Job.state == JobState.QUEUED.value, Job.run_after <= now)
+    if kinds is not None:
+        queued = and_(queued, Job.kind.in_(kinds))
+    waiting = (
+        select(
+            Job.id.label("id"),
+            uploader.label("uploader"),
+            func.row_number()
+            .over(partition_by=uploader, order_by=(Job.priority.desc(), Job.id))
+            .label("place"),
+        )
+        .select_from(Job)
+        .outerjoin(SessionRow, SessionRow.id == Job.session_id)
+        .where(queued)
+        .subquery()
+    )
+    oldest_waiting = (
+        select(func.min(Job.created_at)).where(Job.state == JobState.QUEUED.value).scalar_subquery()
+    )
+    served = (
+        select(uploader.label("uploader"), func.count().label("jobs"))
+        .select_from(Job)
+        .outerjoin(SessionRow, SessionRow.id == Job.session_id)
+        .where(Job.started_at >= oldest_waiting)
+        .group_by(uploader)
+        .subquery()
+    )
+    turn = waiting.c.place + func.coalesce(served.c.jobs, 0)
     candidate = (
         select(Job.id)
-        .where(Job.state == JobState.QUEUED.value, Job.run_after <= now)
-        .order_by(Job.priority.desc(), Job.id)
+        .join(waiting, waiting.c.id == Job.id)
+        .outerjoin(served, served.c.uploader == waiting.c.uploader)
+        .order_by(Job.priority.desc(), turn, Job.id)
         .limit(1)
-        .with_for_update(skip_locked=True)
+        .with_for_update(skip_locked=True, of=Job)
     )
-    if kinds is not None:
-        candidate = candidate.where(Job.kind.in_(kinds))
     statement = (
         update(Job)
         .where(Job.id == candidate.scalar_subquery(), Job.state == JobState.QUEUED.value)
