@@ -8,8 +8,9 @@ when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
 ``keep_alive_s``],
 ``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
 [256 MiB: the body after gunzip], ``INVISIBLE_MAP_MAX_REQUEST_BYTES`` [4 MiB: any other request's
-body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
-[5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
+body], ``INVISIBLE_MAP_MAX_POSES`` [100,000 poses per session], ``INVISIBLE_MAP_LEASE_S``
+[30], ``INVISIBLE_MAP_HEARTBEAT_S`` [5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle
+worker looks for work],
 ``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
 doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
 ``admin-session-secret`` of the data directory (mode 0600), so that every API process sharing
@@ -74,6 +75,8 @@ class Settings(BaseSettings):
     max_connections_per_address: int = Field(default=128, ge=0)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
+    #: the most poses an uploaded session may have (checked before it is parsed)
+    max_poses: int = Field(default=100_000, gt=0)
     #: any other request's body (routes, localization updates, keys, sweeps, dashboard forms)
     max_request_bytes: int = Field(default=4 * 2**20, gt=0)
     lease_s: float = Field(default=30.0, gt=0)

@@ -2,7 +2,9 @@
 at the door (``POST /v1/sessions``), so that a session accepted with 202 can always be stored
 and rendered, and a bad one is a 422 naming the field instead of a 500 or a build that fails.
 
-    check_storable(parsed)      # SessionFormatError (422 invalid_session, naming the field)
+    check_pose_count(document, max_poses)   # before parsing (INVISIBLE_MAP_MAX_POSES)
+    check_storable(parsed)                  # after it
+    # each: SessionFormatError (422 invalid_session, naming the field)
 
 - text (``map_id``, the points of interest's names) must be encodable as UTF-8 (no lone surrogate
   such as ``"\\ud800"``, which JSON allows) and hold no NUL (PostgreSQL's text cannot);
@@ -20,6 +22,18 @@ from app.domain.session import Session as ParsedSession
 
 #: The largest tag id the database stores (``map_tag.tag_id`` is a 32-bit integer).
 MAX_TAG_ID = 2**31 - 1
+
+
+def check_pose_count(document: object, max_poses: int) -> None:
+    """SessionFormatError (``pose_data``) if the decoded upload has more than ``max_poses``
+    poses (``INVISIBLE_MAP_MAX_POSES``): checked before the session is parsed, so that a small
+    gzip body that inflates to millions of poses costs no parse, no build, no stored map."""
+    poses = document.get("pose_data") if isinstance(document, dict) else None
+    if isinstance(poses, list) and len(poses) > max_poses:
+        raise SessionFormatError(
+            "pose_data",
+            f"{len(poses)} poses; a session may have at most {max_poses} (INVISIBLE_MAP_MAX_POSES)",
+        )
 
 
 def check_text(field: str, value: str) -> None:

@@ -102,10 +102,10 @@ def test_an_upload_whose_key_is_revoked_while_its_body_arrives_is_not_stored(
     key_id, secret = api.create_key(name="phone")
     real_parse = sessions_route._parse
 
-    def revoke_then_parse(json_bytes: bytes) -> Any:
+    def revoke_then_parse(json_bytes: bytes, **kwargs: Any) -> Any:
         with api.db.transaction() as db_session:
             keys.revoke_key(db_session, key_id)
-        return real_parse(json_bytes)
+        return real_parse(json_bytes, **kwargs)
 
     monkeypatch.setattr(sessions_route, "_parse", revoke_then_parse)
     response = api.upload(ONETAG, auth={"Authorization": f"Bearer {secret}"})
@@ -182,3 +182,20 @@ def test_keys_in_a_request_target_are_redacted_in_the_access_log(
     target: str, redacted: str
 ) -> None:
     assert access_log.redact(target) == redacted
+
+
+def test_a_session_with_more_poses_than_allowed_is_refused_before_parsing(
+    database_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    parsed: list[bytes] = []
+    real_parse = sessions_route.parse_session
+    monkeypatch.setattr(
+        sessions_route, "parse_session", lambda doc: parsed.append(b"") or real_parse(doc)
+    )
+    with running_api(database_url, max_poses=10) as api:
+        response = api.upload(ONETAG)
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == "pose_data"
+        assert "at most 10 (INVISIBLE_MAP_MAX_POSES)" in response.json()["detail"]
+        assert parsed == []  # refused before the parse
+        assert api.count(SessionRow) == 0

@@ -33,7 +33,7 @@ from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
-from app.services.uploads import check_storable
+from app.services.uploads import check_pose_count, check_storable
 from app.storage import keys, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
@@ -189,7 +189,7 @@ def upload_session(
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
     result = _replayed(db, principal, idempotency_key, upload.sha256)
     if result is None:
-        parsed = _parse(upload.json_bytes)
+        parsed = _parse(upload.json_bytes, max_poses=settings.max_poses)
         # The write transaction starts only now: parsing never holds SQLite's write lock.
         with db.transaction() as db_session:
             # the key may have been revoked while the body arrived: check it again, in the
@@ -227,9 +227,11 @@ def _replayed(
         return None if earlier is None else sessions.replay_upload(db_session, earlier, sha256)
 
 
-def _parse(json_bytes: bytes) -> ParsedSession:
+def _parse(json_bytes: bytes, *, max_poses: int) -> ParsedSession:
     """The validated session; SessionFormatError (422, naming the field) otherwise."""
-    parsed = parse_session(decode_json_bytes(json_bytes))
+    document = decode_json_bytes(json_bytes)
+    check_pose_count(document, max_poses)
+    parsed = parse_session(document)
     if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
         raise SessionFormatError(
             "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
