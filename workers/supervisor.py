@@ -9,9 +9,10 @@ A worker process that dies (killed, out of memory, a crash in native code) is re
 zombie), its death is logged with its exit status or signal, and a new process takes its place
 after a back-off: :data:`FIRST_RESTART_S`, doubling for each death in a row up to
 :data:`MAX_RESTART_S`; a process that lived :data:`STABLE_S` or more resets the back-off. The dead
-process's job keeps its lease until the lease expires; then the reaper of any worker (the
-replacement's at its first pass) requeues it, as after any worker's death
-(docs/architecture.md §1, "Lease and heartbeats").
+process's lease is ended at once (``queue.expire_leases_of_dead_process``), so that the reaper
+of any worker (the replacement's at its first pass) requeues its job now rather than when the
+lease would have run out (docs/architecture.md §1, "Lease and heartbeats"); if the database does
+not answer, the lease runs out as after any worker's death.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -26,6 +28,8 @@ from multiprocessing.connection import wait
 from multiprocessing.process import BaseProcess
 
 from app.config import Settings
+from app.storage import queue
+from app.storage.db import Database, first_line
 from workers.main import SUPERVISOR_TICK_S, start_worker_processes, stop_worker_processes
 
 logger = logging.getLogger("workers.supervisor")
@@ -74,6 +78,7 @@ class WorkerSupervisor:
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
         self._restarts = 0
+        self._db: Database | None = None  # made on the first death
 
     # ----------------------------------------------------------------------- status
 
@@ -129,6 +134,8 @@ class WorkerSupervisor:
         with self._lock:
             procs = [slot.process for slot in self._slots if slot.process is not None]
         stop_worker_processes(procs, timeout_s=timeout_s)
+        if self._db is not None:
+            self._db.dispose()
 
     def _watch(self) -> None:
         while not self._stopping.is_set():
@@ -152,6 +159,27 @@ class WorkerSupervisor:
                     extra={"action": "supervisor_error"},
                 )
 
+    def _end_leases_of(self, pid: int | None) -> None:
+        """End the dead process's leases now (its job is requeued by the next reaper pass)."""
+        if pid is None:
+            return
+        try:
+            if self._db is None:
+                self._db = Database(self.settings.resolved_database_url)
+            ended = queue.expire_leases_of_dead_process(
+                self._db, hostname=socket.gethostname(), pid=pid
+            )
+        except Exception as err:  # the lease runs out by itself
+            logger.warning("could not end the leases of worker pid %s: %s", pid, first_line(err))
+            return
+        if ended:
+            logger.warning(
+                "ended the lease of %d job(s) of dead worker pid %s: they are requeued now",
+                ended,
+                pid,
+                extra={"action": "dead_worker_leases", "job_id": None},
+            )
+
     def _tend(self, now_s: float) -> None:
         """Reap the dead, schedule their replacement, start the replacements that are due."""
         for slot in self._slots:
@@ -161,6 +189,7 @@ class WorkerSupervisor:
                 lived_s = now_s - slot.started_s
                 if lived_s >= STABLE_S:
                     slot.backoff_s = FIRST_RESTART_S
+                self._end_leases_of(proc.pid)
                 logger.error(
                     "worker process worker-%d (pid %s) %s after %.1f s; restarting it in %g s",
                     slot.number,

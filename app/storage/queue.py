@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, Update, and_, func, select, update
+from sqlalchemy import ColumnElement, Update, and_, delete, func, select, update
 from sqlalchemy.orm import Session
 
 from app.storage.db import Database
@@ -543,6 +543,31 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
             row.lease_expires_at = None
             row.updated_at = now
     return len(rows)
+
+
+def expire_leases_of_dead_process(
+    db: Database, *, hostname: str, pid: int, now: datetime | None = None
+) -> int:
+    """End now the leases of worker process ``pid`` on ``hostname``, which its supervisor saw die
+    (and reaped), and remove its worker row: the reaper then requeues its job at once instead of
+    when the lease would have run out. Returns how many leases ended. (Worker ids are
+    ``{hostname[:60]}:{pid}:{8 hex}``; call it before a new process can have that pid.)"""
+    now = now or utc_now()
+    owner = f"{hostname[:60]}:{pid}:"
+    with db.transaction() as db_session:
+        ended = _rowcount(
+            db_session,
+            update(Job)
+            .where(
+                Job.state == JobState.RUNNING.value,
+                Job.lease_owner.startswith(owner, autoescape=True),
+            )
+            .values(lease_expires_at=now, updated_at=now),
+        )
+        db_session.execute(
+            delete(WorkerRow).where(WorkerRow.hostname == hostname, WorkerRow.pid == pid)
+        )
+    return ended
 
 
 # --------------------------------------------------------------------------- workers

@@ -24,7 +24,13 @@ from app.main import create_app
 from app.storage import queue
 from app.storage.db import Database
 from app.storage.orm import JobState
-from tests.service.helpers import get_job, insert_session, session_bytes, wait_for
+from tests.service.helpers import (
+    get_job,
+    insert_session,
+    session_bytes,
+    simulated_bytes,
+    wait_for,
+)
 from workers import supervisor as supervisor_module
 from workers.supervisor import WorkerSupervisor, describe_exit
 
@@ -90,6 +96,35 @@ def test_a_killed_worker_process_is_reaped_logged_and_replaced(
     finally:
         supervisor.stop(timeout_s=20)
     assert supervisor.alive == 0
+
+
+def test_the_job_of_a_killed_worker_process_is_requeued_at_once(
+    db: Database, database_url: str
+) -> None:
+    """Not after its lease (30 s here) runs out: the supervisor ends the dead process's lease."""
+    settings = Settings(database_url=database_url, **{**FAST, "lease_s": 30.0, "heartbeat_s": 0.5})
+    job_id = insert_session(db, simulated_bytes(12_000)).job_id
+    supervisor = WorkerSupervisor(settings, 1)
+    supervisor.start()
+    try:
+        wait_for(
+            lambda: get_job(db, job_id).stage == "optimize", timeout_s=60, what="the optimization"
+        )
+        (pid,) = supervisor.pids
+        os.kill(pid, signal.SIGKILL)
+        killed_s = time.monotonic()
+        wait_for(
+            lambda: get_job(db, job_id).state == JobState.SUCCEEDED,
+            timeout_s=25,  # < the 30 s lease
+            what="the job to be requeued and built by the replacement",
+        )
+        print(f"killed mid-job: built again {time.monotonic() - killed_s:.1f} s after the kill")
+        info = get_job(db, job_id)
+        assert info.attempts == 2
+        assert "lease expired (worker lost); requeued" in info.log_tail
+        assert worker_pids(db) == set(supervisor.pids)  # the dead one's row is gone
+    finally:
+        supervisor.stop(timeout_s=20)
 
 
 @pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
