@@ -1,6 +1,7 @@
 """What one big session costs the server (docs/operations.md, Reliability): the API process's
 memory growth while it accepts the upload, and how long each build stage takes, the ``store``
-stage being the build's one write transaction (on SQLite it holds the write lock that long).
+stage being the build's one write transaction (on SQLite it holds the write lock that long), and
+how soon a cancel stops the build's running optimization.
 
     .venv/bin/python bench/big_session.py                    # 100,000 poses (the most accepted)
     .venv/bin/python bench/big_session.py --poses 20000
@@ -17,6 +18,7 @@ import argparse
 import gzip
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -27,6 +29,7 @@ import httpx  # noqa: E402
 
 from app.cli.server_process import ServerProcess  # noqa: E402
 from app.config import Settings  # noqa: E402
+from app.storage import queue  # noqa: E402
 from app.storage.db import Database  # noqa: E402
 from app.storage.migrate import upgrade_to_head  # noqa: E402
 from tests.service.helpers import get_job, insert_session, simulated_bytes  # noqa: E402
@@ -91,6 +94,31 @@ def stage_times(raw: bytes, url: str) -> None:
     print(f"build on {db.backend}: {state}; {times} (store: one write transaction)")
 
 
+def cancel_latency(raw: bytes, url: str) -> None:
+    """Cancel the build 0.5 s into its optimization; how long until the job is canceled."""
+    db = Database(url)
+    upgrade_to_head(db)
+    job_id = insert_session(db, raw).job_id
+    settings = Settings(database_url=url, lease_s=30.0, heartbeat_s=5.0)
+    thread = threading.Thread(target=Worker(db, settings).run_once)
+    thread.start()
+    while get_job(db, job_id).stage != "optimize":
+        time.sleep(0.05)
+    time.sleep(0.5)
+    asked_s = time.monotonic()
+    with db.transaction() as db_session:
+        queue.request_cancel(db_session, job_id)
+    while get_job(db, job_id).state.value == "running":
+        time.sleep(0.02)
+    latency_s = time.monotonic() - asked_s
+    thread.join()
+    state = get_job(db, job_id).state.value
+    db.dispose()
+    print(
+        f"cancel 0.5 s into optimize (heartbeat 5 s): {state} {latency_s:.2f} s after it was asked"
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=100_000, help="poses of the session")
@@ -101,6 +129,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as folder:
         api_memory_growth(raw, Path(folder))
         stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
+        cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
     if args.postgres_url:
         stage_times(raw, args.postgres_url)
     return 0

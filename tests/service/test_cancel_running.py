@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from api_support import ADMIN, running_api
 
 from app.config import Settings
 from app.domain.params import SlamParams
@@ -18,7 +19,13 @@ from app.domain.slam import optimize_session
 from app.storage import queue
 from app.storage.db import Database
 from app.storage.orm import JobState
-from tests.service.helpers import get_job, insert_session, session_bytes, wait_for
+from tests.service.helpers import (
+    get_job,
+    insert_session,
+    session_bytes,
+    simulated_bytes,
+    wait_for,
+)
 from workers import pipeline
 from workers.main import Worker
 from workers.pipeline import Interrupted
@@ -89,3 +96,43 @@ def test_the_iteration_callback_can_stop_gtsam() -> None:
 
     with pytest.raises(Interrupted):
         optimize_session(session, SlamParams(), on_iteration=stop)
+
+
+def test_a_cancel_stops_a_running_sweep_job_between_trials(database_url: str) -> None:
+    """A sweep's trials job stops after the trial it is running (each trial checks)."""
+    with running_api(database_url) as api:
+        created = api.uploaded(simulated_bytes(12_000))
+        url = api.db.url.render_as_string(hide_password=False)
+        build = Worker(api.db, Settings(database_url=url, lease_s=60, heartbeat_s=0.5))
+        assert build.run_once()  # the map's first version
+        space = {"odom_linear_var_m2_per_s": {"low": 1e-6, "high": 1e-1, "num": 20}}
+        started = api.client.post(
+            f"/v1/maps/{created['map_id']}/sweeps", json={"space": space}, headers=ADMIN
+        )
+        assert started.status_code == 202, started.text
+        sweep_id = started.json()["sweep_id"]
+        thread = threading.Thread(target=build.run_once)
+        thread.start()
+
+        def job_of_sweep() -> Any:
+            jobs = api.client.get("/v1/jobs?state=running", headers=ADMIN).json()["data"]
+            return next((j for j in jobs if j["kind"] == "sweep_trials"), None)
+
+        wait_for(
+            lambda: (job := job_of_sweep()) is not None and job["stage"] == "trials",
+            timeout_s=60,
+            what="the sweep's trials",
+        )
+        time.sleep(1.0)
+        running = job_of_sweep()
+        asked_s = time.monotonic()
+        assert api.client.post(f"/v1/sweeps/{sweep_id}/cancel", headers=ADMIN).status_code == 200
+        wait_for(
+            lambda: get_job(api.db, running["id"]).state == JobState.CANCELED,
+            timeout_s=60,
+            what="the trials job to stop",
+        )
+        latency_s = time.monotonic() - asked_s
+        thread.join(30)
+        print(f"cancel of a running sweep took effect after {latency_s:.2f} s")
+        assert latency_s < 10
