@@ -7,6 +7,7 @@
         job = client.wait_for_job(accepted["job_id"])          # raises JobFailed if it failed
         current = client.get_map(accepted["map_id"])["current_version"]
         app_map = client.app_map(accepted["map_id"])          # the app's download format
+        client.put_session_image(accepted["session_id"], jpeg) # the map's picture
 
 Responses are the API's JSON as plain dicts (the schemas are in the OpenAPI document at
 ``/openapi.json``). Every non-2xx answer raises :class:`ApiError` with the status and the server's
@@ -240,6 +241,28 @@ class Client:
     def plot_png(self, map_id: int) -> bytes:
         return self.request("GET", f"/v1/maps/{map_id}/plot.png").content
 
+    def put_session_image(self, session_id: int, jpeg: bytes) -> dict[str, Any]:
+        """Upload the session's picture (a JPEG, shown with its map); the same bytes again
+        change nothing (``changed: False``)."""
+        result: dict[str, Any] = self._json(
+            "PUT",
+            f"/v1/sessions/{session_id}/image",
+            content=jpeg,
+            headers={"Content-Type": "image/jpeg"},
+        )
+        return result
+
+    def map_image(self, map_id: int) -> bytes:
+        """The map's picture (ApiError 404 ``no_image`` without one)."""
+        return self.request("GET", f"/v1/maps/{map_id}/image").content
+
+    def rename_map(self, map_id: int, display_name: str) -> dict[str, Any]:
+        """Set the name people see (admin)."""
+        result: dict[str, Any] = self._json(
+            "PATCH", f"/v1/maps/{map_id}", json={"display_name": display_name}
+        )
+        return result
+
     def delete_map(self, map_id: int) -> None:
         self.request("DELETE", f"/v1/maps/{map_id}")
 
@@ -258,10 +281,18 @@ class Client:
         goal: dict[str, Any],
         *,
         avoid: list[str] | None = None,
+        heading_deg: float | None = None,
+        style: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
         """A route: ends like ``{"tag": 300}``, ``{"poi": "Room 209"}``, ``{"node": 12}`` or
-        ``{"position": [x, y, z]}``; ``avoid`` ⊆ ``["stairs", "elevator"]``."""
-        body = {"from": start, "to": goal, "avoid": avoid or []}
+        ``{"position": [x, y, z]}``; ``avoid`` ⊆ ``["stairs", "elevator"]``; ``heading_deg`` the
+        phone's walking direction (0 faces −z, +90 faces −x) for a first "face the way" step;
+        ``style`` like ``{"units": "ft", "clock": True}``."""
+        body: dict[str, Any] = {"from": start, "to": goal, "avoid": avoid or []}
+        if heading_deg is not None:
+            body["heading_deg"] = heading_deg
+        if style is not None:
+            body["style"] = style
         result: dict[str, Any] = self._json("POST", f"/v1/maps/{map_id}/routes", json=body)
         return result
 

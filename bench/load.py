@@ -69,6 +69,7 @@ from collections import Counter
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -607,11 +608,20 @@ def drain(admin: Client, timeout_s: float) -> tuple[float, int, int]:
         time.sleep(0.25)
 
 
-def lost_sessions(admin: Client, accepted: list[Accepted]) -> list[str]:
-    """Why each accepted upload that did not end in a map did not (empty if all did)."""
+def lost_sessions(
+    admin: Client, accepted: list[Accepted], map_ready_s: list[float] | None = None
+) -> list[str]:
+    """Why each accepted upload that did not end in a map did not (empty if all did); appends
+    to ``map_ready_s`` the upload → map time of each that did (its job's ``created_at`` to
+    ``finished_at``, the server's clock: the job is created in the upload's transaction)."""
     lost = []
     for upload in accepted:
         job = admin.get_job(upload.job_id)
+        if job["state"] == "succeeded" and map_ready_s is not None and job["finished_at"]:
+            created = datetime.fromisoformat(job["created_at"])
+            map_ready_s.append(
+                (datetime.fromisoformat(job["finished_at"]) - created).total_seconds()
+            )
         if job["state"] != "succeeded":
             lost.append(f"job {upload.job_id} {job['state']}: {job.get('error') or ''}".strip())
         elif admin.get_map(upload.map_id)["current_version"] is None:
@@ -661,6 +671,8 @@ class Outcome:
     machine_busy: float
     log_problems: Counter[str]
     database_bytes: int
+    #: Upload → map of each accepted upload that got one, s (job created → finished).
+    map_ready_s: list[float] = field(default_factory=list)
 
     @property
     def failed(self) -> bool:
@@ -727,7 +739,8 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         )
         drain_s, drain_left, _ = drain(admin, args.drain_timeout_s)
         accepted = [a for result in results for a in result.accepted]
-        lost = lost_sessions(admin, accepted)
+        map_ready_s: list[float] = []
+        lost = lost_sessions(admin, accepted, map_ready_s)
         stored = admin.list_sessions(limit=1)["count"] - len(maps)
         size_bytes = deployment.size_bytes()
 
@@ -757,6 +770,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         machine_busy=busy,
         log_problems=log_problems(deployment.log_paths),
         database_bytes=size_bytes,
+        map_ready_s=map_ready_s,
     )
 
 
@@ -829,6 +843,15 @@ def totals_table(outcome: Outcome, args: argparse.Namespace) -> str:
         ["uploads accepted (202)", str(accepted)],
         ["sessions that ended with a map", str(accepted - len(outcome.lost))],
         ["lost sessions (202 but no map)", str(len(outcome.lost))],
+        [
+            "upload → map p50 / p95 (job created → finished, server clock)",
+            (
+                f"{np.percentile(outcome.map_ready_s, 50):.1f} s / "
+                f"{np.percentile(outcome.map_ready_s, 95):.1f} s"
+                if outcome.map_ready_s
+                else "—"
+            ),
+        ],
         ["sessions stored whose 202 never arrived", str(outcome.stored_sessions - accepted)],
         ["draining the queue after the window", drained],
         [
@@ -903,7 +926,8 @@ def report(outcome: Outcome, args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command's arguments (also used by ``bench/http.py --load``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--sqlite", action="store_true", help="only SQLite (embedded)")
@@ -938,6 +962,11 @@ def main(argv: list[str] | None = None) -> int:
         "--drain-timeout-s", type=float, default=600.0, help="longest wait for the queue (600)"
     )
     parser.add_argument("--log-dir", type=Path, help="keep the server's logs here")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.uploaders < 0 or args.navigators < 0 or args.uploaders + args.navigators == 0:
         parser.error("--uploaders and --navigators must be ≥ 0, and not both 0")

@@ -31,6 +31,7 @@ the job carries on where it was, in the same attempt, and runs once.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import gzip
@@ -47,16 +48,12 @@ from sqlalchemy.exc import DataError
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
+from app.domain.map_io import map_to_app_format
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import (
-    ELEVATOR,
-    JUNCTION,
-    STAIRS,
-    build_path_graph,
-    path_graph_to_json,
-)
-from app.domain.session import Session, decode_json_bytes, parse_session
+from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, path_graph_to_json
+from app.domain.session import Session, decode_json_bytes, parse_session, require_tags
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
@@ -242,6 +239,7 @@ def load(ctx: JobContext) -> None:
     ctx.params = SlamParams().with_overrides(overrides)
     ctx.raw_upload, ctx.session = load_session_upload(ctx.db, lease.session_id)
     raw, session = ctx.raw_upload, ctx.session
+    require_tags(session)  # before any tuning: a walk with no tag makes no map
     ctx.log(
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"
@@ -339,15 +337,25 @@ def evaluate(ctx: JobContext) -> None:
 
 
 def path_graph(ctx: JobContext) -> None:
-    """Where a pedestrian can walk: the optimized path with junctions, floors, stairs and
-    elevators, and the tags and points of interest attached to it."""
-    graph = build_path_graph(_need(ctx.result, "result"))
+    """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
+    into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
+    tags and points of interest attached to it (app.domain.skeleton)."""
+    result = _need(ctx.result, "result")
+    graph = build_skeleton(result)
     ctx.path_graph = path_graph_to_json(graph)
+    # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
+    notes = map_to_app_format(result, path_graph=graph)["notes"]
+    if notes:
+        ctx.result = dataclasses.replace(
+            result, warnings=(*result.warnings, *(f"app map: {note}" for note in notes))
+        )
+        for note in notes:
+            ctx.log(f"app map: {note}")
     walk = graph.graph
     kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
     junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)
     ctx.log(
-        f"path graph: {walk.number_of_nodes()} nodes ({junctions} junctions), "
+        f"path graph: corridor skeleton, {walk.number_of_nodes()} nodes ({junctions} junctions), "
         f"{walk.number_of_edges()} edges ({kinds[STAIRS]} stairs, {kinds[ELEVATOR]} "
         f"elevator), {len(graph.floor_levels_m)} floor(s)"
     )

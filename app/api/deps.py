@@ -38,10 +38,11 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from app.api.errors import ApiError, not_found, unauthorized
-from app.api.upload import RawBody, read_body
+from app.api.upload import RawBody, read_body, read_image_body
 from app.config import Settings
 from app.storage import keys, maps, queue, sessions
 from app.storage.db import Database
+from app.storage.images import MAX_IMAGE_BYTES
 from app.storage.maps import MapInfo
 from app.storage.queue import JobInfo
 from app.storage.sessions import SessionInfo
@@ -297,3 +298,11 @@ async def upload_body(
 
 UploadBodyDep = Annotated[RawBody, Depends(upload_body)]
 UploadRateDep = Annotated[UploadRate, Depends(upload_rate)]
+
+
+async def image_body(request: Request) -> bytes:
+    """A picture's JPEG bytes (415 for another media type, 413 over the limit)."""
+    return await read_image_body(request, max_bytes=MAX_IMAGE_BYTES)
+
+
+ImageBodyDep = Annotated[bytes, Depends(image_body)]

@@ -22,6 +22,7 @@ from app.domain.json_values import GZIP_MAGIC
 from app.storage.sessions import StoredUpload
 
 JSON_MEDIA_TYPE = "application/json"
+JPEG_MEDIA_TYPE = "image/jpeg"
 GZIP_ENCODINGS = frozenset({"gzip", "x-gzip"})
 IDENTITY_ENCODINGS = frozenset({"", "identity"})
 #: zlib's window bits for the gzip container.
@@ -143,3 +144,35 @@ def _too_large(what: str, limit_bytes: int) -> ApiError:
     return ApiError(
         413, "payload_too_large", f"{what} larger than the limit of {limit_bytes} bytes"
     )
+
+
+async def read_image_body(request: Request, *, max_bytes: int) -> bytes:
+    """A picture's bytes: 415 unless declared ``image/jpeg``, 413 past ``max_bytes`` (a
+    ``Content-Length`` over it is refused before reading)."""
+    content_type = request.headers.get("content-type")
+    media_type = (content_type or "").split(";")[0].strip().lower()
+    if media_type != JPEG_MEDIA_TYPE:
+        raise ApiError(
+            415,
+            "unsupported_media_type",
+            f"Content-Type must be {JPEG_MEDIA_TYPE}, got {media_type or '(none)'}",
+            field="Content-Type",
+        )
+    if is_gzip_encoding(request.headers.get("content-encoding")):
+        raise ApiError(
+            415,
+            "unsupported_media_type",
+            "send the JPEG as it is, without Content-Encoding (it is compressed already)",
+            field="Content-Encoding",
+        )
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.strip().isdigit() and int(declared) > max_bytes:
+        raise _too_large(f"the picture ({int(declared)} bytes) is", max_bytes)
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > max_bytes:
+            raise _too_large("the picture is", max_bytes)
+        chunks.append(chunk)
+    return b"".join(chunks)

@@ -11,6 +11,7 @@
     invisible-map serve | worker | migrate | keys …   (the server: see app/cli/server.py)
     invisible-map export OUT.zip [--include-keys] [--force]
     invisible-map import ARCHIVE.zip [--include-keys] [--merge]   (backups: app/cli/backup.py)
+    invisible-map import-firebase DIR     (a lab's Firebase export: app/cli/firebase.py)
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
@@ -31,6 +32,7 @@ from app.cli.backup import add_backup_commands
 from app.cli.common import DATA_DIR, DEMO_SESSIONS, PROGRAM, CommandError
 from app.cli.common import add_param_option as _add_param_option
 from app.cli.common import slam_params as _params
+from app.cli.firebase import add_firebase_commands
 from app.cli.server import add_server_commands
 from app.cli.tables import render_markdown_table
 from app.cli.tuning import add_sweep_commands
@@ -38,10 +40,11 @@ from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.frames import FloatArray
 from app.domain.ground_truth import load_ground_truth
-from app.domain.map_io import map_to_app_format, map_to_json, save_json
+from app.domain.map_io import app_map_as_served, map_to_json, save_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
 from app.domain.session import Session, load_session
+from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 
 
@@ -109,6 +112,7 @@ def _parser() -> argparse.ArgumentParser:
     add_sweep_commands(commands)
     add_server_commands(commands)
     add_backup_commands(commands)
+    add_firebase_commands(commands)
     return parser
 
 
@@ -125,7 +129,9 @@ def _process(args: argparse.Namespace) -> int:
     if args.output:
         save_json(map_to_json(result), args.output)
     if args.app_map:
-        save_json(map_to_app_format(result), args.app_map)
+        # the document the server serves for this version: the same graph (the worker's corridor
+        # skeleton), the same exporter
+        save_json(app_map_as_served(result, path_graph=build_skeleton(result)), args.app_map)
     if args.plot:
         from app.render.map_plot import render_map_png
 
@@ -265,7 +271,8 @@ def _demo(args: argparse.Namespace) -> int:
         ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None
         result = optimize_session(session, params)
         save_json(map_to_json(result), args.out / f"{name}.map.json")
-        save_json(map_to_app_format(result), args.out / f"{name}.app-map.json")
+        app_map = app_map_as_served(result, path_graph=build_skeleton(result))
+        save_json(app_map, args.out / f"{name}.app-map.json")
         render_map_png(result, session, ground_truth=ground_truth, path=args.out / f"{name}.png")
         rows.append(evaluate_map(session, result, ground_truth, dataset=name))
     table = format_table(rows)

@@ -2,6 +2,7 @@
 
 InvisibleMapError            anything the core refuses, with a message fit for a person
 ├── SessionFormatError       an upload that does not follow the app's format (architecture §2)
+├── NoTagsRecorded           a well-formed session with no tag detection: it can make no map
 ├── GroundTruthFormatError   a ground-truth file in neither supported form
 ├── MapFormatError           a saved map file that cannot be read back
 └── ParameterError           an unknown or out-of-range SLAM parameter
@@ -21,6 +22,11 @@ class SessionFormatError(InvisibleMapError):
         self.field = field
         self.reason = reason
         super().__init__(f"{field}: {reason}" if field else reason)
+
+
+class NoTagsRecorded(InvisibleMapError):
+    """Raised when a map is asked of a session with no tag detections: the upload is valid (and
+    kept), but the tags are a map's landmarks, and without one there is no map to build."""
 
 
 class GroundTruthFormatError(InvisibleMapError):

@@ -4,6 +4,7 @@
     result = map_from_json(document)
     app_map = map_to_app_format(result)     # what the iPhone app downloads
     app_map = map_to_app_format(result, path_graph=pg)   # … with the path graph's links
+    app_map = app_map_as_served(result, path_graph=pg)   # … byte for byte as the server has it
 
 Poses are written as ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion), map frame y up.
 """
@@ -27,7 +28,7 @@ from app.domain.frames import (
 from app.domain.keyframes import keyframe_spans
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
 from app.domain.params import SlamParams
-from app.domain.path_graph import AppVertex, PathGraph, app_neighbors
+from app.domain.path_graph import PathGraph, app_links, chain_links, unique_waypoint_names
 
 MAP_FORMAT = "invisible-map/map"
 MAP_FORMAT_VERSION = 1
@@ -175,28 +176,36 @@ def map_from_json(document: Any) -> MapResult:
 
 
 def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
-    """The app's download format (docs/architecture.md §7).
+    """The app's download format (docs/architecture.md §7), made so the app can neither fail to
+    decode it nor crash planning a route on it (``app.domain.app_model`` models the app's rules).
 
     ``adjChi2`` of a pose is the chi² of the odometry factors touching it (a pose between two
-    keyframes: the factor spanning it); ``vizTags`` the number of
-    tag detections used from it. ``neighbors`` are the path-graph links: without ``path_graph``,
-    the previous and next pose. With it (built from this ``result``), every pose is still listed
-    and its ``neighbors`` are its graph links (:func:`app.domain.path_graph.app_neighbors`: a pose
-    simplified away links to the ends of the nearest edge); each junction is appended as an extra
-    odometry vertex with ``poseId`` = max pose id + 1, + 2, … (junctions in node-id order), its
-    position, an identity rotation, ``adjChi2`` and ``vizTags`` 0.
+    keyframes: the factor spanning it); ``vizTags`` the number of tag detections used from it.
+    ``neighbors`` (:func:`app.domain.path_graph.app_links`): with ``path_graph`` (built from this
+    ``result``), its links, listed at both ends, of its largest connected part; graph nodes that
+    are no pose are extra odometry vertices with ``poseId`` = max pose id + 1, + 2, … (node-id
+    order), their position, an identity rotation, ``adjChi2`` and ``vizTags`` 0; a pose that is no
+    node is linked to both ends of its nearest edge, and poses of a part that is not connected to
+    the largest are left out. Without ``path_graph``: the chain of poses.
+    Waypoints with one name are made unique ("Desk", "Desk (2)").
+
+    ``notes`` (an extra key, which the app ignores) says what was changed for the app: a walk
+    that falls apart, renamed waypoints.
     """
     n = result.world_T_phone.shape[0]
     adjacent_chi2 = _adjacent_odometry_chi2(n, result.residuals)
     visible_tags = np.bincount(result.residuals.tag_pose_index, minlength=n).astype(float)
     pose_ids = result.pose_id.tolist()
     if path_graph is None:
-        neighbors = [[int(pose_ids[j]) for j in (i - 1, i + 1) if 0 <= j < n] for i in range(n)]
-        junctions: list[AppVertex] = []
+        links = chain_links(pose_ids)
     else:
-        neighbors, junctions = app_neighbors(
-            path_graph, pose_id=result.pose_id, positions_m=result.world_T_phone[:, :3, 3]
+        links = app_links(
+            path_graph.graph,
+            floor_levels_m=path_graph.floor_levels_m,
+            pose_id=result.pose_id,
+            positions_m=result.world_T_phone[:, :3, 3],
         )
+    waypoint_names, renamed = unique_waypoint_names(list(result.poi_names))
     return {
         "tag_vertices": [
             {"id": int(tag_id), **_translation_rotation(result.world_T_tag[k])}
@@ -208,25 +217,35 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
                 **_translation_rotation(result.world_T_phone[i]),
                 "adjChi2": float(adjacent_chi2[i]),
                 "vizTags": float(visible_tags[i]),
-                "neighbors": neighbors[i],
+                "neighbors": neighbors,
             }
-            for i in range(n)
+            for i, neighbors in enumerate(links.neighbors)
+            if neighbors is not None
         ]
         + [
             {
-                "poseId": junction.pose_id,
-                **_translation_rotation(_pose_at(junction.position_m)),
+                "poseId": vertex.pose_id,
+                **_translation_rotation(_pose_at(vertex.position_m)),
                 "adjChi2": 0.0,
                 "vizTags": 0.0,
-                "neighbors": junction.neighbors,
+                "neighbors": vertex.neighbors,
             }
-            for junction in junctions
+            for vertex in links.extra
         ],
         "waypoints_vertices": [
             {"id": name, **_translation_rotation(result.world_T_poi[k])}
-            for k, name in enumerate(result.poi_names)
+            for k, name in enumerate(waypoint_names)
         ],
+        "notes": [*links.notes, *renamed],
     }
+
+
+def app_map_as_served(result: MapResult, *, path_graph: PathGraph | None) -> dict[str, Any]:
+    """The app-map exactly as the server serves the version stored from ``result``: the server
+    stores poses as position + quaternion (:func:`map_to_json`), and a rotation read back from a
+    quaternion differs from the optimizer's in its last bits, so the CLI writes the same
+    document through the same round trip."""
+    return map_to_app_format(map_from_json(map_to_json(result)), path_graph=path_graph)
 
 
 def _adjacent_odometry_chi2(n: int, residuals: FactorResiduals) -> FloatArray:

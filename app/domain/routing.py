@@ -89,7 +89,7 @@ ARRIVAL_OFFSET_MIN_M = 1.0
 #: A snapped position within this distance of an edge end, m, is that node.
 SNAP_TO_NODE_M = 1e-6
 
-StepKind: TypeAlias = Literal["go", "turn", "stairs", "elevator", "arrive"]
+StepKind: TypeAlias = Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
 
 
 # --------------------------------------------------------------------------- errors

@@ -11,8 +11,12 @@ Everything downstream reads these arrays; nobody walks the dicts again. Any malf
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
+import re
+from collections import Counter
 from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,25 +25,30 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app.domain.errors import SessionFormatError
+from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
+from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.frames import (
     PHONE_T_CAMERA_CV,
     FloatArray,
-    orthonormalized,
-    rigidity_defect,
 )
 from app.domain.json_values import gunzip_if_compressed, json_type_name
+from app.domain.upload_fields import (
+    integer_field,
+    matrix16_field,
+    number_field,
+    optional_vector_field,
+    require_list,
+    require_object,
+    rigid_pose,
+    vector_field,
+    within_pixels,
+)
 
 IntArray = npt.NDArray[np.int64]
 
-#: Largest id accepted: integers a JSON number can hold exactly (2^53).
-MAX_ID = 2**53
-#: Farthest a pose (of the phone, or of a tag from the camera) may be from its frame's origin, m:
-#: a walk through a building stays within kilometres; beyond this the arithmetic of a map would
-#: lose its precision (or overflow), so the upload is refused instead.
-MAX_TRANSLATION_M = 1e5
-#: Largest focal length, principal point or corner coordinate accepted, px.
-MAX_PIXELS = 1e5
+
+#: Why a session with no tag detections makes no map (its build job fails with this).
+NO_TAGS_REASON = "no tags were recorded: a map needs at least one tag"
 
 #: The app misspelt this key in at least one real upload; both spellings are read.
 LOCATION_KEYS = ("location_data", "location_ data")
@@ -179,9 +188,24 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     """
     if not isinstance(document, Mapping):
         raise SessionFormatError("", f"expected a JSON object, got {json_type_name(document)}")
+    warnings: list[str] = []
+    if is_earlier_format(document):
+        try:
+            document, notes = convert_earlier_format(document)
+            return _parse_current(document, correct_poi_pose_id, list(notes))
+        except SessionFormatError as err:
+            raise SessionFormatError(err.field, f"{err.reason} ({EARLIER_FORMAT})") from err
+    return _parse_current(document, correct_poi_pose_id, warnings)
+
+
+def _parse_current(
+    document: Mapping[str, Any], correct_poi_pose_id: bool, warnings: list[str]
+) -> Session:
     map_id = document.get("map_id")
-    if not isinstance(map_id, str) or not map_id.strip():
-        raise SessionFormatError("map_id", "missing or not a non-empty string")
+    if map_id is None:
+        raise SessionFormatError("map_id", "missing")
+    if not isinstance(map_id, str):
+        raise SessionFormatError("map_id", f"expected a string, got {json_type_name(map_id)}")
 
     pose_id, timestamp_s, world_T_phone = _parse_poses(document.get("pose_data"))
     index_of_pose_id = {int(pid): i for i, pid in enumerate(pose_id)}
@@ -191,9 +215,12 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     pois = _parse_locations(
         document.get(location_key, []), location_key, index_of_pose_id, correct_poi_pose_id
     )
-    warnings = []
+    if not map_id.strip():
+        map_id = derived_map_id(timestamp_s, world_T_phone)
+        warnings.append(f"map_id was empty: named {map_id!r} from the upload's poses")
+    pois = _name_unnamed_pois(pois, location_key, warnings)
     if len(detections) == 0:
-        warnings.append("session has no tag detections: the map holds the walked path alone")
+        warnings.append(NO_TAGS_REASON)
     return Session(
         map_id=map_id,
         pose_id=pose_id,
@@ -208,7 +235,7 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
 def _parse_poses(pose_data: Any) -> tuple[IntArray, FloatArray, FloatArray]:
     if pose_data is None:
         raise SessionFormatError("pose_data", "missing")
-    _require_list(pose_data, "pose_data")
+    require_list(pose_data, "pose_data")
     if len(pose_data) == 0:
         raise SessionFormatError("pose_data", "empty session: no poses")
     n = len(pose_data)
@@ -217,11 +244,11 @@ def _parse_poses(pose_data: Any) -> tuple[IntArray, FloatArray, FloatArray]:
     world_T_phone = np.empty((n, 4, 4), dtype=np.float64)
     for i, entry in enumerate(pose_data):
         where = f"pose_data[{i}]"
-        _require_object(entry, where)
-        pose_id[i] = _integer(entry, "id", where)
-        timestamp_s[i] = _number(entry, "timestamp", where)
-        matrix = _matrix16(entry, "pose", where).reshape(4, 4).T  # column-major
-        world_T_phone[i] = _rigid(matrix, f"{where}.pose")
+        require_object(entry, where)
+        pose_id[i] = integer_field(entry, "id", where)
+        timestamp_s[i] = number_field(entry, "timestamp", where)
+        matrix = matrix16_field(entry, "pose", where).reshape(4, 4).T  # column-major
+        world_T_phone[i] = rigid_pose(matrix, f"{where}.pose")
     decreasing = np.flatnonzero(np.diff(pose_id) <= 0)
     if decreasing.size:
         i = int(decreasing[0]) + 1
@@ -249,16 +276,16 @@ def parse_detection_rows(
     """The detections of a ``tag_data`` list (frames of detections; a bare detection where a
     frame was expected is taken as a frame of one), each as :func:`parse_detection_fields` reads
     it plus ``where``, its JSON path. Used for uploads and for localization updates."""
-    _require_list(tag_data, "tag_data")
+    require_list(tag_data, "tag_data")
     rows: list[dict[str, Any]] = []
     for f, frame in enumerate(tag_data):
         where_frame = f"tag_data[{f}]"
         if isinstance(frame, Mapping):  # a bare detection where a frame was expected
             frame = [frame]
-        _require_list(frame, where_frame)
+        require_list(frame, where_frame)
         for d, detection in enumerate(frame):
             where = f"{where_frame}[{d}]"
-            _require_object(detection, where)
+            require_object(detection, where)
             row = parse_detection_fields(
                 detection,
                 where,
@@ -307,25 +334,27 @@ def parse_detection_fields(
     used for localization updates, whose detections have the same format. Fields are checked in
     order (tag_id, pose_id, tag_pose, …); the first fault raises :class:`SessionFormatError`
     naming ``where`` and the field."""
-    tag_id = _integer(detection, "tag_id", where)
+    tag_id = integer_field(detection, "tag_id", where)
     if tag_id < 0:
         raise SessionFormatError(f"{where}.tag_id", f"must be ≥ 0, got {tag_id}")
-    pose_id = _integer(detection, "pose_id", where)
+    pose_id = integer_field(detection, "pose_id", where)
     if known_pose_ids is not None and pose_id not in known_pose_ids:
         raise SessionFormatError(f"{where}.pose_id", f"no pose with id {pose_id} in pose_data")
-    camera_T_tag = _rigid(
-        _matrix16(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose"
+    camera_T_tag = rigid_pose(
+        matrix16_field(detection, "tag_pose", where).reshape(4, 4), f"{where}.tag_pose"
     )
-    intrinsics = _vector(detection, "camera_intrinsics", where, 4)
+    intrinsics = vector_field(detection, "camera_intrinsics", where, 4)
     if intrinsics[0] <= 0 or intrinsics[1] <= 0:
         raise SessionFormatError(
             f"{where}.camera_intrinsics", "focal lengths fx, fy must be positive"
         )
-    _within_pixels(intrinsics, f"{where}.camera_intrinsics")
-    corners = _vector(detection, "tag_corners_pixel_coordinates", where, 8)
-    _within_pixels(corners, f"{where}.tag_corners_pixel_coordinates")
+    within_pixels(intrinsics, f"{where}.camera_intrinsics")
+    corners = vector_field(detection, "tag_corners_pixel_coordinates", where, 8)
+    within_pixels(corners, f"{where}.tag_corners_pixel_coordinates")
     corners = corners.reshape(4, 2)
-    timestamp = _number(detection, "timestamp", where) if "timestamp" in detection else math.nan
+    timestamp = (
+        number_field(detection, "timestamp", where) if "timestamp" in detection else math.nan
+    )
     return {
         "tag_id": tag_id,
         "pose_id": pose_id,
@@ -335,9 +364,13 @@ def parse_detection_fields(
         "camera_T_tag": camera_T_tag,
         "intrinsics": intrinsics,
         "corners_px": corners,
-        "position_variance": _optional_vector(detection, "tag_position_variance", where, 3),
-        "orientation_variance": _optional_vector(detection, "tag_orientation_variance", where, 4),
-        "joint_covariance": _optional_vector(detection, "joint_covar", where, 49).reshape(7, 7),
+        "position_variance": optional_vector_field(detection, "tag_position_variance", where, 3),
+        "orientation_variance": optional_vector_field(
+            detection, "tag_orientation_variance", where, 4
+        ),
+        "joint_covariance": optional_vector_field(detection, "joint_covar", where, 49).reshape(
+            7, 7
+        ),
     }
 
 
@@ -349,15 +382,19 @@ def _parse_locations(
 ) -> list[PointOfInterest]:
     if location_data is None:
         return []
-    _require_list(location_data, key)
+    require_list(location_data, key)
     pois = []
     for i, entry in enumerate(location_data):
         where = f"{key}[{i}]"
-        _require_object(entry, where)
+        require_object(entry, where)
         name = entry.get("name")
-        if not isinstance(name, str) or not name.strip():
-            raise SessionFormatError(f"{where}.name", "missing or not a non-empty string")
-        pose_id = _integer(entry, "pose_id", where)
+        if name is None:
+            raise SessionFormatError(f"{where}.name", "missing")
+        if not isinstance(name, str):
+            raise SessionFormatError(
+                f"{where}.name", f"expected a string, got {json_type_name(name)}"
+            )
+        pose_id = integer_field(entry, "pose_id", where)
         corrected = pose_id - 1 if correct_poi_pose_id else pose_id
         if corrected not in index_of_pose_id:
             raise SessionFormatError(
@@ -365,9 +402,9 @@ def _parse_locations(
                 f"no pose with id {corrected} in pose_data"
                 + (" (after the app's off-by-one correction)" if correct_poi_pose_id else ""),
             )
-        timestamp = _number(entry, "timestamp", where) if "timestamp" in entry else math.nan
-        phone_T_poi = _rigid(
-            _matrix16(entry, "transform", where).reshape(4, 4), f"{where}.transform"
+        timestamp = number_field(entry, "timestamp", where) if "timestamp" in entry else math.nan
+        phone_T_poi = rigid_pose(
+            matrix16_field(entry, "transform", where).reshape(4, 4), f"{where}.transform"
         )
         pois.append(
             PointOfInterest(
@@ -378,6 +415,62 @@ def _parse_locations(
             )
         )
     return pois
+
+
+def derived_map_id(timestamp_s: FloatArray, world_T_phone: FloatArray) -> str:
+    """A stable name for a session sent with an empty ``map_id`` (the app sets it to the name the
+    person typed, which may be empty): ``unnamed-`` and a digest of its poses' times and places,
+    so the same walk always gets the same name."""
+    digest = hashlib.sha256(timestamp_s.tobytes() + world_T_phone[:, :3, 3].tobytes())
+    return f"unnamed-{digest.hexdigest()[:10]}"
+
+
+#: A run of digits the app appends to the typed name (a timestamp: 6 digits or more) or puts
+#: before it (``963934784127833-Test``), with the separator.
+_TRAILING_DIGITS = re.compile(r"[\s_-]*\d{6,}$")
+_LEADING_DIGITS = re.compile(r"^\d{6,}[\s_-]+")
+
+
+def require_tags(session: Session) -> None:
+    """Raise :class:`NoTagsRecorded` for a session with no tag detection: it is a valid upload
+    (kept as it is), but a map needs at least one tag."""
+    if len(session.detections) == 0:
+        raise NoTagsRecorded(NO_TAGS_REASON)
+
+
+def display_name_of(map_id: str) -> str:
+    """The name a person typed, from the ``map_id`` the app made of it: the timestamp digits it
+    adds are dropped (``"Lab 1700000000"`` → ``"Lab"``, ``"963934784127833-Test"`` → ``"Test"``);
+    a map id that is nothing but digits is kept as it is."""
+    name = _LEADING_DIGITS.sub("", _TRAILING_DIGITS.sub("", map_id.strip())).strip()
+    return name or map_id.strip()
+
+
+def _name_unnamed_pois(
+    pois: list[PointOfInterest], key: str, warnings: list[str]
+) -> list[PointOfInterest]:
+    """Points of interest with an empty name (the app's "add location" button accepts one) are
+    named ``Point <k>`` after their place in ``location_data`` (1-based), so the name is the same
+    whenever the upload is read; a name already taken gets `` (2)``, `` (3)``…. Repeated names are
+    kept as sent (the app-map says how it tells them apart); both are reported in ``warnings``."""
+    taken = {poi.name for poi in pois if poi.name}
+    named = []
+    for k, poi in enumerate(pois):
+        if not poi.name:
+            name = candidate = f"Point {k + 1}"
+            suffix = 2
+            while name in taken:
+                name = f"{candidate} ({suffix})"
+                suffix += 1
+            taken.add(name)
+            warnings.append(f"{key}[{k}].name was empty: named {name!r}")
+            poi = dataclasses.replace(poi, name=name)
+        named.append(poi)
+    counts = Counter(poi.name for poi in named)
+    for name, count in sorted(counts.items()):
+        if count > 1:
+            warnings.append(f"{count} points of interest are named {name!r}")
+    return named
 
 
 def _empty_detections() -> TagDetections:
@@ -395,106 +488,6 @@ def _empty_detections() -> TagDetections:
         orientation_variance=np.empty((0, 4)),
         joint_covariance=np.empty((0, 7, 7)),
     )
-
-
-# --------------------------------------------------------------------------- field readers
-
-
-def _require_list(value: Any, where: str) -> None:
-    if not isinstance(value, list):
-        raise SessionFormatError(where, f"expected a list, got {json_type_name(value)}")
-
-
-def _require_object(value: Any, where: str) -> None:
-    if not isinstance(value, Mapping):
-        raise SessionFormatError(where, f"expected an object, got {json_type_name(value)}")
-
-
-def _field(entry: Mapping[str, Any], key: str, where: str) -> Any:
-    if key not in entry:
-        raise SessionFormatError(f"{where}.{key}", "missing")
-    return entry[key]
-
-
-def _integer(entry: Mapping[str, Any], key: str, where: str) -> int:
-    value = _field(entry, key, where)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SessionFormatError(
-            f"{where}.{key}", f"expected an integer, got {json_type_name(value)}"
-        )
-    if isinstance(value, float) and not value.is_integer():
-        raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {value}")
-    if not -MAX_ID <= value <= MAX_ID:
-        raise SessionFormatError(
-            f"{where}.{key}", f"integer out of range (|value| > 2^53): {value}"
-        )
-    return int(value)
-
-
-def _number(entry: Mapping[str, Any], key: str, where: str) -> float:
-    value = _field(entry, key, where)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SessionFormatError(
-            f"{where}.{key}", f"expected a number, got {json_type_name(value)}"
-        )
-    if not math.isfinite(value):
-        raise SessionFormatError(f"{where}.{key}", f"non-finite number {value}")
-    return float(value)
-
-
-def _vector(entry: Mapping[str, Any], key: str, where: str, length: int) -> FloatArray:
-    value = _field(entry, key, where)
-    return _numbers(value, f"{where}.{key}", length)
-
-
-def _optional_vector(entry: Mapping[str, Any], key: str, where: str, length: int) -> FloatArray:
-    if key not in entry or entry[key] is None:
-        return np.full(length, np.nan)
-    return _numbers(entry[key], f"{where}.{key}", length)
-
-
-def _matrix16(entry: Mapping[str, Any], key: str, where: str) -> FloatArray:
-    value = _field(entry, key, where)
-    if isinstance(value, list) and len(value) == 4 and all(isinstance(r, list) for r in value):
-        raise SessionFormatError(f"{where}.{key}", "expected 16 numbers in a flat list, got 4 rows")
-    return _numbers(value, f"{where}.{key}", 16)
-
-
-def _numbers(value: Any, where: str, length: int) -> FloatArray:
-    if not isinstance(value, list):
-        raise SessionFormatError(
-            where, f"expected a list of {length} numbers, got {json_type_name(value)}"
-        )
-    if len(value) != length:
-        raise SessionFormatError(where, f"expected {length} numbers, got {len(value)}")
-    for j, item in enumerate(value):
-        if isinstance(item, bool) or not isinstance(item, (int, float)):
-            raise SessionFormatError(
-                f"{where}[{j}]", f"expected a number, got {json_type_name(item)}"
-            )
-        if not math.isfinite(item):
-            raise SessionFormatError(f"{where}[{j}]", f"non-finite number {item}")
-    return np.asarray(value, dtype=np.float64)
-
-
-def _rigid(matrix: FloatArray, where: str) -> FloatArray:
-    defect = rigidity_defect(matrix)
-    if defect is not None:
-        raise SessionFormatError(where, defect)
-    distance_m = float(np.max(np.abs(matrix[:3, 3])))
-    if distance_m > MAX_TRANSLATION_M:
-        raise SessionFormatError(
-            where, f"translation {distance_m:.3g} m is beyond {MAX_TRANSLATION_M:.0f} m"
-        )
-    return orthonormalized(matrix)
-
-
-def _within_pixels(values: FloatArray, where: str) -> None:
-    worst = int(np.argmax(np.abs(values)))
-    if abs(values[worst]) > MAX_PIXELS:
-        raise SessionFormatError(
-            f"{where}[{worst}]", f"{values[worst]:.3g} px is beyond {MAX_PIXELS:.0f} px"
-        )
 
 
 def first_observation_tag_poses(session: Session) -> dict[int, FloatArray]:

@@ -33,10 +33,12 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
@@ -52,6 +54,8 @@ from app.domain.frames import (
     tag_corners_in_tag_frame,
 )
 from app.domain.ground_truth import ground_truth_to_json
+from app.domain.path_graph import PathGraph
+from app.domain.skeleton import attach_anchor
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -1201,3 +1205,242 @@ def _quat_xyzw_from_rotations(R: FloatArray) -> FloatArray:
     quat = candidates[np.arange(R.shape[0]), case]
     quat /= np.linalg.norm(quat, axis=1)[:, None]
     return np.asarray(np.where(quat[:, 3:] < 0, -quat, quat), dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- walkers (issue 18)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WalkerConfig:
+    """How a simulated walker strays from the corridors' centrelines, as real mappers do (issue 18):
+    they step up to tags on the walls, sway, walk a corridor again beside their first pass, and
+    leave passes of one corridor that do not meet. All keyword-only, SI units in the names.
+
+        WalkerConfig()                                   # all of it, the defaults below
+        WalkerConfig(tag_step_probability=0.0, pass_offset_m=0.0, cut_corridors=0)   # on the line
+
+    length_m                walked along the building's corridors (tag steps come on top), m.
+    spacing_m               between recorded positions (a real session: ≈ 0.33 m), m.
+    sway_m                  σ of the smooth side-to-side sway, m (correlated over ``sway_scale_m``).
+    sway_scale_m            length scale of the sway, m.
+    pass_offset_m           each walk along a corridor keeps its own offset from the centreline,
+                            uniform in ± this, m (so two passes can be twice this apart).
+    corner_cut_m            σ of the rounding of corners (walkers cut them), m.
+    tag_step_probability    chance that the walker, passing a tag for the first time, steps out to
+                            it and back.
+    tag_standoff_m          how far from the tag the step stops, m.
+    cut_corridors           corridors (of the lowest floor) walked only from both ends, each pass
+                            turning back ``cut_gap_m`` short of the other: passes that never meet.
+    cut_gap_m               the gap between the two dead ends of a cut corridor, m.
+    seed                    the same seed gives the same walk.
+    """
+
+    length_m: float = 500.0
+    spacing_m: float = 0.35
+    sway_m: float = 0.15
+    sway_scale_m: float = 3.0
+    pass_offset_m: float = 0.5
+    corner_cut_m: float = 0.5
+    tag_step_probability: float = 0.7
+    tag_standoff_m: float = 0.2
+    cut_corridors: int = 1
+    cut_gap_m: float = 1.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not _finite(value) or value < 0:
+                raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")
+        if self.spacing_m <= 0 or self.length_m <= 0:
+            raise ParameterError("spacing_m and length_m must be > 0")
+        if self.tag_step_probability > 1:
+            raise ParameterError("tag_step_probability must be in [0, 1]")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class SimulatedWalk:
+    """A walker's recorded positions in a procedural building, and the building's truth.
+
+    positions_m: (N, 3) the phone's positions in time order, world frame (y up), m.
+    building: the true building (cut corridors are whole in it).
+    tag_ids: (K,) and tag_positions_m: (K, 3) every tag of the building, m.
+    cut_edges: the building edges that were walked only from both ends.
+    phone_height_m: the phone's height above the floor, m.
+    """
+
+    positions_m: FloatArray
+    building: Building
+    tag_ids: tuple[int, ...]
+    tag_positions_m: FloatArray
+    cut_edges: tuple[int, ...]
+    phone_height_m: float
+
+
+def simulate_walk(config: SimulationConfig, walker: WalkerConfig) -> SimulatedWalk:
+    """A walk through ``config``'s building by a walker who strays as ``walker`` says (no odometry
+    drift: the positions are what an optimized map would hold, minus its error)."""
+    rng = np.random.default_rng(walker.seed)
+    building = build_building(config, rng)
+    walked, cut = _cut_corridors(building, walker, rng)
+    vertices = _route(walked, walker.length_m, rng)
+    centre, segment = _resample(vertices, walker.spacing_m)
+    per_m = 1.0 / walker.spacing_m
+    flat = np.abs(np.diff(vertices[:, 1]))[segment] < 1e-9
+    offset_m = rng.uniform(-walker.pass_offset_m, walker.pass_offset_m, len(vertices) - 1)
+    offset_m = np.where(flat, offset_m[segment], 0.0)
+    if walker.corner_cut_m > 0:
+        offset_m = _smooth(offset_m, walker.corner_cut_m * per_m)
+        for k in (0, 2):
+            centre[:, k] = _smooth(centre[:, k], walker.corner_cut_m * per_m)
+    sway_m = _smooth_noise(rng, len(centre), walker.sway_m, walker.sway_scale_m * per_m)
+    forward = np.gradient(centre[:, [0, 2]], axis=0)
+    forward /= np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
+    left = np.column_stack([forward[:, 1], -forward[:, 0]])
+    side_m = offset_m + np.where(flat, sway_m, 0.0)
+    positions = centre.copy()
+    positions[:, [0, 2]] += side_m[:, None] * left
+    positions[:, 1] += config.phone_height_m
+    positions = _tag_steps(positions, building, walker, rng)
+    ids = tuple(sorted(building.world_T_tag))
+    return SimulatedWalk(
+        positions_m=positions,
+        building=building,
+        tag_ids=ids,
+        tag_positions_m=np.array([building.world_T_tag[t][:3, 3] for t in ids]),
+        cut_edges=cut,
+        phone_height_m=config.phone_height_m,
+    )
+
+
+def _cut_corridors(
+    building: Building, walker: WalkerConfig, rng: np.random.Generator
+) -> tuple[Building, tuple[int, ...]]:
+    """The building the walker walks: ``cut_corridors`` corridors of the lowest floor replaced by
+    two dead ends ``cut_gap_m`` apart in their middle."""
+    ends = building.edge_nodes
+    y = building.node_xyz_m[:, 1]
+    lowest = float(y.min())
+    candidates = [
+        e
+        for e in range(len(ends))
+        if y[ends[e, 0]] == lowest and y[ends[e, 1]] == lowest and 0 not in ends[e]
+    ]
+    count = min(walker.cut_corridors, len(candidates))
+    cut = sorted(int(e) for e in rng.choice(candidates, size=count, replace=False)) if count else []
+    nodes = [*building.node_xyz_m]
+    edges = [tuple(int(v) for v in e) for e in ends]
+    polylines = list(building.edge_polylines_m)
+    for e in cut:
+        a, b = edges[e]
+        pa, pb = building.node_xyz_m[a], building.node_xyz_m[b]
+        length_m = float(np.linalg.norm(pb - pa))
+        half_gap = min(walker.cut_gap_m, length_m / 2) / 2
+        x = pa + (pb - pa) * (0.5 - half_gap / length_m)
+        z = pa + (pb - pa) * (0.5 + half_gap / length_m)
+        nodes += [x, z]
+        ix, iz = len(nodes) - 2, len(nodes) - 1
+        edges[e] = (a, ix)
+        polylines[e] = np.array([pa, x])
+        edges.append((iz, b))
+        polylines.append(np.array([z, pb]))
+    walked = dataclasses.replace(
+        building,
+        node_xyz_m=np.array(nodes, dtype=np.float64),
+        edge_nodes=np.array(edges, dtype=np.int64),
+        edge_polylines_m=tuple(polylines),
+    )
+    return walked, tuple(cut)
+
+
+def _resample(vertices: FloatArray, spacing_m: float) -> tuple[FloatArray, IntArray]:
+    """(points every ``spacing_m`` along the polyline (P, 3), the segment of each point)."""
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(vertices, axis=0), axis=1) > 1e-9])
+    vertices = vertices[keep]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(vertices, axis=0), axis=1))])
+    along = np.arange(0.0, arc[-1], spacing_m)
+    points = np.column_stack([np.interp(along, arc, vertices[:, k]) for k in range(3)])
+    segment = np.clip(np.searchsorted(arc, along, side="right") - 1, 0, len(vertices) - 2)
+    return points, segment.astype(np.int64)
+
+
+def _tag_steps(
+    positions: FloatArray, building: Building, walker: WalkerConfig, rng: np.random.Generator
+) -> FloatArray:
+    """Insert an out-and-back step to each tag passed (first pass, with the step probability)."""
+    steps: dict[int, FloatArray] = {}
+    for tag in sorted(building.world_T_tag):
+        world_T_tag = building.world_T_tag[tag]
+        target = world_T_tag[:3, 3] + walker.tag_standoff_m * world_T_tag[:3, 2]
+        horizontal_m = np.hypot(*(positions[:, [0, 2]] - target[[0, 2]]).T)
+        same_floor = np.abs(positions[:, 1] - target[1]) < 1.5
+        near = np.flatnonzero(same_floor & (horizontal_m < 2.0))
+        if near.size == 0 or rng.uniform() >= walker.tag_step_probability:
+            continue
+        first_pass = near[near < near[0] + int(4.0 / walker.spacing_m)]
+        k = int(first_pass[np.argmin(horizontal_m[first_pass])])
+        goal = np.array([target[0], positions[k, 1], target[2]])
+        distance_m = float(np.linalg.norm(goal - positions[k]))
+        count = max(1, math.ceil(distance_m / walker.spacing_m))
+        t = np.concatenate([np.arange(1, count + 1), np.arange(count - 1, -1, -1)]) / count
+        steps[k] = positions[k] + t[:, None] * (goal - positions[k])
+    pieces: list[FloatArray] = []
+    start = 0
+    for k in sorted(steps):
+        pieces += [positions[start : k + 1], steps[k]]
+        start = k + 1
+    pieces.append(positions[start:])
+    return np.concatenate(pieces)
+
+
+def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> PathGraph:
+    """The building's true corridors (and stairs) that the walk went along (every point of them
+    within ``walked_within_m`` of a walked position), as a path graph with the tags attached: the
+    reference that a skeleton of ``walk`` is scored against."""
+    building = walk.building
+    G: nx.Graph[int] = nx.Graph()
+    ids: dict[tuple[float, float, float], int] = {}
+    levels = np.asarray(building.floor_heights_m, dtype=np.float64)
+
+    def node(p: FloatArray) -> int:
+        key = (round(float(p[0]), 9), round(float(p[1]), 9), round(float(p[2]), 9))
+        if key not in ids:
+            ids[key] = len(ids)
+            floor = int(np.argmin(np.abs(levels - key[1])))
+            G.add_node(ids[key], position_m=key, floor=floor, kind="node", pose_index=None)
+        return ids[key]
+
+    for polyline in building.edge_polylines_m:
+        floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
+        if not _walked_along(polyline, floor_m, walked_within_m):
+            continue
+        stairs = abs(float(polyline[-1, 1] - polyline[0, 1])) > 1e-9
+        for a, b in itertools.pairwise(polyline):
+            u, v = node(a), node(b)
+            if u == v:
+                continue
+            floor = min(G.nodes[u]["floor"], G.nodes[v]["floor"])
+            kind = "stairs" if stairs and a[1] != b[1] else "walk"
+            G.add_edge(u, v, length_m=float(np.linalg.norm(b - a)), kind=kind, floor=floor)
+    for n in G.nodes:
+        walk_degree = sum(1 for m in G.neighbors(n) if G.edges[n, m]["kind"] == "walk")
+        G.nodes[n]["kind"] = "junction" if walk_degree >= 3 else "node"
+    tags = {
+        t: attach_anchor(G, str(t), p, levels)
+        for t, p in zip(walk.tag_ids, walk.tag_positions_m, strict=True)
+    }
+    return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels), tags=tags)
+
+
+def _walked_along(polyline: FloatArray, positions_m: FloatArray, within_m: float) -> bool:
+    """Whether every point of ``polyline`` (P, 3), sampled every 0.5 m, has a walked position
+    (P, 3) at floor level within ``within_m`` (horizontally, and 1.5 m of height)."""
+    for a, b in itertools.pairwise(polyline):
+        count = max(1, math.ceil(float(np.linalg.norm(b - a)) / 0.5))
+        samples = a + np.linspace(0.0, 1.0, count + 1)[:, None] * (b - a)
+        for p in samples:
+            near = np.abs(positions_m[:, 1] - p[1]) < 1.5
+            horizontal = np.hypot(positions_m[near, 0] - p[0], positions_m[near, 2] - p[2])
+            if horizontal.size == 0 or float(horizontal.min()) > within_m:
+                return False
+    return True

@@ -39,7 +39,7 @@ from app.domain.keyframes import interpolate_poses, select_keyframes
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats
 from app.domain.params import SlamParams
 from app.domain.screening import screen_detections
-from app.domain.session import Session, first_observation_tag_poses
+from app.domain.session import Session, first_observation_tag_poses, require_tags
 
 #: σ of the gauge prior on the first pose: rotation rad, translation m.
 GAUGE_PRIOR_SIGMA_RAD = 1e-6
@@ -101,7 +101,8 @@ def optimize_session(
     on_iteration: IterationCallback | None = None,
     initial_world_T_phone: FloatArray | None = None,
 ) -> MapResult:
-    """Optimize ``session`` into a map. Never raises on a session the parser accepted.
+    """Optimize ``session`` into a map. Raises ``NoTagsRecorded`` for a session with no tag
+    detection (``session.require_tags``); never raises on any other session the parser accepted.
 
     A map whose noise variances are the defaults is one Levenberg–Marquardt run from the initial
     values. Any other setting is optimized in two stages: first with the default variances
@@ -117,6 +118,7 @@ def optimize_session(
     odometry (a warm start); tags then start from their first observation on it.
     """
     params = params or SlamParams()
+    require_tags(session)
     if initial_world_T_phone is not None and initial_world_T_phone.shape != (
         session.num_poses,
         4,

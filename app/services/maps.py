@@ -15,8 +15,9 @@ from app.domain.errors import ParameterError
 from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
 from app.domain.path_graph import path_graph_from_json
-from app.services.errors import Conflict, InvalidInput
-from app.storage import maps, queue
+from app.services.errors import Conflict, InvalidInput, NotFound
+from app.storage import images, maps, queue
+from app.storage.images import MapImage, StoredImage
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
 from app.storage.orm import MapRow
@@ -80,6 +81,17 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     return {name: params[name] for name in overrides}
 
 
+#: The version of what :func:`app_map_content` makes of a stored version. It is part of the
+#: app-map's ETag: raise it whenever the export changes, so that a phone holding a file made by
+#: the older export downloads the new one instead of a 304. 2: links at both ends, one connected
+#: part, unique waypoint names, ``notes``.
+APP_MAP_EXPORT = 2
+#: Longest display name, characters (the column's size).
+MAX_DISPLAY_NAME_LENGTH = 200
+#: Media type of the pictures the app sends.
+JPEG_MEDIA_TYPE = "image/jpeg"
+
+
 def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
     """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes."""
     graph_document = path_graph_document(db_session, version.id)
@@ -114,3 +126,54 @@ def chosen_version(db_session: Session, info: MapInfo, number: int | None) -> Ve
         else ": rebuild it to make one"
     )
     raise Conflict("map_not_ready", f"map {info.id} has no version yet{building}")
+
+
+def image_url(info: MapInfo) -> str | None:
+    """Where the map's picture is served, versioned by its content (so the answer can be cached
+    for good: a new picture has a new URL); None without a picture."""
+    if info.image_sha256 is None:
+        return None
+    return f"/v1/maps/{info.id}/image?v={info.image_sha256[:16]}"
+
+
+def rename_map(db_session: Session, map_id: int, display_name: str) -> MapInfo:
+    """Set the name people see (surrounding spaces dropped); 422 naming ``display_name`` if it
+    is empty or too long. Raises MapNotFound."""
+    name = display_name.strip()
+    if not name:
+        raise InvalidInput("validation_error", "display_name is empty", field="display_name")
+    if len(name) > MAX_DISPLAY_NAME_LENGTH:
+        raise InvalidInput(
+            "validation_error",
+            f"display_name is longer than {MAX_DISPLAY_NAME_LENGTH} characters ({len(name)})",
+            field="display_name",
+        )
+    return maps.set_display_name(db_session, map_id, name)
+
+
+def store_session_image(
+    db_session: Session,
+    session_id: int,
+    data: bytes,
+    *,
+    max_bytes: int = images.MAX_IMAGE_BYTES,
+) -> StoredImage:
+    """Keep ``data`` as the session's picture (the same bytes again change nothing); 422 naming
+    the body when it is no JPEG. The caller checks the media type and the size limit first.
+    Raises SessionNotFound."""
+    problem = images.jpeg_problem(data, max_bytes=max_bytes)
+    if problem is not None:
+        raise InvalidInput("invalid_image", problem, field="body")
+    return images.put_session_image(db_session, session_id=session_id, jpeg=data)
+
+
+def picture_of_map(db_session: Session, map_id: int) -> MapImage:
+    """The map's picture; 404 ``no_image`` while it has none. Raises MapNotFound."""
+    picture = images.map_image(db_session, map_id)
+    if picture is None:
+        raise NotFound(
+            "no_image",
+            f"map {map_id} has no picture: the app sends one with the "
+            "session (PUT /v1/sessions/{session_id}/image)",
+        )
+    return picture

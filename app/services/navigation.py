@@ -9,6 +9,7 @@ import json
 
 from sqlalchemy.orm import Session
 
+from app.domain.instructions import DEFAULT_STYLE, GuidanceStyle, plan_guided_route
 from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
 from app.domain.routing import (
     AmbiguousEndpoint,
@@ -17,7 +18,6 @@ from app.domain.routing import (
     RouteError,
     UnknownEndpoint,
     Unreachable,
-    plan_route,
 )
 from app.services.errors import Conflict, InvalidInput, NotFound
 from app.services.maps import chosen_version
@@ -51,12 +51,21 @@ def version_path_graph(cache: VersionCache, db_session: Session, version: Versio
 
 
 def planned_route(
-    graph: PathGraph, start: Endpoint, goal: Endpoint, *, avoid: frozenset[str]
+    graph: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str],
+    heading_rad: float | None = None,
+    style: GuidanceStyle = DEFAULT_STYLE,
 ) -> Route:
-    """:func:`plan_route`, its refusals as API errors: an unknown end 404, an unreachable goal
-    409, an ambiguous name or another bad request 422."""
+    """:func:`app.domain.instructions.plan_guided_route` (instructions at decision points, the
+    first facing ``heading_rad`` when given), its refusals as API errors: an unknown end 404, an
+    unreachable goal 409, an ambiguous name or another bad request 422."""
     try:
-        return plan_route(graph, start, goal, avoid=avoid)
+        return plan_guided_route(
+            graph, start, goal, avoid=avoid, heading_rad=heading_rad, style=style
+        )
     except UnknownEndpoint as err:
         raise NotFound("not_found", str(err), field=None) from err
     except Unreachable as err:

@@ -12,6 +12,7 @@ import gzip
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -23,7 +24,8 @@ from app.domain.evaluation import Evaluation
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
-from app.storage.orm import MapRow, MapTag, MapVersion, utc_now
+from app.domain.session import display_name_of
+from app.storage.orm import MapRow, MapTag, MapVersion, SessionImage, utc_now
 from app.storage.rows import info_from_row
 
 #: Load options for a version's metadata without its (large) map document and plot.
@@ -70,7 +72,12 @@ class VersionInfo:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class MapInfo:
-    """A map with its current version (None until the first build succeeds)."""
+    """A map with its current version (None until the first build succeeds).
+
+    name: the upload's ``map_id``; display_name: the name people see (set by an admin, else the
+    name typed in the app: ``app.domain.session.display_name_of(name)``); image_sha256: of the
+    session's picture, None without one.
+    """
 
     id: int
     name: str
@@ -78,6 +85,8 @@ class MapInfo:
     created_at: datetime
     version_count: int
     current: VersionInfo | None
+    display_name: str = ""
+    image_sha256: str | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -94,11 +103,23 @@ class TagPose:
 # --------------------------------------------------------------------------- writing
 
 
-def create_map(db_session: Session, *, name: str, session_id: int) -> int:
-    row = MapRow(name=name, session_id=session_id, created_at=utc_now())
+def create_map(
+    db_session: Session, *, name: str, session_id: int, display_name: str | None = None
+) -> int:
+    row = MapRow(name=name, display_name=display_name, session_id=session_id, created_at=utc_now())
     db_session.add(row)
     db_session.flush()
     return row.id
+
+
+def set_display_name(db_session: Session, map_id: int, display_name: str) -> MapInfo:
+    """Change the name people see; MapNotFound if there is no such map."""
+    row = db_session.get(MapRow, map_id)
+    if row is None:
+        raise MapNotFound(map_id)
+    row.display_name = display_name
+    db_session.flush()
+    return _map_info(db_session, row)
 
 
 def store_version(
@@ -219,8 +240,15 @@ def list_maps(
     if tag_id is not None:
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
     total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset))
-    return [_map_info(db_session, row) for row in rows], total
+    rows = list(db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset)))
+    # the pictures of the page in one query (not one per map)
+    pictures = db_session.execute(
+        select(SessionImage.session_id, SessionImage.sha256).where(
+            SessionImage.session_id.in_([row.session_id for row in rows])
+        )
+    )
+    image_sha256: dict[int, str] = dict(pictures.all())
+    return [_map_info(db_session, row, images=image_sha256) for row in rows], total
 
 
 def list_versions(db_session: Session, map_id: int) -> list[VersionInfo]:
@@ -285,7 +313,11 @@ def _version_row(
     return row
 
 
-def _map_info(db_session: Session, row: MapRow) -> MapInfo:
+def _map_info(
+    db_session: Session, row: MapRow, *, images: Mapping[int, str] | None = None
+) -> MapInfo:
+    """The map of ``row``; ``images`` (session id → picture SHA-256) when the caller looked the
+    pictures up already."""
     count = db_session.scalar(
         select(func.count()).select_from(MapVersion).where(MapVersion.map_id == row.id)
     )
@@ -296,6 +328,12 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         .order_by(MapVersion.number.desc())
         .limit(1)
     )
+    if images is None:
+        image_sha256 = db_session.scalar(
+            select(SessionImage.sha256).where(SessionImage.session_id == row.session_id)
+        )
+    else:
+        image_sha256 = images.get(row.session_id)
     return MapInfo(
         id=row.id,
         name=row.name,
@@ -303,6 +341,8 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         created_at=row.created_at,
         version_count=count or 0,
         current=VersionInfo.from_row(current) if current is not None else None,
+        display_name=row.display_name or display_name_of(row.name),
+        image_sha256=image_sha256,
     )
 
 

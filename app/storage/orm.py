@@ -2,10 +2,10 @@
 ``create_all``); ``tests/migrations`` checks that the two agree.
 
 Tables (singular, snake_case): ``api_key`` with its dashboard logins (``admin_login``),
-``session`` with its ``session_upload`` (the raw upload, gzip-compressed, written once),
-``map``, ``map_version`` with one ``map_tag`` row per tag, ``job`` (the queue) and ``worker``
-(who is alive and what it runs), ``localization``, and ``sweep`` with one ``sweep_trial`` row
-per finished trial.
+``session`` with its ``session_upload`` (the raw upload, gzip-compressed, written once), ``map``,
+``map_version`` with one ``map_tag`` row per tag, ``job`` (the queue) and ``worker`` (who is alive
+and what it runs), ``localization``, ``sweep`` with one ``sweep_trial`` row per finished trial,
+and ``session_image`` (the app's picture of a session's map).
 """
 
 from __future__ import annotations
@@ -198,11 +198,29 @@ class MapRow(Base):
     __table_args__ = (NEVER_REUSE_IDS,)
 
     id: Mapped[int] = mapped_column(primary_key=True)
+    #: the upload's ``map_id``
     name: Mapped[str] = mapped_column(String(200))
+    #: the name people see (an admin may change it); null: derived from ``name``
+    display_name: Mapped[str | None] = mapped_column(String(200))
     session_id: Mapped[int] = mapped_column(
         ForeignKey("session.id", ondelete="CASCADE"), index=True
     )
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class SessionImage(Base):
+    """The picture the app sends with a session (a JPEG), shown with the session's map."""
+
+    __tablename__ = "session_image"
+
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("session.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+    sha256: Mapped[str] = mapped_column(String(64))
+    size_bytes: Mapped[int]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
 class Job(Base):

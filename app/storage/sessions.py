@@ -165,8 +165,11 @@ def create_session(
     max_attempts: int = 3,
     auto_tune_trials: int = 0,
     now: datetime | None = None,
+    display_name: str | None = None,
 ) -> UploadResult:
     """Store a validated upload with its map and build job in the caller's transaction.
+    ``display_name``: the map's name for people, when known apart from ``map_id`` (else it is
+    derived from ``map_id`` when read).
 
     Raises :class:`IdempotencyConflict` when ``idempotency_key`` was used by ``uploaded_by`` for
     other bytes, and ValueError when ``parsed.map_id`` is longer than
@@ -210,7 +213,9 @@ def create_session(
             raise
         return replay_upload(db_session, earlier, sha256)
     db_session.add(SessionUpload(session_id=row.id, raw_gzip=upload.json_gzip))
-    map_id = maps.create_map(db_session, name=parsed.map_id, session_id=row.id)
+    map_id = maps.create_map(
+        db_session, name=parsed.map_id, session_id=row.id, display_name=display_name
+    )
     job_id = queue.enqueue(
         db_session,
         kind=BUILD_MAP,

@@ -1,7 +1,7 @@
 """Dashboard logins kept on the server (logout, key revocation and "end all" end them).
 
 Revision ID: a1bdea7a7cb1
-Revises: ab9fdc410699
+Revises: 7c3e9a41d2b6
 Create Date: 2026-11-25 15:40:59.811418
 """
 
@@ -13,7 +13,7 @@ import sqlalchemy as sa
 from alembic import op
 
 revision: str = "a1bdea7a7cb1"
-down_revision: str | None = "ab9fdc410699"
+down_revision: str | None = "7c3e9a41d2b6"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 

@@ -22,6 +22,7 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import cli
+from app.domain.app_model import check_app_map
 from app.domain.params import SlamParams
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -163,7 +164,8 @@ def test_process_writes_the_app_download_format(occam_run):
     assert {"tag_vertices", "odometry_vertices", "waypoints_vertices"} <= set(document)
     assert len(document["tag_vertices"]) == 8
     vertices = document["odometry_vertices"]
-    assert len(vertices) == 621
+    # every pose, then the path graph's junctions (numbered after the last pose)
+    assert len(vertices) > 621
     for vertex in vertices:
         assert {"poseId", "translation", "rotation", "adjChi2", "vizTags", "neighbors"} <= set(
             vertex
@@ -173,8 +175,9 @@ def test_process_writes_the_app_download_format(occam_run):
         norm = math.sqrt(sum(v * v for v in vertex["rotation"].values()))
         assert norm == pytest.approx(1.0, abs=1e-6)
         assert all(isinstance(n, int) for n in vertex["neighbors"])
-    assert [v["poseId"] for v in vertices] == list(range(621))
-    assert 1 in vertices[0]["neighbors"]
+    assert [v["poseId"] for v in vertices[:621]] == list(range(621))
+    assert all(v["poseId"] > 620 for v in vertices[621:])
+    assert check_app_map(document).ok  # the app can route on it
     # Tags are seen from some poses: their vizTags add up to the detections used.
     assert sum(v["vizTags"] for v in vertices) > 0
     assert document["waypoints_vertices"] == []
@@ -221,22 +224,18 @@ def test_process_without_ground_truth_prints_no_ground_truth_metric(capsys):
 
 
 @pytest.mark.slow
-def test_process_session_without_detections_warns(tmp_path):
+def test_process_session_without_detections_says_no_map_can_be_made(tmp_path):
     document = onetag_document()
     document["tag_data"] = []
     session = write_json(tmp_path / "notags.json", document)
     app_map = tmp_path / "notags.app.json"
 
-    proc = run_cli("process", session, "--app-map", app_map, "--plot", tmp_path / "notags.png")
+    proc = run_cli("process", session, "--app-map", app_map)
 
-    assert proc.returncode == 0, proc.stderr
-    warnings = [line for line in proc.stdout.splitlines() if line.startswith("warning:")]
-    assert warnings
-    assert any("no tag detections" in line for line in warnings)
-    written = json.loads(app_map.read_text())
-    assert written["tag_vertices"] == []
-    assert len(written["odometry_vertices"]) == 25
-    assert (tmp_path / "notags.png").read_bytes()[:8] == PNG_MAGIC
+    assert proc.returncode != 0
+    assert "no tags were recorded: a map needs at least one tag" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not app_map.exists()
 
 
 @pytest.mark.slow

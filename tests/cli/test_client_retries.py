@@ -5,6 +5,7 @@ Idempotency-Key. The same against a real server killed mid-upload is in tests/e2
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 
 import httpx
@@ -95,3 +96,31 @@ def test_without_retries_no_key_is_made_up_and_nothing_is_retried() -> None:
         upload(transport)
     assert raised.value.code == "database_unavailable"
     assert "Idempotency-Key" not in seen[0].headers
+
+
+def test_the_picture_and_name_requests_are_what_the_server_expects() -> None:
+    seen: list[httpx.Request] = []
+
+    def handle(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        if request.url.path.endswith("/image") and request.method == "GET":
+            return httpx.Response(404, json={"detail": "no picture", "code": "no_image"})
+        return httpx.Response(200, json={"ok": True})
+
+    with Client("http://server", api_key="k", transport=httpx.MockTransport(handle)) as client:
+        assert client.put_session_image(7, b"\xff\xd8\xff\xd9") == {"ok": True}
+        assert client.rename_map(3, "Lobby") == {"ok": True}
+        with pytest.raises(ApiError) as info:
+            client.map_image(3)
+    assert info.value.status_code == 404
+    assert info.value.code == "no_image"
+    put, patch, get = seen
+    assert (put.method, put.url.path, put.headers["Content-Type"]) == (
+        "PUT",
+        "/v1/sessions/7/image",
+        "image/jpeg",
+    )
+    assert put.content == b"\xff\xd8\xff\xd9"
+    assert (patch.method, patch.url.path) == ("PATCH", "/v1/maps/3")
+    assert json.loads(patch.content) == {"display_name": "Lobby"}
+    assert (get.method, get.url.path) == ("GET", "/v1/maps/3/image")

@@ -655,3 +655,36 @@ def test_a_trusted_proxy_must_be_an_address(env: pytest.MonkeyPatch, run_main: R
     env.setenv("INVISIBLE_MAP_TRUSTED_PROXIES", "127.0.0.1, proxy.example")
     status, _, err = run_main("serve", "--port", "1")
     assert_one_line_error(status, err, "'proxy.example' is no IP address or network")
+
+
+def test_the_listening_socket_gives_connections_tcp_nodelay() -> None:
+    """serve's own socket must be IPPROTO_TCP: asyncio turns on TCP_NODELAY only for such
+    sockets, and without it every answer waited ~40 ms for a delayed ACK (bench/http.py)."""
+    import asyncio
+
+    from app.cli.server import listening_socket
+
+    listener = listening_socket("127.0.0.1", 0)
+    assert listener.proto == socket.IPPROTO_TCP
+    nodelay: list[int] = []
+
+    async def serve_once() -> None:
+        def accepted(_reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            sock = writer.get_extra_info("socket")
+            nodelay.append(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+            writer.close()
+
+        server = await asyncio.start_server(accepted, sock=listener)
+        port = listener.getsockname()[1]
+        _reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        for _ in range(100):
+            if nodelay:
+                break
+            await asyncio.sleep(0.01)
+        writer.close()
+        server.close()
+        await server.wait_closed()
+
+    asyncio.run(serve_once())
+    assert nodelay
+    assert nodelay[0] != 0

@@ -377,3 +377,72 @@ def test_static_files_are_served_from_the_app(api: Api) -> None:
     assert plotly.headers["content-type"].startswith("text/javascript")
     assert b"plotly.js" in plotly.content[:200]
     assert api.client.get("/admin/static/admin.js").status_code == 200
+
+
+# --------------------------------------------------------------------------- picture and name
+
+JPEG = b"\xff\xd8\xff\xe0" + b"\x10" * 300 + b"\xff\xd9"
+
+
+def test_maps_list_and_page_show_the_picture_and_the_display_name(
+    api: Api, upload: dict[str, Any]
+) -> None:
+    put = api.client.put(
+        f"/v1/sessions/{upload['session_id']}/image",
+        content=JPEG,
+        headers={**ADMIN, "Content-Type": "image/jpeg"},
+    )
+    assert put.status_code == 200
+    image_path = put.json()["image_url"].replace("/v1/", "/admin/")
+
+    listing = api.client.get("/admin/maps").text
+    assert f'src="{image_path}"' in listing
+    page = api.client.get(f"/admin/maps/{upload['map_id']}").text
+    assert 'id="map-picture"' in page
+    assert 'id="rename-form"' in page
+    picture = api.client.get(image_path)
+    assert picture.status_code == 200
+    assert picture.content == JPEG
+    assert picture.headers["Cache-Control"].endswith("immutable")
+
+
+def test_an_admin_renames_a_map_on_its_page(api: Api, upload: dict[str, Any]) -> None:
+    map_id = upload["map_id"]
+    response = post(api, f"/admin/maps/{map_id}/rename", {"display_name": " Lobby, ground floor "})
+    assert response.status_code == 303
+    assert api.client.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["display_name"] == (
+        "Lobby, ground floor"
+    )
+    assert (
+        f"<h1>Map {map_id}: Lobby, ground floor</h1>"
+        in api.client.get(f"/admin/maps/{map_id}").text
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "message"), [("   ", "display_name is empty"), ("x" * 201, "longer than 200")]
+)
+def test_a_bad_name_is_refused_on_the_page(
+    api: Api, upload: dict[str, Any], name: str, message: str
+) -> None:
+    map_id = upload["map_id"]
+    before = api.client.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["display_name"]
+    response = post(api, f"/admin/maps/{map_id}/rename", {"display_name": name})
+    assert response.status_code == 422
+    assert message in response.text
+    assert 'id="rename-error"' in response.text
+    assert api.client.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["display_name"] == before
+
+
+def test_picture_and_rename_of_missing_maps_and_without_csrf(
+    api: Api, upload: dict[str, Any]
+) -> None:
+    assert api.client.get(f"/admin/maps/{upload['map_id']}/image").status_code == 404
+    assert api.client.get("/admin/maps/999999/image").status_code == 404
+    assert post(api, "/admin/maps/999999/rename", {"display_name": "X"}).status_code == 404
+    forged = api.client.post(
+        f"/admin/maps/{upload['map_id']}/rename",
+        data={"display_name": "X", "csrf_token": "forged"},
+        follow_redirects=False,
+    )
+    assert forged.status_code == 403

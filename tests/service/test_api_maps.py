@@ -28,8 +28,8 @@ PROCESSED_EXAMPLES = sorted(
     (Path(__file__).resolve().parents[3] / "shared/data/processed_examples").glob("*.json")
 )
 
-#: The app's download format, docs/architecture.md §7.
-APP_MAP_KEYS = {"tag_vertices", "odometry_vertices", "waypoints_vertices"}
+#: The app's download format, docs/architecture.md §7 (and our notes, which the app ignores).
+APP_MAP_KEYS = {"tag_vertices", "odometry_vertices", "waypoints_vertices", "notes"}
 TAG_VERTEX_KEYS = {"id", "translation", "rotation"}
 ODOMETRY_VERTEX_KEYS = {"poseId", "translation", "rotation", "adjChi2", "vizTags", "neighbors"}
 
@@ -149,6 +149,7 @@ def test_app_map_has_the_apps_format(api: Api, built: dict[str, Any]) -> None:
     for vertex in app_map["odometry_vertices"]:
         assert set(vertex) == ODOMETRY_VERTEX_KEYS
     assert app_map["odometry_vertices"][1]["neighbors"] == [0, 2]
+    assert app_map["notes"] == []
     # The same as the core makes from the same session.
     expected = map_to_app_format(optimize_session(load_session(OCCAM)))
     assert [v["id"] for v in app_map["tag_vertices"]] == [v["id"] for v in expected["tag_vertices"]]
@@ -160,7 +161,7 @@ def test_app_map_has_the_apps_format(api: Api, built: dict[str, Any]) -> None:
     # And its keys are those of the real processed map shipped in shared/ (when present).
     for path in PROCESSED_EXAMPLES:
         example = json.loads(path.read_text())
-        assert set(example) == APP_MAP_KEYS
+        assert set(example) == APP_MAP_KEYS - {"notes"}  # notes: ours, which the app ignores
         assert set(example["tag_vertices"][0]) == TAG_VERTEX_KEYS
         assert set(example["odometry_vertices"][0]) == ODOMETRY_VERTEX_KEYS
 

@@ -97,6 +97,46 @@ def test_route_from_a_tag_to_a_poi(nav):
     assert all(len(step["position"]) == 3 for step in body["steps"])
 
 
+def test_route_faces_the_heading_and_words_the_style(nav):
+    api, map_id = nav
+    plain = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}}).json()
+    first = np.array(plain["polyline"][1]) - np.array(plain["polyline"][0])
+    way_deg = math.degrees(math.atan2(-first[0], -first[2]))  # the route's first direction
+    # Facing the other way, the first step is to turn round (clock face: 6 o'clock).
+    body = {
+        "from": {"tag": 300},
+        "to": {"tag": 311},
+        "heading_deg": way_deg + 180.0,
+        "style": {"units": "ft", "clock": True},
+    }
+    response = route(api, map_id, body)
+    assert response.status_code == 200, response.text
+    steps = response.json()["steps"]
+    assert steps[0]["kind"] == "face"
+    assert steps[0]["instruction"] == "turn to 6 o'clock to face the way"
+    assert any(s["instruction"].endswith(" ft") for s in steps if s["kind"] == "go")
+    # Facing the way: no facing step; distances in metres by default.
+    facing = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}, "heading_deg": way_deg})
+    assert facing.json()["steps"][0]["kind"] == "go"
+    assert facing.json()["steps"][0]["instruction"].endswith(" m")
+    for bad in ({"heading_deg": 400}, {"style": {"units": "yards"}}):
+        refused = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}, **bad})
+        assert refused.status_code == 422, refused.text
+
+
+def test_route_steps_are_decisions_only(nav):
+    """On the corridor skeleton of floor 2 (one gently curving corridor), a route along it has
+    no turn closer than 5 m to another and none that reverses."""
+    api, map_id = nav
+    body = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 324}}).json()
+    turns = [s for s in body["steps"] if s["kind"] == "turn"]
+    assert all("around" not in s["instruction"] for s in turns)
+    positions = np.array([s["position"] for s in turns]).reshape(-1, 3)
+    gaps_m = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert np.all(gaps_m >= 5.0 - 1e-6)
+    assert len(turns) <= 4
+
+
 def test_route_between_positions_and_nodes(nav):
     api, map_id = nav
     geo = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN).json()
@@ -189,17 +229,28 @@ def test_app_map_neighbors_come_from_the_path_graph(nav):
             assert neighbor in vertices, (pose_id, neighbor)
             links.add_edge(pose_id, neighbor)
     assert nx.is_connected(links)
-    # Junctions are extra vertices after the last pose; the path graph has some on this walk.
+    # The corridor skeleton's nodes are extra vertices after the last pose, linked among
+    # themselves; every pose links to the skeleton, not to the previous and next pose.
     last_pose_id = max(p["id"] for p in json.loads(FLOOR_2.read_bytes())["pose_data"])
-    assert any(pose_id > last_pose_id for pose_id in vertices)
-    # Not previous/next pose any more: simplified straight runs link far-apart poses.
-    assert any(
-        abs(neighbor - pose_id) > 1
+    skeleton = {pose_id for pose_id in vertices if pose_id > last_pose_id}
+    assert len(skeleton) >= 2
+    assert nx.is_connected(links.subgraph(skeleton))
+    assert all(
+        set(vertex["neighbors"]) <= skeleton
         for pose_id, vertex in vertices.items()
         if pose_id <= last_pose_id
-        for neighbor in vertex["neighbors"]
-        if neighbor <= last_pose_id
     )
+    # The app adds an edge only from the vertex whose neighbor id is smaller than its own: the
+    # skeleton lists its poses back, so the app's graph is one connected graph too.
+    as_the_app = nx.Graph()
+    as_the_app.add_nodes_from(vertices)
+    as_the_app.add_edges_from(
+        (pose_id, neighbor)
+        for pose_id, vertex in vertices.items()
+        for neighbor in vertex["neighbors"]
+        if neighbor < pose_id
+    )
+    assert nx.is_connected(as_the_app)
     assert {w["id"] for w in app_map["waypoints_vertices"]} == {"Room 209", "Elevator lobby"}
 
 

@@ -26,7 +26,7 @@ from sqlalchemy import func, select
 from app.domain.session import decode_json_bytes, parse_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import Axis, SearchSpace, Trial
-from app.storage import backup, keys, maps, queue, sessions, sweeps
+from app.storage import backup, images, keys, maps, queue, sessions, sweeps
 from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefused
 from app.storage.db import Database
 from app.storage.migrate import head_revision
@@ -104,6 +104,9 @@ def add_sweep(db: Database, map_id: int, *, trials_done: int) -> int:
     return sweep_id
 
 
+SOURCE_PICTURE = b"\xff\xd8\xff\xe0" + bytes(range(200)) + b"\xff\xd9"
+
+
 def build_source(db: Database) -> tuple[int, str, str]:
     """Fill ``db`` as :data:`SOURCE_SESSIONS` says; returns the device key's id, secret, prefix."""
     with db.transaction() as tx:
@@ -114,6 +117,8 @@ def build_source(db: Database) -> tuple[int, str, str]:
         name, uploader = SOURCE_SESSIONS[session_id]
         key = "walk-1" if session_id == 1 else None
         upload(db, name, uploaded_by=subject.get(uploader, uploader), idempotency_key=key)
+    with db.transaction() as tx:  # the app's picture of session 1's map
+        images.put_session_image(tx, session_id=1, jpeg=SOURCE_PICTURE)
     run_next_job(db, plot=True, path_graph=True)
     run_next_job(db, path_graph=True)
     run_next_job(db, path_graph=True)
@@ -283,6 +288,13 @@ def test_round_trip_sqlite_postgresql_sqlite_keeps_everything(
         uploads = {n: m for n, m in manifest.members.items() if n.startswith("uploads/")}
         original = backup.read_manifest(source.archive_with_keys).members
         assert uploads == {n: m for n, m in original.items() if n.startswith("uploads/")}
+
+        assert "images/1.jpg" in manifest.members
+        for database in (middle, last):
+            with database.read() as tx:
+                picture = images.map_image(tx, 1)
+            assert picture is not None
+            assert picture.jpeg == SOURCE_PICTURE
 
         assert app_maps_of(postgres_url) == source.app_maps
         assert app_maps_of(last.url.render_as_string(hide_password=False)) == source.app_maps

@@ -489,3 +489,36 @@ def test_main_rejects_zero_processes() -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(["--processes", "0"])
     assert exit_info.value.code == 2
+
+
+def test_a_walk_that_falls_apart_is_said_on_the_version(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The app-map keeps the largest part of a walk that falls apart; the version says so."""
+    import networkx as nx
+
+    from app.domain.path_graph import PathGraph
+    from app.domain.skeleton import build_skeleton
+
+    def cut_in_two(result):  # the real graph with the edges across x = its median removed
+        graph = build_skeleton(result)
+        G = graph.graph.copy()
+        x_median = float(np.median([G.nodes[n]["position_m"][0] for n in G]))
+        side = {n: G.nodes[n]["position_m"][0] < x_median for n in G}
+        G.remove_edges_from([(u, v) for u, v in list(G.edges) if side[u] != side[v]])
+        assert nx.number_connected_components(G) > 1
+        return PathGraph(graph=G, floor_levels_m=graph.floor_levels_m)
+
+    monkeypatch.setattr(pipeline, "build_skeleton", cut_in_two)
+    inserted = insert_session(db, session_bytes("occam_room"))
+
+    assert worker_with(db).run_once() is True
+
+    info = get_job(db, inserted.job_id)
+    assert info.state == JobState.SUCCEEDED, info.error
+    with db.read() as tx:
+        version = maps.get_version(tx, inserted.map_id)
+    notes = [w for w in version.warnings if w.startswith("app map: ")]
+    assert notes
+    assert "unconnected parts: only the largest" in notes[0]
+    assert "app map: the walk falls apart" in info.log_tail

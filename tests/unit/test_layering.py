@@ -123,3 +123,18 @@ def test_the_rules_say_what_the_layers_mean(module: str, imported: str, allowed:
     layer = layer_of(module)
     banned = FORBIDDEN_PROJECT_IMPORTS.get(layer, ()) if layer else ()
     assert (not any(_within(imported, prefix) for prefix in banned)) == allowed
+
+
+def test_no_module_takes_another_modules_private_names():
+    """A name with a leading underscore is its module's own: sharing it means making it public
+    (or moving it where both can reach it)."""
+    taken = []
+    for module, path in project_modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                if node.module.split(".")[0] not in {"app", "workers"}:
+                    continue
+                taken += [
+                    f"{module}: {node.module}.{a.name}" for a in node.names if a.name[0] == "_"
+                ]
+    assert taken == []

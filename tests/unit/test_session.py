@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from app.domain.errors import SessionFormatError
 from app.domain.session import (
+    NO_TAGS_REASON,
     Session,
     decode_json_bytes,
     first_observation_tag_poses,
@@ -345,7 +346,7 @@ def test_session_without_detections_parses_with_a_warning():
     assert session.detections.corners_px.shape == (0, 4, 2)
     assert session.world_T_tag_observed().shape == (0, 4, 4)
     assert len(session.warnings) == 1
-    assert "no tag detections" in session.warnings[0]
+    assert session.warnings[0] == NO_TAGS_REASON
 
 
 def test_session_with_empty_frames_has_no_detections():
@@ -495,6 +496,7 @@ def test_error_in_misspelt_location_key_names_that_key():
     document = make_upload()
     del document["location_data"]
     document["location_ data"] = [make_location("", 3)]
+    document["location_ data"][0]["name"] = None
     assert_format_error(document, "location_ data[0].name", "missing")
 
 
@@ -618,11 +620,59 @@ def test_missing_map_id():
     assert_format_error(document, "map_id", "missing")
 
 
-@pytest.mark.parametrize("map_id", ["", "   ", 17, None, ["a"]])
-def test_bad_map_id(map_id):
+@pytest.mark.parametrize(
+    ("map_id", "reason"), [(17, "a number"), (None, "missing"), (["a"], "a list")]
+)
+def test_bad_map_id(map_id, reason):
     document = make_upload()
     document["map_id"] = map_id
-    assert_format_error(document, "map_id", "non-empty string")
+    assert_format_error(document, "map_id", reason)
+
+
+@pytest.mark.parametrize("map_id", ["", "   "])
+def test_empty_map_id_is_named_from_the_upload_stably(map_id):
+    """The app sets map_id to the typed name, which may be empty: the walk is kept, named from
+    its poses (the same walk always gets the same name, another walk another)."""
+    document = make_upload()
+    document["map_id"] = map_id
+    session = parse_session(document)
+    assert session.map_id.startswith("unnamed-")
+    assert parse_session(copy.deepcopy(document)).map_id == session.map_id
+    assert any("map_id was empty" in w and session.map_id in w for w in session.warnings)
+    other = make_upload(9)
+    other["map_id"] = ""
+    assert parse_session(other).map_id != session.map_id
+
+
+def test_empty_poi_names_get_stable_generated_names_and_are_reported():
+    document = make_upload(
+        locations=[
+            make_location("", 2),
+            make_location("Kitchen", 3),
+            make_location("   ", 4),
+            make_location("Point 3", 4),
+            make_location("Kitchen", 5),
+        ]
+    )
+    session = parse_session(document)
+    assert [p.name for p in session.pois] == [
+        "Point 1",
+        "Kitchen",
+        "Point 3 (2)",  # "Point 3" is someone's name already
+        "Point 3",
+        "Kitchen",
+    ]
+    assert "location_data[0].name was empty: named 'Point 1'" in session.warnings
+    assert "location_data[2].name was empty: named 'Point 3 (2)'" in session.warnings
+    assert "2 points of interest are named 'Kitchen'" in session.warnings
+    assert [p.name for p in parse_session(document).pois] == [p.name for p in session.pois]
+
+
+@pytest.mark.parametrize(("name", "reason"), [(None, "missing"), (7, "a number")])
+def test_poi_name_must_still_be_a_string(name, reason):
+    document = make_upload(locations=[make_location("x", 2)])
+    document["location_data"][0]["name"] = name
+    assert_format_error(document, "location_data[0].name", reason)
 
 
 def test_missing_pose_data():

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.domain.errors import NoTagsRecorded
 from app.domain.frames import make_pose, rotation_about_y, se3_inverse
 from app.domain.params import SlamParams
-from app.domain.session import load_session, parse_session
+from app.domain.session import NO_TAGS_REASON, load_session, parse_session
 from app.domain.simulate import SimulationConfig, simulate_session
 from app.domain.slam import odometry_sigmas, optimize_session, tag_covariance_in_tag_frame
 
@@ -139,15 +140,13 @@ def test_grazing_and_far_detections_are_rejected_with_their_reason():
     assert any("not in the map" in w for w in result.warnings)
 
 
-def test_session_without_detections_gives_the_path_alone_with_a_warning():
+def test_session_without_detections_makes_no_map_and_says_why():
     document = _onetag_document()
     document["tag_data"] = []
     session = parse_session(document)
-    result = optimize_session(session)
-    assert result.tag_ids.size == 0
-    assert result.world_T_phone.shape == (session.num_poses, 4, 4)
-    np.testing.assert_allclose(result.world_T_phone, session.world_T_phone, atol=1e-6)
-    assert any("no tag detections" in w for w in result.warnings)
+    assert NO_TAGS_REASON in session.warnings
+    with pytest.raises(NoTagsRecorded, match="no tags were recorded: a map needs at least one tag"):
+        optimize_session(session)
 
 
 def test_single_detection_session():

@@ -26,7 +26,14 @@ from app.domain.path_graph import PathGraph
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
 from app.services.errors import ServiceError
-from app.services.maps import app_map_content, chosen_version, delete_map_and_jobs, enqueue_rebuild
+from app.services.maps import (
+    app_map_content,
+    chosen_version,
+    delete_map_and_jobs,
+    enqueue_rebuild,
+    picture_of_map,
+    rename_map,
+)
 from app.services.navigation import geojson_content, version_path_graph
 from app.services.version_cache import VersionCache
 from app.storage import maps, queue, sessions
@@ -99,20 +106,23 @@ def map_page(
     *,
     submitted: dict[str, str] | None = None,
     rebuild_error: ServiceError | None = None,
+    rename_error: ServiceError | None = None,
+    submitted_name: str | None = None,
 ) -> Response:
-    """The map page (with the rebuild form's error and values after a refused rebuild)."""
+    """The map page (with the rebuild or rename form's error and values after a refusal)."""
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     version = chosen_version(db_session, info, number) if info.current or number else None
     jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=10)
+    refusal = rebuild_error or rename_error
     error_field = None
     if rebuild_error is not None and rebuild_error.field:
         error_field = rebuild_error.field.removeprefix("params.")
     return render(
         request,
         "map.html",
-        status_code=rebuild_error.status_code if rebuild_error else 200,
+        status_code=refusal.status_code if refusal else 200,
         section="maps",
-        title=f"Map {info.id}: {info.name}",
+        title=f"Map {info.id}: {info.display_name}",
         info=info,
         version=version,
         versions=maps.list_versions(db_session, info.id),
@@ -125,6 +135,8 @@ def map_page(
         error_field=error_field,
         changed_params=changed_params,
         shown_current=info.current.number if info.current else 0,
+        rename_error=rename_error.detail if rename_error else None,
+        submitted_name=submitted_name,
     )
 
 
@@ -165,6 +177,46 @@ def rebuild(
         request,
         f"/admin/maps/{info.id}",
         flash=f"Rebuild of map {info.id} queued as job {job_id} ({changed}).",
+    )
+
+
+@router.post("/maps/{map_id}/rename")
+def rename(request: Request, form: CheckedFormDep, db: DbDep, map_id: int) -> Response:
+    map_id = valid_id(map_id, "map")
+    name = form.get("display_name")
+    name = name if isinstance(name, str) else ""
+    try:
+        with db.transaction() as db_session:
+            info = rename_map(db_session, map_id, name)
+    except ServiceError as err:
+        with db.read() as db_session:
+            return map_page(
+                request, db_session, map_id, None, rename_error=err, submitted_name=name
+            )
+    return redirect(
+        request,
+        f"/admin/maps/{info.id}",
+        flash=f"Map {info.id} is now named {info.display_name!r}.",
+    )
+
+
+@router.get("/maps/{map_id}/image")
+def map_picture(
+    _user: DashboardUserDep,
+    db_session: ReadDbSessionDep,
+    map_id: int,
+    v: Annotated[str | None, Query(max_length=64)] = None,
+) -> Response:
+    picture = picture_of_map(db_session, valid_id(map_id, "map"))
+    immutable = v is not None and len(v) >= 8 and picture.sha256.startswith(v)
+    return Response(
+        content=picture.jpeg,
+        media_type="image/jpeg",
+        headers={
+            "Cache-Control": "private, max-age=31536000, immutable"
+            if immutable
+            else "private, no-cache"
+        },
     )
 
 

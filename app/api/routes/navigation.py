@@ -60,7 +60,11 @@ def list_pois(
     description="The shortest walk on the map's current version from `from` to `to` (each one of "
     "a tag, a point of interest, a path-graph node or a position `[x, y, z]` in the map frame), "
     "avoiding stairs and/or elevators if asked: polyline, length, floors and turn-by-turn "
-    "steps. An unknown tag, point of interest or node is a 404; a goal that cannot be reached "
+    "steps on the map's corridor skeleton, given at decision points only (turns of 45° or more, "
+    "bears at junctions, 'in 5 m' announcements). With `heading_deg` (the phone's walking "
+    "direction, e.g. from a localization) the first step says which way to face; `style` "
+    "chooses units (m, ft, steps) and clock-face directions. An unknown tag, point of interest "
+    "or node is a 404; a goal that cannot be reached "
     "(at all, or without what is avoided) a 409 saying why; an ambiguous name a 422.",
     responses=error_responses(
         401,
@@ -85,7 +89,12 @@ def plan(
 ) -> RoutePublic:
     version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
     route = planned_route(
-        graph, body.from_.to_domain(), body.to.to_domain(), avoid=frozenset(body.avoid)
+        graph,
+        body.from_.to_domain(),
+        body.to.to_domain(),
+        avoid=frozenset(body.avoid),
+        heading_rad=body.heading_rad(),
+        style=body.guidance_style(),
     )
     return RoutePublic.from_domain(route, map_id=info.id, map_version=version.number)
 

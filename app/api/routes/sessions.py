@@ -19,6 +19,7 @@ from fastapi import APIRouter, Header, Query, Response
 from app.api.deps import (
     CurrentPrincipal,
     DbDep,
+    ImageBodyDep,
     ReadDbSessionDep,
     SessionDep,
     SettingsDep,
@@ -28,13 +29,14 @@ from app.api.deps import (
 from app.api.errors import ApiError, error_responses, unauthorized
 from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas.sessions import SessionCreated, SessionPublic, SessionsPublic
+from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
 from app.api.upload import decode_body
 from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
+from app.services.maps import image_url, store_session_image
 from app.services.uploads import check_pose_count, check_storable
-from app.storage import keys, sessions
+from app.storage import keys, maps, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
@@ -294,3 +296,37 @@ def get_raw_session(
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
     return raw_upload_response(db_session, info.id, accept_encoding)
+
+
+@router.put(
+    "/{session_id}/image",  # noqa: FAST003 (session_id is read by SessionDep)
+    summary="Upload the session's picture",
+    description="The JPEG the app takes of the mapped place (`Content-Type: image/jpeg`, at most "
+    "4 MiB), shown with the session's map (`GET /v1/maps/{id}/image`, `image_url` in the maps "
+    "list). Idempotent: the same bytes again change nothing (`changed: false`); other bytes "
+    "replace the picture.",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "image/jpeg": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "example": "(JPEG bytes)",
+                }
+            },
+        }
+    },
+    responses=error_responses(401, 404, 413, 415, 422),
+)
+def put_session_image(info: SessionDep, body: ImageBodyDep, db: DbDep) -> ImageStored:
+    with db.transaction() as db_session:
+        stored = store_session_image(db_session, info.id, body)
+        map_info = maps.get_map(db_session, info.map_id) if info.map_id is not None else None
+    return ImageStored(
+        session_id=info.id,
+        map_id=info.map_id,
+        sha256=stored.sha256,
+        size_bytes=stored.size_bytes,
+        changed=stored.changed,
+        image_url=image_url(map_info) if map_info is not None else None,
+    )

@@ -40,14 +40,3 @@ class ErrorBody(BaseModel):
 
 
 # --------------------------------------------------------------------------- sessions
-
-_STATS_EXAMPLE: dict[str, Any] = {
-    "pose_count": 621,
-    "detection_count": 200,
-    "tag_count": 8,
-    "poi_count": 0,
-    "duration_s": 62.1,
-    "path_length_m": 41.7,
-    "tag_ids": [0, 1, 2, 3, 4, 5, 6, 7],
-    "warnings": [],
-}

@@ -7,17 +7,40 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from app.api.schemas.common import examples
-from app.api.schemas.sessions import _JOB_EXAMPLE
+from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
 from app.services.jobs import public_job_error
 from app.storage.orm import JobState
 from app.storage.queue import JobInfo
+
+JOB_EXAMPLE: dict[str, Any] = {
+    "id": 31,
+    "kind": "build_map",
+    "state": "running",
+    "progress": 0.6,
+    "stage": "optimize",
+    "attempts": 1,
+    "max_attempts": 3,
+    "error": None,
+    "log_tail": "2026-11-22T10:15:30Z queued\n"
+    "2026-11-22T10:15:30Z attempt 1 of 3 started by host-1:4242\n",
+    "cancel_requested": False,
+    "map_id": 12,
+    "session_id": 17,
+    "params": {},
+    "worker": "host-1:4242",
+    "created_at": AT_EXAMPLE,
+    "run_after": AT_EXAMPLE,
+    "started_at": AT_EXAMPLE,
+    "finished_at": None,
+    "updated_at": LATER_EXAMPLE,
+    "duration_s": 1.25,
+}
 
 
 class JobPublic(BaseModel):
     """A job of the queue: its state, progress, attempts, error, timings and log tail."""
 
-    model_config = examples(_JOB_EXAMPLE)
+    model_config = examples(JOB_EXAMPLE)
 
     id: int
     kind: str = Field(description="build_map, …")
@@ -82,7 +105,7 @@ class JobPublic(BaseModel):
 class JobsPublic(BaseModel):
     """A page of jobs, newest first."""
 
-    model_config = examples({"data": [_JOB_EXAMPLE], "count": 1, "limit": 50, "offset": 0})
+    model_config = examples({"data": [JOB_EXAMPLE], "count": 1, "limit": 50, "offset": 0})
 
     data: list[JobPublic]
     count: int

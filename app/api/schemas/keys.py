@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Any
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
 
-from app.api.schemas.common import examples
-from app.api.schemas.maps import _KEY_EXAMPLE
+from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
 from app.storage.orm import Role
+
+KEY_EXAMPLE: dict[str, Any] = {
+    "id": 3,
+    "name": "lab iPhone 12",
+    "role": "device",
+    "prefix": "a1b2c3d4",
+    "created_at": AT_EXAMPLE,
+    "expires_at": None,
+    "revoked_at": None,
+    "last_used_at": LATER_EXAMPLE,
+}
 
 
 class KeyCreate(BaseModel):
@@ -34,7 +45,7 @@ class KeyCreate(BaseModel):
 class KeyPublic(BaseModel):
     """An API key as listed: never its secret."""
 
-    model_config = examples(_KEY_EXAMPLE)
+    model_config = examples(KEY_EXAMPLE)
 
     id: int
     name: str
@@ -50,7 +61,7 @@ class KeyCreated(KeyPublic):
     """A new key with its secret: shown this once, never stored or shown again."""
 
     model_config = examples(
-        {**_KEY_EXAMPLE, "last_used_at": None, "key": "im_a1b2c3d4_Zq9…(32 characters)"}
+        {**KEY_EXAMPLE, "last_used_at": None, "key": "im_a1b2c3d4_Zq9…(32 characters)"}
     )
 
     key: str = Field(description="send as 'Authorization: Bearer <key>'")
@@ -59,7 +70,7 @@ class KeyCreated(KeyPublic):
 class KeysPublic(BaseModel):
     """All API keys, oldest first."""
 
-    model_config = examples({"data": [_KEY_EXAMPLE], "count": 1})
+    model_config = examples({"data": [KEY_EXAMPLE], "count": 1})
 
     data: list[KeyPublic]
     count: int

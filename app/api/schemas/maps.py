@@ -5,10 +5,11 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
 from app.api.schemas.jobs import JobBrief
+from app.services.maps import image_url
 from app.storage.maps import MapInfo, TagPose, VersionInfo
 from app.storage.queue import JobInfo
 
@@ -150,12 +151,33 @@ class VersionsPublic(BaseModel):
 
 _MAP_EXAMPLE: dict[str, Any] = {
     "id": 12,
-    "name": "occam_room",
+    "name": "occam_room 1700000000",
+    "display_name": "occam_room",
+    "image_url": "/v1/maps/12/image?v=3f1c2a9e0b7d4c21",
     "session_id": 17,
     "created_at": AT_EXAMPLE,
     "version_count": 1,
     "latest_job": {"id": 31, "kind": "build_map", "state": "succeeded"},
 }
+
+
+DISPLAY_NAME_DESCRIPTION = (
+    "the name people see: the name typed in the app (map_id without its timestamp digits), or "
+    "as an admin set it (PATCH)"
+)
+IMAGE_URL_DESCRIPTION = (
+    "the map's picture (JPEG), versioned by content, so it may be cached for good; null without one"
+)
+
+
+class MapUpdate(BaseModel):
+    """What an admin may change of a map."""
+
+    model_config = ConfigDict(
+        extra="forbid", json_schema_extra={"examples": [{"display_name": "Occam lab, 3rd floor"}]}
+    )
+
+    display_name: str = Field(min_length=1, max_length=200, description=DISPLAY_NAME_DESCRIPTION)
 
 
 class MapSummary(BaseModel):
@@ -165,12 +187,25 @@ class MapSummary(BaseModel):
 
     id: int
     name: str = Field(description="the session's map_id")
+    display_name: str = Field(description=DISPLAY_NAME_DESCRIPTION)
+    image_url: str | None = Field(description=IMAGE_URL_DESCRIPTION)
     session_id: int
     created_at: datetime
     version_count: int
-    current_version: VersionSummary | None = Field(
-        validation_alias=AliasChoices("current_version", "current")
-    )
+    current_version: VersionSummary | None
+
+    @classmethod
+    def from_domain(cls, info: MapInfo) -> MapSummary:
+        return cls(
+            id=info.id,
+            name=info.name,
+            display_name=info.display_name,
+            image_url=image_url(info),
+            session_id=info.session_id,
+            created_at=info.created_at,
+            version_count=info.version_count,
+            current_version=VersionSummary.model_validate(info.current) if info.current else None,
+        )
 
 
 class MapPublic(BaseModel):
@@ -189,6 +224,8 @@ class MapPublic(BaseModel):
 
     id: int
     name: str = Field(description="the session's map_id")
+    display_name: str = Field(description=DISPLAY_NAME_DESCRIPTION)
+    image_url: str | None = Field(description=IMAGE_URL_DESCRIPTION)
     session_id: int
     created_at: datetime
     version_count: int
@@ -202,6 +239,8 @@ class MapPublic(BaseModel):
         return cls(
             id=info.id,
             name=info.name,
+            display_name=info.display_name,
+            image_url=image_url(info),
             session_id=info.session_id,
             created_at=info.created_at,
             version_count=info.version_count,
@@ -345,23 +384,17 @@ class AppMap(BaseModel):
             "waypoints_vertices": [
                 {"id": "Room 101", "translation": TRANSLATION_EXAMPLE, "rotation": ROTATION_EXAMPLE}
             ],
+            "notes": [],
         }
     )
 
     tag_vertices: list[AppTagVertex]
     odometry_vertices: list[AppOdometryVertex]
     waypoints_vertices: list[AppWaypointVertex]
+    notes: list[str] = Field(
+        description="what was adjusted so the app can route on the map (the app ignores this "
+        "key): a walk that falls apart (only its largest part is kept), renamed waypoints"
+    )
 
 
 # --------------------------------------------------------------------------- keys
-
-_KEY_EXAMPLE: dict[str, Any] = {
-    "id": 3,
-    "name": "lab iPhone 12",
-    "role": "device",
-    "prefix": "a1b2c3d4",
-    "created_at": AT_EXAMPLE,
-    "expires_at": None,
-    "revoked_at": None,
-    "last_used_at": LATER_EXAMPLE,
-}

@@ -6,11 +6,13 @@ graph's floor index + 1), as in the spoken steps ("take the stairs up to floor 2
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from app.domain.instructions import GuidanceStyle
 from app.domain.path_graph import Anchor
 from app.domain.routing import (
     Endpoint,
@@ -116,8 +118,21 @@ class RouteEnd(BaseModel):
         return PositionEnd((x, y, z))
 
 
+class RouteStyle(BaseModel):
+    """How the steps are worded: distance units, and clock-face directions instead of left/right
+    ("turn to 9 o'clock")."""
+
+    model_config = _examples({"units": "ft", "clock": True})
+
+    units: Literal["m", "ft", "steps"] = "m"
+    clock: bool = False
+
+    def to_domain(self) -> GuidanceStyle:
+        return GuidanceStyle(units=self.units, clock=self.clock)
+
+
 class RouteRequest(BaseModel):
-    """Where from, where to, and what to avoid."""
+    """Where from, where to, what to avoid, and how to word the steps."""
 
     model_config = ConfigDict(
         extra="forbid",
@@ -130,6 +145,23 @@ class RouteRequest(BaseModel):
     from_: RouteEnd = Field(alias="from")
     to: RouteEnd
     avoid: list[Literal["stairs", "elevator"]] = Field(default_factory=list, max_length=2)
+    heading_deg: FiniteFloat | None = Field(
+        default=None,
+        ge=-360,
+        le=360,
+        description=(
+            "the phone's walking direction (e.g. from a localization), degrees about the map's "
+            "up axis: 0 faces −z, +90 faces −x (counter-clockwise seen from above); when given, "
+            "the first step says which way to turn to face the route"
+        ),
+    )
+    style: RouteStyle | None = None
+
+    def heading_rad(self) -> float | None:
+        return None if self.heading_deg is None else math.radians(self.heading_deg)
+
+    def guidance_style(self) -> GuidanceStyle:
+        return GuidanceStyle() if self.style is None else self.style.to_domain()
 
 
 class StepPublic(BaseModel):
@@ -147,7 +179,7 @@ class StepPublic(BaseModel):
     )
 
     instruction: str
-    kind: Literal["go", "turn", "stairs", "elevator", "arrive"]
+    kind: Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
     position: list[float] = Field(description="[x, y, z], m, map frame")
     distance_m: float
     turn_deg: float | None = Field(description="signed horizontal turn, + is left")

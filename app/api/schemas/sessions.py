@@ -7,14 +7,25 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from app.api.schemas.common import _STATS_EXAMPLE, AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
+from app.api.schemas.common import AT_EXAMPLE, SHA_EXAMPLE, examples
 from app.storage.sessions import UploadResult
+
+STATS_EXAMPLE: dict[str, Any] = {
+    "pose_count": 621,
+    "detection_count": 200,
+    "tag_count": 8,
+    "poi_count": 0,
+    "duration_s": 62.1,
+    "path_length_m": 41.7,
+    "tag_ids": [0, 1, 2, 3, 4, 5, 6, 7],
+    "warnings": [],
+}
 
 
 class SessionStatisticsPublic(BaseModel):
     """What a session holds, computed when it was uploaded."""
 
-    model_config = examples(_STATS_EXAMPLE)
+    model_config = examples(STATS_EXAMPLE)
 
     pose_count: int
     detection_count: int
@@ -37,7 +48,7 @@ class SessionCreated(BaseModel):
             "map_name": "occam_room",
             "job_url": "/v1/jobs/31",
             "map_url": "/v1/maps/12",
-            "statistics": _STATS_EXAMPLE,
+            "statistics": STATS_EXAMPLE,
         }
     )
 
@@ -71,7 +82,7 @@ _SESSION_EXAMPLE: dict[str, Any] = {
     "raw_sha256": SHA_EXAMPLE,
     "raw_size_bytes": 912204,
     "stored_size_bytes": 251377,
-    "statistics": _STATS_EXAMPLE,
+    "statistics": STATS_EXAMPLE,
     "map_id": 12,
     "job_ids": [31],
 }
@@ -116,26 +127,23 @@ class SessionsPublic(BaseModel):
 # --------------------------------------------------------------------------- jobs
 
 
-_JOB_EXAMPLE: dict[str, Any] = {
-    "id": 31,
-    "kind": "build_map",
-    "state": "running",
-    "progress": 0.6,
-    "stage": "optimize",
-    "attempts": 1,
-    "max_attempts": 3,
-    "error": None,
-    "log_tail": "2026-11-22T10:15:30Z queued\n"
-    "2026-11-22T10:15:30Z attempt 1 of 3 started by host-1:4242\n",
-    "cancel_requested": False,
-    "map_id": 12,
-    "session_id": 17,
-    "params": {},
-    "worker": "host-1:4242",
-    "created_at": AT_EXAMPLE,
-    "run_after": AT_EXAMPLE,
-    "started_at": AT_EXAMPLE,
-    "finished_at": None,
-    "updated_at": LATER_EXAMPLE,
-    "duration_s": 1.25,
-}
+class ImageStored(BaseModel):
+    """The answer to a picture upload: where it is served and whether it changed anything."""
+
+    model_config = examples(
+        {
+            "session_id": 17,
+            "map_id": 12,
+            "sha256": SHA_EXAMPLE,
+            "size_bytes": 48213,
+            "changed": True,
+            "image_url": "/v1/maps/12/image?v=3f1c2a9e0b7d4c21",
+        }
+    )
+
+    session_id: int
+    map_id: int | None = Field(description="the session's map (null if it was deleted)")
+    sha256: str = Field(description="SHA-256 of the JPEG's bytes")
+    size_bytes: int
+    changed: bool = Field(description="false when these very bytes were already stored")
+    image_url: str | None = Field(description="where the map serves it")

@@ -16,14 +16,16 @@ from app.domain.localize.state import LocalizerState
 from app.domain.session import (
     IntArray,
     TagDetections,
-    _integer,
-    _matrix16,
-    _number,
-    _require_list,
-    _require_object,
-    _rigid,
     detections_from_rows,
     parse_detection_rows,
+)
+from app.domain.upload_fields import (
+    integer_field,
+    matrix16_field,
+    number_field,
+    require_list,
+    require_object,
+    rigid_pose,
 )
 
 # --------------------------------------------------------------------------- the update batch
@@ -72,18 +74,18 @@ def _parse_update(document: Any) -> UpdateBatch:
     if not isinstance(document, Mapping):
         raise LocalizationUpdateError("", f"expected a JSON object, got {json_type_name(document)}")
     poses = document.get("poses", [])
-    _require_list(poses, "poses")
+    require_list(poses, "poses")
     n = len(poses)
     pose_id = np.empty(n, dtype=np.int64)
     timestamp_s = np.empty(n, dtype=np.float64)
     session_T_phone = np.empty((n, 4, 4), dtype=np.float64)
     for i, entry in enumerate(poses):
         where = f"poses[{i}]"
-        _require_object(entry, where)
-        pose_id[i] = _integer(entry, "id", where)
-        timestamp_s[i] = _number(entry, "timestamp", where)
-        session_T_phone[i] = _rigid(
-            _matrix16(entry, "pose", where).reshape(4, 4).T, f"{where}.pose"
+        require_object(entry, where)
+        pose_id[i] = integer_field(entry, "id", where)
+        timestamp_s[i] = number_field(entry, "timestamp", where)
+        session_T_phone[i] = rigid_pose(
+            matrix16_field(entry, "pose", where).reshape(4, 4).T, f"{where}.pose"
         )
         if i > 0 and pose_id[i] <= pose_id[i - 1]:
             raise LocalizationUpdateError(

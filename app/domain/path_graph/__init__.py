@@ -21,7 +21,8 @@ Building, storing and exporting it:
     document = path_graph_to_json(pg)                   # lossless, JSON-safe
     pg = path_graph_from_json(document)
     feature_collection = path_graph_to_geojson(pg)      # nodes, junctions, tags, POIs, edges
-    map_to_app_format(result, path_graph=pg)            # app.domain.map_io: ``neighbors``
+    map_to_app_format(result, path_graph=pg)            # app.domain.map_io, links from
+                                                        # app_format.app_links
 
 Node ids: a pose node's id is its row in the trajectory (``pose_index``, 0 … N−1); junctions get
 ids from N up, in the order they were made. Ids are not contiguous: poses simplified away, merged
@@ -30,7 +31,13 @@ into an earlier pass or erased with a small loop, and junctions merged into a kn
 
 from __future__ import annotations
 
-from app.domain.path_graph.app_format import AppVertex, app_neighbors
+from app.domain.path_graph.app_format import (
+    AppLinks,
+    ExtraVertex,
+    app_links,
+    chain_links,
+    unique_waypoint_names,
+)
 from app.domain.path_graph.build import (
     COINCIDENT_M,
     DEFAULT_PATH_GRAPH_PARAMS,
@@ -71,13 +78,16 @@ __all__ = [
     "STAIRS",
     "WALK",
     "Anchor",
-    "AppVertex",
+    "AppLinks",
+    "ExtraVertex",
     "PathGraph",
     "PathGraphParams",
-    "app_neighbors",
+    "app_links",
     "build_path_graph",
     "build_path_graph_from_arrays",
+    "chain_links",
     "path_graph_from_json",
     "path_graph_to_geojson",
     "path_graph_to_json",
+    "unique_waypoint_names",
 ]

@@ -14,10 +14,12 @@
                                     row counts, id high-water marks, size and SHA-256 of
                                     every other member (written last, read first)
 ``tables/<table>.jsonl``            one JSON object per row, columns by name: ``api_key``,
-                                    ``session``, ``session_upload``, ``map``, ``job``,
-                                    ``map_version``, ``map_tag``, ``sweep``, ``sweep_trial``
+                                    ``session``, ``session_upload``, ``map``,
+                                    ``session_image``, ``job``, ``map_version``, ``map_tag``,
+                                    ``sweep``, ``sweep_trial``
 ``uploads/<session id>.json.gz``    the stored upload, the database's bytes unchanged (one
                                     gzip member of the JSON exactly as the phone sent it)
+``images/<session id>.jpg``         the picture the app sent with the session
 ``versions/<id>/map.json.gz``       a version's map document, ``plot.png`` its plot,
                                     ``path_graph.json.gz`` its path graph (as stored)
 ==================================  ========================================================

@@ -28,6 +28,7 @@ from app.storage.orm import (
     MapRow,
     MapTag,
     MapVersion,
+    SessionImage,
     SessionRow,
     SessionUpload,
     Sweep,
@@ -132,6 +133,12 @@ TABLES = (
         refs={"session_id": "session"},
     ),
     TableSpec(model=MapRow, refs={"session_id": "session"}),
+    TableSpec(
+        model=SessionImage,
+        key="session_id",
+        blobs={"jpeg": "images/{session_id}.jpg"},
+        refs={"session_id": "session"},
+    ),
     TableSpec(
         model=Job,
         refs={"map_id": "map", "session_id": "session"},

@@ -1,0 +1,488 @@
+"""Turn-by-turn instructions at decision points only (issue 18): what a blind walker hears.
+
+    route = plan_guided_route(pg, TagEnd(300), TagEnd(311), heading_rad=0.4)
+    [s.instruction for s in route.steps]
+    # ['turn right to face the way', 'go straight 23 m', 'in 5 m, turn left', 'turn left',
+    #  'go straight 9 m to tag 311, on your right', 'arrive at tag 311, on your right']
+    plan_guided_route(pg, …, style=GuidanceStyle(units="ft", clock=True))   # "turn to 9 o'clock"
+
+How instructions are chosen (angles in the horizontal x–z plane, + is left, as in routing):
+
+1. **Legs.** Each walked stretch of the route is simplified (Douglas–Peucker, ``LEG_TOLERANCE_M``)
+   into straight legs; on a corridor skeleton these are the corridors' straight segments.
+2. **Decision points.** A bend's turn is the change between the directions over ``CHORD_M``
+   before and after it, so a zig and its zag cancel and a curve taken in small bends adds up;
+   bends closer than ``MIN_SPACING_M`` to a stronger one are the same decision, and a bend near a
+   junction is placed at the junction. A decision is announced as
+   a turn when |turn| ≥ ``TURN_MIN_DEG``; as "bear left/right" when ``BEAR_MIN_DEG`` ≤ |turn| <
+   ``TURN_MIN_DEG`` and it is at a junction (a node where three or more corridors meet); else it is
+   silent. So instructions are at least ``MIN_SPACING_M`` apart except at junctions.
+3. **Announcements.** Before a turn, a leg long enough to keep them ``MIN_SPACING_M`` apart gets
+   "in N m, turn left" ``ANNOUNCE_BEFORE_M`` before the corner.
+4. **First and last steps.** Given the phone's heading (``heading_rad``: the walking direction's
+   angle in the x–z plane, atan2(−x, −z), 0 = facing −z, + turning left), the first step says how
+   to turn to face the way. The last walked step gives the remaining distance and the side of the
+   tag or point of interest ("on your left"), which the arrival repeats.
+5. **Stairs and elevators** say their length and the floor you arrive at, by the building's floor
+   labels when given (``floor_labels``), else numbered from 1.
+
+Distances are rounded to whole units (m, ft or steps of ``STEP_LENGTH_M``), at least 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from app.domain.floors import assign_floors
+from app.domain.frames import FloatArray
+from app.domain.path_graph import JUNCTION, STAIRS, WALK, PathGraph
+from app.domain.routing import (
+    Endpoint,
+    NodeEnd,
+    PoiEnd,
+    PositionEnd,
+    Route,
+    Step,
+    TagEnd,
+    plan_route,
+    search_pois,
+    signed_turn_deg,
+    simplify_xz,
+)
+
+#: Douglas–Peucker tolerance of the legs, m (the skeleton's branches are already straight).
+LEG_TOLERANCE_M = 0.5
+#: Bends closer than this along the route are one decision; instructions are at least this far
+#: apart except at junctions, m.
+MIN_SPACING_M = 5.0
+#: A bend is measured between the directions over this distance before and after it, m.
+CHORD_M = 4.0
+#: No decision this close to either end of a walked stretch (the arrival or the facing step
+#: covers it), m.
+END_MARGIN_M = 2.0
+#: A bend this close to a junction (along the route, m) is at that junction.
+JUNCTION_SNAP_M = 3.0
+#: A decision turning at least this much is a turn, degrees.
+TURN_MIN_DEG = 45.0
+#: … at least this much, at a junction, is "bear left/right", degrees.
+BEAR_MIN_DEG = 30.0
+#: Beyond this, "turn around", degrees.
+TURN_AROUND_MIN_DEG = 150.0
+#: "in N m" is said this far before a turn, m.
+ANNOUNCE_BEFORE_M = 5.0
+#: The first step says nothing about facing when the way is within this of the heading, degrees.
+FACING_OK_DEG = 20.0
+#: A tag this far from the arrival point (horizontally, m) gets a side; nearer, it is "here".
+SIDE_MIN_M = 0.2
+#: One walking step, m (units "steps").
+STEP_LENGTH_M = 0.7
+#: Feet per metre.
+FT_PER_M = 1 / 0.3048
+
+Units = Literal["m", "ft", "steps"]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GuidanceStyle:
+    """How instructions are worded: ``units`` of distances, ``clock`` for clock-face directions
+    ("turn to 9 o'clock") instead of left/right."""
+
+    units: Units = "m"
+    clock: bool = False
+
+
+DEFAULT_STYLE = GuidanceStyle()
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Decision:
+    """A decision point of a route: ``index`` of the polyline point, signed ``turn_deg`` (+ left),
+    ``at_junction``, ``along_m`` (distance along the route from its start, m)."""
+
+    index: int
+    turn_deg: float
+    at_junction: bool
+    along_m: float
+
+
+def plan_guided_route(
+    pg: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str] = frozenset(),
+    heading_rad: float | None = None,
+    style: GuidanceStyle = DEFAULT_STYLE,
+    floor_labels: Sequence[str] | None = None,
+) -> Route:
+    """:func:`app.domain.routing.plan_route` with instructions at decision points only."""
+    route = plan_route(pg, start, goal, avoid=avoid)
+    name, thing_m = _goal(pg, goal)
+    steps = guidance_steps(
+        pg,
+        route,
+        goal_name=name,
+        goal_thing_m=thing_m,
+        heading_rad=heading_rad,
+        style=style,
+        floor_labels=floor_labels,
+    )
+    return dataclasses.replace(route, steps=steps)
+
+
+def _goal(pg: PathGraph, goal: Endpoint) -> tuple[str, FloatArray | None]:
+    match goal:
+        case TagEnd(tag_id=tag):
+            return f"tag {tag}", np.asarray(pg.tags[tag].position_m)
+        case PoiEnd(name=name):
+            found = search_pois(pg, name)  # exact names first; plan_route refused ambiguity
+            if found:
+                return found[0].name, np.asarray(found[0].position_m)
+            return name, None
+        case NodeEnd(node_id=node):
+            return f"node {node}", None
+        case PositionEnd():
+            return "your destination", None
+    return "your destination", None
+
+
+def guidance_steps(
+    pg: PathGraph,
+    route: Route,
+    *,
+    goal_name: str,
+    goal_thing_m: FloatArray | None = None,
+    heading_rad: float | None = None,
+    style: GuidanceStyle = DEFAULT_STYLE,
+    floor_labels: Sequence[str] | None = None,
+) -> list[Step]:
+    """The spoken steps of ``route`` (see the module docstring)."""
+    xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    kinds, junction = _segment_kinds(pg, xyz, route.nodes)
+    floors = _point_floors(pg, xyz)
+    steps: list[Step] = []
+    heading: FloatArray | None = None
+    first_walk = True
+    i = 0
+    while i < len(kinds):
+        j = i
+        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
+            j += 1
+        if kinds[i] == WALK:
+            facing = heading_rad if first_walk else None
+            heading = _walk_steps(
+                xyz[i : j + 2], junction[i : j + 2], floors[i], facing, style, steps
+            )
+            first_walk = False
+        else:
+            heading = None
+            steps.append(_floor_change(xyz, floors, kinds[i], i, j + 1, style, floor_labels))
+        i = j + 1
+    end = xyz[-1] if len(xyz) else np.zeros(3)
+    side = _side(heading, end, goal_thing_m)
+    if steps and steps[-1].kind == "go" and side:
+        last = steps[-1]
+        steps[-1] = dataclasses.replace(
+            last, instruction=f"{last.instruction} to {goal_name}, {side}"
+        )
+    arrive = f"arrive at {goal_name}" + (f", {side}" if side else "")
+    steps.append(
+        Step(
+            instruction=arrive,
+            position_m=_point(end),
+            kind="arrive",
+            distance_m=0.0,
+            turn_deg=None,
+            floor=floors[-1] if floors else 0,
+        )
+    )
+    return steps
+
+
+def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[bool]]]:
+    """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
+    whether each point is a junction)."""
+    xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    kinds, junction = _segment_kinds(pg, xyz, route.nodes)
+    stretches = []
+    i = 0
+    while i < len(kinds):
+        j = i
+        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
+            j += 1
+        if kinds[i] == WALK:
+            stretches.append((xyz[i : j + 2], junction[i : j + 2]))
+        i = j + 1
+    return stretches
+
+
+def decision_points(
+    xyz: FloatArray, junction: Sequence[bool], *, end_margin_m: float = END_MARGIN_M
+) -> list[Decision]:
+    """The decision points of a walked stretch (N, 3) whose points ``junction`` flags (module
+    step 2): bends of at least ``BEAR_MIN_DEG`` measured over ``CHORD_M`` either side, strongest
+    first, none within ``MIN_SPACING_M`` of a stronger one (unless both are junctions), none within
+    ``end_margin_m`` of the stretch's ends."""
+    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    total_m = float(walked_m[-1]) if len(xyz) else 0.0
+    candidates: list[Decision] = []
+    inner = np.arange(1, max(len(xyz) - 1, 1))
+    inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
+    if inner.size:
+        xz = xyz[:, [0, 2]]
+        here = xz[inner]
+        before = here - _points_at(xz, walked_m, np.maximum(walked_m[inner] - CHORD_M, 0.0))
+        after = _points_at(xz, walked_m, np.minimum(walked_m[inner] + CHORD_M, total_m)) - here
+        # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up).
+        cross_y = before[:, 1] * after[:, 0] - before[:, 0] * after[:, 1]
+        dot = (before * after).sum(axis=1)
+        turn_deg = np.degrees(np.arctan2(cross_y, dot))
+        moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
+        for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
+            if abs(turn) >= BEAR_MIN_DEG:
+                candidates.append(
+                    Decision(index=k, turn_deg=turn, at_junction=False, along_m=float(walked_m[k]))
+                )
+    chosen: list[Decision] = []
+    for c in sorted(candidates, key=lambda d: -abs(d.turn_deg)):
+        near = [
+            j
+            for j in range(len(xyz))
+            if junction[j] and abs(walked_m[j] - c.along_m) <= JUNCTION_SNAP_M
+        ]
+        if near:
+            j = min(near, key=lambda j: abs(walked_m[j] - c.along_m))
+            c = dataclasses.replace(c, index=j, at_junction=True, along_m=float(walked_m[j]))
+        if any(
+            abs(c.along_m - d.along_m) < MIN_SPACING_M and not (c.at_junction and d.at_junction)
+            for d in chosen
+        ) or any(c.index == d.index for d in chosen):
+            continue
+        chosen.append(c)
+    return sorted(chosen, key=lambda d: d.along_m)
+
+
+def is_announced(decision: Decision) -> bool:
+    """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
+    size = abs(decision.turn_deg)
+    return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and decision.at_junction)
+
+
+def turn_words(turn_deg: float, style: GuidanceStyle, *, at_junction: bool = True) -> str:
+    """ "turn left", "bear right", "turn around", or "turn to 9 o'clock"."""
+    size = abs(turn_deg)
+    if style.clock:
+        return f"turn to {clock_hour(turn_deg)} o'clock"
+    side = "left" if turn_deg > 0 else "right"
+    if size >= TURN_AROUND_MIN_DEG:
+        return "turn around"
+    if size >= TURN_MIN_DEG or not at_junction:
+        return f"turn {side}"
+    return f"bear {side}"
+
+
+def clock_hour(turn_deg: float) -> int:
+    """The clock-face hour of a direction ``turn_deg`` from straight ahead (+ left): 12 ahead,
+    9 left, 3 right, 6 behind."""
+    hour = round(-turn_deg / 30.0) % 12
+    return 12 if hour == 0 else hour
+
+
+def distance_words(distance_m: float, units: Units) -> str:
+    """ "12 m", "39 ft", "17 steps" (whole units, at least 1)."""
+    if units == "ft":
+        return f"{max(1, round(distance_m * FT_PER_M))} ft"
+    if units == "steps":
+        return f"{max(1, round(distance_m / STEP_LENGTH_M))} steps"
+    return f"{max(1, round(distance_m))} m"
+
+
+def heading_direction(heading_rad: float) -> FloatArray:
+    """The x–z unit vector of a heading (0 = facing −z, + counter-clockwise seen from above)."""
+    return np.array([-math.sin(heading_rad), -math.cos(heading_rad)])
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def _walk_steps(
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    floor: int,
+    heading_rad: float | None,
+    style: GuidanceStyle,
+    steps: list[Step],
+) -> FloatArray | None:
+    """Append the steps of a walked stretch (N, 3); return its final x–z heading."""
+    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    kept = simplify_xz(xyz, LEG_TOLERANCE_M)
+    first_dir = _direction(xyz[kept[0]], xyz[kept[1]]) if len(kept) > 1 else None
+    if heading_rad is not None and first_dir is not None:
+        bearing = signed_turn_deg(_xyz(heading_direction(heading_rad)), _xyz(first_dir))
+        if abs(bearing) >= FACING_OK_DEG:
+            words = turn_words(bearing, style)
+            if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
+                words = f"{words} {round(abs(bearing))}°"
+            steps.append(_step(f"{words} to face the way", xyz[0], "face", 0.0, bearing, floor))
+    announced = [d for d in decision_points(xyz, junction) if is_announced(d)]
+    from_m, from_i = 0.0, 0
+    for d in announced:
+        leg_m = d.along_m - from_m
+        steps.append(
+            _step(
+                f"go straight {distance_words(leg_m, style.units)}",
+                xyz[from_i],
+                "go",
+                leg_m,
+                floor=floor,
+            )
+        )
+        words = turn_words(d.turn_deg, style, at_junction=d.at_junction)
+        if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
+            at = _point_at(xyz, walked_m, d.along_m - ANNOUNCE_BEFORE_M)
+            ahead = distance_words(ANNOUNCE_BEFORE_M, style.units)
+            steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, d.turn_deg, floor))
+        steps.append(_step(words, xyz[d.index], "turn", 0.0, d.turn_deg, floor))
+        from_m, from_i = d.along_m, d.index
+    rest_m = float(walked_m[-1] - from_m)
+    if rest_m >= 0.5:
+        steps.append(
+            _step(
+                f"go straight {distance_words(rest_m, style.units)}",
+                xyz[from_i],
+                "go",
+                rest_m,
+                floor=floor,
+            )
+        )
+    if len(kept) > 1:
+        return _direction(xyz[kept[-2]], xyz[kept[-1]])
+    return None
+
+
+def _floor_change(
+    xyz: FloatArray,
+    floors: Sequence[int],
+    kind: str,
+    first: int,
+    last: int,
+    style: GuidanceStyle,
+    floor_labels: Sequence[str] | None,
+) -> Step:
+    floor_from, floor_to = floors[first], floors[last]
+    way = "up" if floor_to > floor_from else "down"
+    label = (
+        floor_labels[floor_to]
+        if floor_labels is not None and 0 <= floor_to < len(floor_labels)
+        else str(floor_to + 1)
+    )
+    length_m = float(np.linalg.norm(np.diff(xyz[first : last + 1], axis=0), axis=1).sum())
+    if kind == STAIRS:
+        words = f"take the stairs {way}, {distance_words(length_m, style.units)}, to floor {label}"
+    else:
+        words = f"take the elevator {way} to floor {label}"
+    return Step(
+        instruction=words,
+        position_m=_point(xyz[first]),
+        kind="stairs" if kind == STAIRS else "elevator",
+        distance_m=length_m,
+        turn_deg=None,
+        floor=floor_from,
+    )
+
+
+def _side(heading: FloatArray | None, end: FloatArray, thing_m: FloatArray | None) -> str:
+    if thing_m is None:
+        return ""
+    offset = (np.asarray(thing_m) - end)[[0, 2]]
+    if float(np.linalg.norm(offset)) < SIDE_MIN_M or heading is None:
+        return ""
+    bearing = signed_turn_deg(_xyz(heading), _xyz(offset))
+    if abs(bearing) < 30:
+        return "ahead"
+    if abs(bearing) > TURN_AROUND_MIN_DEG:
+        return "behind you"
+    return "on your left" if bearing > 0 else "on your right"
+
+
+def _segment_kinds(
+    pg: PathGraph, xyz: FloatArray, nodes: Sequence[int]
+) -> tuple[list[str], list[bool]]:
+    """(kind of each polyline segment, whether each point is a junction)."""
+    G = pg.graph
+    node_at: dict[tuple[float, ...], int] = {
+        tuple(np.round(G.nodes[n]["position_m"], 9)): n for n in nodes
+    }
+    at = [node_at.get(tuple(np.round(p, 9))) for p in xyz]
+    junction = [n is not None and G.nodes[n]["kind"] == JUNCTION for n in at]
+    kinds = []
+    for a, b in itertools.pairwise(at):
+        if a is not None and b is not None and G.has_edge(a, b):
+            kinds.append(str(G.edges[a, b]["kind"]))
+        else:
+            kinds.append(WALK)
+    return kinds, junction
+
+
+def _point_floors(pg: PathGraph, xyz: FloatArray) -> list[int]:
+    """The floor of each polyline point: the level nearest its height."""
+    if not pg.floor_levels_m:
+        return [0] * len(xyz)
+    levels = np.asarray(pg.floor_levels_m, dtype=np.float64)
+    return [int(f) for f in assign_floors(xyz[:, 1], levels)]
+
+
+def _step(
+    instruction: str,
+    at_m: FloatArray,
+    kind: Literal["go", "turn", "announce", "face"],
+    distance_m: float,
+    turn_deg: float | None = None,
+    floor: int = 0,
+) -> Step:
+    return Step(
+        instruction=instruction,
+        position_m=_point(at_m),
+        kind=kind,
+        distance_m=float(distance_m),
+        turn_deg=turn_deg,
+        floor=floor,
+    )
+
+
+def _point_at(xyz: FloatArray, walked_m: FloatArray, along_m: float) -> FloatArray:
+    k = int(np.clip(np.searchsorted(walked_m, along_m) - 1, 0, len(xyz) - 2))
+    span = float(walked_m[k + 1] - walked_m[k])
+    t = 0.0 if span == 0 else (along_m - float(walked_m[k])) / span
+    return np.asarray(xyz[k] + t * (xyz[k + 1] - xyz[k]), dtype=np.float64)
+
+
+def _points_at(xz: FloatArray, walked_m: FloatArray, along_m: FloatArray) -> FloatArray:
+    """(M, 2) the points ``along_m`` (M,) metres along the polyline (N, 2)."""
+    return np.column_stack(
+        [np.interp(along_m, walked_m, xz[:, 0]), np.interp(along_m, walked_m, xz[:, 1])]
+    )
+
+
+def _direction(a: FloatArray, b: FloatArray) -> FloatArray | None:
+    d = (b - a)[[0, 2]]
+    norm = float(np.linalg.norm(d))
+    return None if norm == 0 else np.asarray(d / norm, dtype=np.float64)
+
+
+def _xyz(xz: FloatArray | None) -> tuple[float, float, float]:
+    if xz is None:
+        return (0.0, 0.0, 0.0)
+    return (float(xz[0]), 0.0, float(xz[1]))
+
+
+def _point(values: FloatArray) -> tuple[float, float, float]:
+    x, y, z = (float(c) for c in values)
+    return (x, y, z)

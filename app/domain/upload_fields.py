@@ -1,0 +1,129 @@
+"""Readers of the fields of an upload's JSON (docs/architecture.md §2), each raising
+:class:`SessionFormatError` with the field's path and the reason.
+
+    integer_field(entry, "pose_id", "tag_data[3][0]")     # int, or "…pose_id: expected an integer"
+    rigid_pose(matrix16_field(entry, "pose", where), where)  # a checked rigid 4×4
+
+Shared by the session parser (``app.domain.session``) and the localizer's update parser
+(``app.domain.localize.batch``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from app.domain.errors import SessionFormatError
+from app.domain.frames import FloatArray, orthonormalized, rigidity_defect
+from app.domain.json_values import json_type_name
+
+#: Largest id accepted: integers a JSON number can hold exactly (2^53).
+MAX_ID = 2**53
+#: Farthest a pose (of the phone, or of a tag from the camera) may be from its frame's origin, m:
+#: a walk through a building stays within kilometres; beyond this the arithmetic of a map would
+#: lose its precision (or overflow), so the upload is refused instead.
+MAX_TRANSLATION_M = 1e5
+#: Largest focal length, principal point or corner coordinate accepted, px.
+MAX_PIXELS = 1e5
+
+
+def require_list(value: Any, where: str) -> None:
+    if not isinstance(value, list):
+        raise SessionFormatError(where, f"expected a list, got {json_type_name(value)}")
+
+
+def require_object(value: Any, where: str) -> None:
+    if not isinstance(value, Mapping):
+        raise SessionFormatError(where, f"expected an object, got {json_type_name(value)}")
+
+
+def required_field(entry: Mapping[str, Any], key: str, where: str) -> Any:
+    if key not in entry:
+        raise SessionFormatError(f"{where}.{key}", "missing")
+    return entry[key]
+
+
+def integer_field(entry: Mapping[str, Any], key: str, where: str) -> int:
+    value = required_field(entry, key, where)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SessionFormatError(
+            f"{where}.{key}", f"expected an integer, got {json_type_name(value)}"
+        )
+    if isinstance(value, float) and not value.is_integer():
+        raise SessionFormatError(f"{where}.{key}", f"expected an integer, got {value}")
+    if not -MAX_ID <= value <= MAX_ID:
+        raise SessionFormatError(
+            f"{where}.{key}", f"integer out of range (|value| > 2^53): {value}"
+        )
+    return int(value)
+
+
+def number_field(entry: Mapping[str, Any], key: str, where: str) -> float:
+    value = required_field(entry, key, where)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SessionFormatError(
+            f"{where}.{key}", f"expected a number, got {json_type_name(value)}"
+        )
+    if not math.isfinite(value):
+        raise SessionFormatError(f"{where}.{key}", f"non-finite number {value}")
+    return float(value)
+
+
+def vector_field(entry: Mapping[str, Any], key: str, where: str, length: int) -> FloatArray:
+    value = required_field(entry, key, where)
+    return number_list(value, f"{where}.{key}", length)
+
+
+def optional_vector_field(
+    entry: Mapping[str, Any], key: str, where: str, length: int
+) -> FloatArray:
+    if key not in entry or entry[key] is None:
+        return np.full(length, np.nan)
+    return number_list(entry[key], f"{where}.{key}", length)
+
+
+def matrix16_field(entry: Mapping[str, Any], key: str, where: str) -> FloatArray:
+    value = required_field(entry, key, where)
+    if isinstance(value, list) and len(value) == 4 and all(isinstance(r, list) for r in value):
+        raise SessionFormatError(f"{where}.{key}", "expected 16 numbers in a flat list, got 4 rows")
+    return number_list(value, f"{where}.{key}", 16)
+
+
+def number_list(value: Any, where: str, length: int) -> FloatArray:
+    if not isinstance(value, list):
+        raise SessionFormatError(
+            where, f"expected a list of {length} numbers, got {json_type_name(value)}"
+        )
+    if len(value) != length:
+        raise SessionFormatError(where, f"expected {length} numbers, got {len(value)}")
+    for j, item in enumerate(value):
+        if isinstance(item, bool) or not isinstance(item, (int, float)):
+            raise SessionFormatError(
+                f"{where}[{j}]", f"expected a number, got {json_type_name(item)}"
+            )
+        if not math.isfinite(item):
+            raise SessionFormatError(f"{where}[{j}]", f"non-finite number {item}")
+    return np.asarray(value, dtype=np.float64)
+
+
+def rigid_pose(matrix: FloatArray, where: str) -> FloatArray:
+    defect = rigidity_defect(matrix)
+    if defect is not None:
+        raise SessionFormatError(where, defect)
+    distance_m = float(np.max(np.abs(matrix[:3, 3])))
+    if distance_m > MAX_TRANSLATION_M:
+        raise SessionFormatError(
+            where, f"translation {distance_m:.3g} m is beyond {MAX_TRANSLATION_M:.0f} m"
+        )
+    return orthonormalized(matrix)
+
+
+def within_pixels(values: FloatArray, where: str) -> None:
+    worst = int(np.argmax(np.abs(values)))
+    if abs(values[worst]) > MAX_PIXELS:
+        raise SessionFormatError(
+            f"{where}[{worst}]", f"{values[worst]:.3g} px is beyond {MAX_PIXELS:.0f} px"
+        )

@@ -1,0 +1,152 @@
+"""The app's earlier upload format (app.domain.earlier_format): the three archive sessions are
+read, a current session written in the earlier format reads back to the same arrays, and sessions
+whose frames cannot be pinned down are refused naming the format."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.domain.earlier_format import EARLIER_FORMAT, is_earlier_format
+from app.domain.errors import SessionFormatError
+from app.domain.session import load_session, parse_session, read_json_document
+from app.domain.slam import optimize_session
+
+ARCHIVE = Path(__file__).parents[2] / "data" / "archive"
+SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
+#: file → (poses, detections, tags)
+ARCHIVE_COUNTS = {"map": (2229, 354, 6), "round1": (2626, 261, 6), "round2": (1361, 129, 6)}
+
+
+@pytest.mark.parametrize(("name", "counts"), sorted(ARCHIVE_COUNTS.items()))
+def test_archive_sessions_are_read_and_make_maps(name, counts):
+    session = load_session(ARCHIVE / f"{name}.json")
+    assert (session.num_poses, len(session.detections), len(session.tag_ids)) == counts
+    assert session.tag_ids == [6, 13, 18, 19, 22, 23]
+    assert any(EARLIER_FORMAT in w for w in session.warnings)
+    # every detection is attached to a pose within 0.1 s of it
+    gap_s = np.abs(
+        session.timestamp_s[session.detections.pose_index] - session.detections.timestamp_s
+    )
+    assert gap_s.max() <= 0.02
+    # the frames hold: tags in front of the phone (−z), facing it
+    p_phone = session.detections.phone_T_tag[:, :3, 3]
+    assert np.all(p_phone[:, 2] < 0)
+    result = optimize_session(session)
+    assert len(result.tag_ids) == 6
+    assert result.detections_used >= 0.9 * counts[1]
+
+
+def earlier_rows(document: dict[str, Any], *, as_csv: bool, with_ids: bool) -> dict[str, Any]:
+    """``document`` (current format, one detection per frame) written as the early app did."""
+    time_of = {p["id"]: p["timestamp"] for p in document["pose_data"]}
+
+    def row(values: list[float], prefix: str | None = None) -> Any:
+        if as_csv:
+            return ",".join(([prefix] if prefix else []) + [repr(float(v)) for v in values])
+        return values
+
+    poses = [
+        row([*p["pose"], p["timestamp"], *([p["id"]] if with_ids else [])])
+        for p in document["pose_data"]
+    ]
+    detections = [d for frame in document["tag_data"] for d in frame]
+    tags = [
+        row(
+            [
+                d["tag_id"],
+                *d["tag_pose"],
+                time_of[d["pose_id"]],
+                *([d["pose_id"]] if with_ids else []),
+            ],
+            "TAG",
+        )
+        for d in detections
+    ]
+    fx, fy, cx, cy = detections[0]["camera_intrinsics"]
+    return {
+        "map_id": document["map_id"],
+        "camera_intrinsics": f"{fx},{fy},{cx},{cy},1.000000,1920.000000,1440.000000",
+        "pose_data": poses,
+        "tag_data": tags,
+    }
+
+
+@pytest.mark.parametrize(("as_csv", "with_ids"), [(True, False), (False, False), (False, True)])
+def test_a_session_in_the_earlier_format_reads_as_the_current_one(as_csv, with_ids):
+    current = read_json_document(SESSIONS / "pgt_tester3.json")
+    expected = parse_session(current)
+    earlier = earlier_rows(current, as_csv=as_csv, with_ids=with_ids)
+    assert is_earlier_format(earlier)
+    assert not is_earlier_format(current)
+
+    session = parse_session(earlier)
+
+    assert session.map_id == expected.map_id
+    np.testing.assert_allclose(session.world_T_phone, expected.world_T_phone, atol=1e-9)
+    np.testing.assert_array_equal(session.detections.tag_id, expected.detections.tag_id)
+    np.testing.assert_array_equal(session.detections.pose_index, expected.detections.pose_index)
+    np.testing.assert_allclose(
+        session.detections.phone_T_tag, expected.detections.phone_T_tag, atol=1e-9
+    )
+    if not with_ids:
+        np.testing.assert_array_equal(session.pose_id, np.arange(expected.num_poses))
+
+
+def refused(document: Any) -> SessionFormatError:
+    with pytest.raises(SessionFormatError) as info:
+        parse_session(document)
+    assert EARLIER_FORMAT in str(info.value)
+    return info.value
+
+
+@pytest.fixture(scope="module")
+def archive_round2() -> dict[str, Any]:
+    return read_json_document(ARCHIVE / "round2.json")
+
+
+def test_poses_that_are_not_column_major_are_refused_naming_the_format(archive_round2):
+    document = copy.deepcopy(archive_round2)
+    matrix = np.asarray(document["pose_data"][5][:16]).reshape(4, 4)
+    document["pose_data"][5][:16] = matrix.T.reshape(16).tolist()  # written row-major
+    error = refused(document)
+    assert error.field == "pose_data[5]"
+    assert "cannot be pinned down" in error.reason
+
+
+def test_tags_behind_the_camera_are_refused_naming_the_format(archive_round2):
+    document = copy.deepcopy(archive_round2)
+    for row in document["tag_data"]:
+        row[12] = -abs(row[12])  # z of camera_T_tag (row-major index 11, after the id)
+    error = refused(document)
+    assert error.field == "tag_data"
+    assert "in front of the camera" in error.reason
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "reason"),
+    [
+        (lambda d: d.pop("camera_intrinsics"), "camera_intrinsics", "missing"),
+        (lambda d: d.update(camera_intrinsics="1,2"), "camera_intrinsics", "fx, fy"),
+        (lambda d: d["pose_data"].__setitem__(3, "a,b,c"), "pose_data[3]", "not a row of numbers"),
+        (lambda d: d["pose_data"].__setitem__(3, [1.0] * 5), "pose_data[3]", "got 5"),
+        (lambda d: d["tag_data"].__setitem__(0, {"x": 1}), "tag_data[0]", "CSV string"),
+        (lambda d: d["tag_data"][0].__setitem__(0, 2.5), "tag_data[0].tag_id", "id ≥ 0"),
+        (lambda d: d["tag_data"][0].__setitem__(17, 1.0), "tag_data[0].timestamp", "no pose"),
+        (lambda d: d.update(pose_data=[]), "pose_data", "empty session"),
+    ],
+)
+def test_malformed_earlier_rows_name_the_field_and_the_format(
+    archive_round2, change, field, reason
+):
+    document = copy.deepcopy(archive_round2)
+    if field == "tag_data[0].timestamp":
+        document["tag_data"][0] = document["tag_data"][0][:18]  # no pose id: matched by time
+    change(document)
+    error = refused(document)
+    assert error.field == field
+    assert reason in error.reason

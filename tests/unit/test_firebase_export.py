@@ -1,0 +1,149 @@
+"""Reading a lab's Firebase export (app.domain.firebase_export) on an export tree built here from
+the sessions in data/, laid out as the app wrote it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from app.domain.firebase_export import FirebaseExportError, read_firebase_export
+
+SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
+JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 16 + b"\xff\xd9"
+
+
+def make_export(root: Path) -> Path:
+    """alice: two maps in the database and Storage, one picture; bob: one map only under
+    unprocessed_maps; carol: a file in Storage the database never got; dave: a database entry
+    whose file is missing; plus the app's serialization log, which is no session."""
+    storage = root / "rawMapData"
+    files = {
+        ("alice", "Lab 1700000000"): "occam_room",
+        ("alice", "Hall 1700000500"): "onetag",
+        ("bob", "Desk"): "pgt_tester3",
+        ("carol", "Stairs"): "singletag3times",
+    }
+    for (uid, map_id), name in files.items():
+        (storage / uid).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(SESSIONS / f"{name}.json", storage / uid / f"{map_id}.json")
+    (storage / "alice" / "Lab 1700000000.jpg").write_bytes(JPEG)
+    (storage / "alice" / "Lab 1700000000 serialization error.json").write_text('{"log": ""}')
+    database = {
+        "maps": {
+            "alice": {
+                "Lab 1700000000": {
+                    "name": "Lab",
+                    "image": "rawMapData/alice/Lab 1700000000.jpg",
+                    "raw_file": "rawMapData/alice/Lab 1700000000.json",
+                },
+                "Hall 1700000500": {
+                    "name": "Hall",
+                    "image": "rawMapData/alice/Hall 1700000500.jpg",
+                    "raw_file": "rawMapData/alice/Hall 1700000500.json",
+                },
+            },
+            "dave": {"Gone": {"name": "Gone", "raw_file": "rawMapData/dave/Gone.json"}},
+        },
+        "unprocessed_maps": {
+            "alice": {"Lab 1700000000": "rawMapData/alice/Lab 1700000000.json"},
+            "bob": {"Desk": "rawMapData/bob/Desk.json"},
+        },
+        "other": {"ignored": True},
+    }
+    (root / "invisible-map-sandbox-export.json").write_text(json.dumps(database))
+    (root / "notes.json").write_text('{"something": "else"}')
+    return root
+
+
+def test_every_recording_is_found_once_with_its_owner_name_and_files(tmp_path):
+    export = read_firebase_export(make_export(tmp_path))
+
+    by_key = {m.key: m for m in export.maps}
+    assert sorted(by_key) == [
+        "alice/Hall 1700000500",
+        "alice/Lab 1700000000",
+        "bob/Desk",
+        "carol/Stairs",
+        "dave/Gone",
+    ]
+    lab = by_key["alice/Lab 1700000000"]
+    assert (lab.uid, lab.name) == ("alice", "Lab")
+    assert lab.raw_path == tmp_path / "rawMapData" / "alice" / "Lab 1700000000.json"
+    assert lab.image_path is not None
+    assert lab.image_path.read_bytes() == JPEG
+    assert set(lab.sources) == {"maps", "unprocessed_maps", "storage"}
+    assert lab.problem is None
+    hall = by_key["alice/Hall 1700000500"]
+    assert hall.image_path is None  # named in the database, not in the export
+    assert by_key["bob/Desk"].name == "Desk"  # no maps entry: the map id
+    assert by_key["carol/Stairs"].sources == ("storage",)
+    gone = by_key["dave/Gone"]
+    assert gone.raw_path is None
+    assert gone.problem is not None
+    assert "rawMapData/dave/Gone.json is not in the Storage export" in gone.problem
+    assert export.database_files == [tmp_path / "invisible-map-sandbox-export.json"]
+    assert any("notes.json" in note for note in export.notes)
+
+
+def test_storage_paths_cannot_leave_the_export_folder(tmp_path):
+    root = make_export(tmp_path / "export")
+    (tmp_path / "secret.json").write_text("{}")
+    database = json.loads((root / "invisible-map-sandbox-export.json").read_text())
+    database["maps"]["eve"] = {
+        "x": {"raw_file": "../secret.json", "image": "/../../secret.json"},
+        "y": {"raw_file": "gs://bucket/../secret.json"},
+    }
+    (root / "invisible-map-sandbox-export.json").write_text(json.dumps(database))
+
+    export = read_firebase_export(root)
+
+    for entry in (m for m in export.maps if m.uid == "eve"):
+        assert entry.raw_path is None
+        assert entry.image_path is None
+        assert entry.problem is not None
+
+
+def test_gs_urls_and_leading_slashes_name_files_in_the_export(tmp_path):
+    root = make_export(tmp_path)
+    database = json.loads((root / "invisible-map-sandbox-export.json").read_text())
+    database["maps"]["bob"] = {
+        "Desk": {"name": "Desk", "raw_file": "gs://lab/rawMapData/bob/Desk.json"}
+    }
+    (root / "invisible-map-sandbox-export.json").write_text(json.dumps(database))
+    shutil.rmtree(root / "rawMapData" / "carol")
+
+    desk = next(m for m in read_firebase_export(root).maps if m.key == "bob/Desk")
+
+    assert desk.raw_path == root / "rawMapData" / "bob" / "Desk.json"
+
+
+def test_storage_alone_is_an_export(tmp_path):
+    root = make_export(tmp_path)
+    (root / "invisible-map-sandbox-export.json").unlink()
+    keys = [m.key for m in read_firebase_export(root).maps]
+    assert keys == ["alice/Hall 1700000500", "alice/Lab 1700000000", "bob/Desk", "carol/Stairs"]
+
+
+def test_a_folder_without_an_export_or_with_a_broken_one_is_refused(tmp_path):
+    with pytest.raises(FirebaseExportError, match="not a folder"):
+        read_firebase_export(tmp_path / "missing")
+    with pytest.raises(FirebaseExportError, match="neither a Realtime Database export"):
+        read_firebase_export(tmp_path)
+    (tmp_path / "db.json").write_text('{"maps": ')
+    with pytest.raises(FirebaseExportError, match=r"db\.json is not valid JSON"):
+        read_firebase_export(tmp_path)
+
+
+def test_malformed_database_entries_are_noted_not_fatal(tmp_path):
+    (tmp_path / "db.json").write_text(
+        json.dumps({"maps": {"u": {"a": None, "b": "text"}, "v": 3}, "unprocessed_maps": []})
+    )
+    export = read_firebase_export(tmp_path)
+    assert [m.key for m in export.maps] == ["u/b"]
+    assert export.maps[0].problem is not None
+    assert any("maps/u/a: null" in n for n in export.notes)
+    assert any("maps/v" in n for n in export.notes)
+    assert any("unprocessed_maps is not an object" in n for n in export.notes)

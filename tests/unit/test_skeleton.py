@@ -1,0 +1,170 @@
+"""The corridor skeleton (app.domain.skeleton) on walks built to show each failure of the walked
+line: passes side by side, steps to the wall, sway, passes that do not meet, crossings, floors."""
+
+from __future__ import annotations
+
+import math
+
+import networkx as nx
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app.domain.errors import ParameterError
+from app.domain.instructions import plan_guided_route
+from app.domain.path_graph import (
+    JUNCTION,
+    STAIRS,
+    WALK,
+    PathGraph,
+    build_path_graph_from_arrays,
+)
+from app.domain.routing import TagEnd, plan_route
+from app.domain.skeleton import SkeletonParams, build_skeleton_from_arrays
+from app.domain.turn_metrics import announced_turns, has_turn_around
+from tests.unit.walks import PHONE_Y_M, line, walk
+
+
+def walk_length_m(pg: PathGraph) -> float:
+    return sum(d["length_m"] for _, _, d in pg.graph.edges(data=True) if d["kind"] == WALK)
+
+
+def junctions(pg: PathGraph) -> list[np.ndarray]:
+    G = pg.graph
+    return [np.asarray(G.nodes[n]["position_m"]) for n in G if G.nodes[n]["kind"] == JUNCTION]
+
+
+def test_a_corridor_walked_twice_beside_itself_is_one_line() -> None:
+    # Out along z = 0, back along z = 0.9 (a second pass 0.9 m beside the first).
+    positions = np.concatenate([walk((0, 0), (30, 0)), walk((30, 0.9), (0, 0.9))])
+    pg = build_skeleton_from_arrays(positions)
+    assert nx.is_connected(pg.graph)
+    assert not nx.cycle_basis(pg.graph)
+    assert junctions(pg) == []
+    assert 27.0 <= walk_length_m(pg) <= 31.0  # one 30 m corridor, not two
+    z = [p[2] for p in (pg.graph.nodes[n]["position_m"] for n in pg.graph)]
+    assert all(0.2 <= v <= 0.7 for v in z)  # between the passes
+
+
+def test_steps_to_tags_on_the_walls_leave_no_stub_and_no_turn() -> None:
+    pieces = [line((0, 0), (4, 0))]
+    tags = []
+    for k, x in enumerate((4.0, 10.0, 16.0, 22.0)):
+        side = 1 if k % 2 else -1  # tags on both walls, 1 m from the centre
+        out = line((x, 0), (x, 0.8 * side))
+        pieces += [out[1:], out[::-1][1:], line((x, 0), (x + 6, 0))[1:]]
+        tags.append((x, 1.4, 1.0 * side))
+    positions = np.concatenate(pieces)
+    pg = build_skeleton_from_arrays(positions, tag_ids=[1, 2, 3, 4], tag_positions_m=tags)
+    assert junctions(pg) == []
+    assert max(d for _, d in pg.graph.degree()) <= 2
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(4))
+    assert announced_turns(route, min_deg=30.0) == []
+
+
+def test_sway_and_oblique_walking_give_a_straight_corridor() -> None:
+    x = np.arange(0.0, 40.0, 0.3)
+    sway = 0.45 * np.sin(x / 3.0) + 0.25 * np.sin(x / 1.1)
+    positions = np.column_stack([x, np.full_like(x, PHONE_Y_M), sway])
+    pg = build_skeleton_from_arrays(
+        positions, tag_ids=[1, 2], tag_positions_m=[(1, 1.4, 1), (39, 1.4, -1)]
+    )
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(2))
+    assert announced_turns(route, min_deg=30.0) == []
+    assert route.length_m <= 1.05 * 38.0
+
+
+def test_passes_that_do_not_meet_are_one_corridor() -> None:
+    # The corridor z = 0 (x 0 … 30) is walked from each end, each pass turning back short of the
+    # other (2.5 m apart); the walk goes round by the corridor z = 10.
+    positions = walk(
+        (0, 0), (13.75, 0), (0, 0.3), (0, 10), (30, 10), (30, 0.5), (16.25, 0.5), (30, 0.2)
+    )
+    tags = [(1.0, 1.4, -1.0), (29.0, 1.4, 1.5)]
+    pg = build_skeleton_from_arrays(positions, tag_ids=[1, 2], tag_positions_m=tags)
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(2))
+    assert not has_turn_around(route)
+    assert route.length_m <= 1.1 * 28.0  # straight along z = 0, not round by z = 10
+    assert announced_turns(route, min_deg=30.0) == []
+    # The walked line goes round (the failure this fixes).
+    walked = build_path_graph_from_arrays(positions, tag_ids=[1, 2], tag_positions_m=tags)
+    assert plan_route(walked, TagEnd(1), TagEnd(2)).length_m > 1.5 * 28.0
+
+
+def test_dead_ends_side_by_side_are_not_joined() -> None:
+    # Two spurs north of a corridor, 4 m apart, both ending to the north: not one corridor.
+    positions = walk((0, 0), (10, 0), (10, 8), (10, 0.2), (14, 0.2), (14, 8), (14, 0), (24, 0))
+    pg = build_skeleton_from_arrays(positions)
+    assert not nx.cycle_basis(pg.graph)
+    assert len(junctions(pg)) == 2
+
+
+def test_a_crossing_is_one_junction_where_the_corridors_cross() -> None:
+    positions = walk((0, 0), (20, 0), (20, 0.6), (10.3, 0.6), (10.3, 10), (10.3, -10))
+    pg = build_skeleton_from_arrays(positions)
+    found = junctions(pg)
+    assert len(found) == 1
+    assert np.hypot(found[0][0] - 10.2, found[0][2] - 0.3) < 1.0
+
+
+def test_stairs_join_the_floors_skeletons() -> None:
+    floor_1 = walk((0, 0), (20, 0))
+    stairs = np.column_stack(
+        [np.linspace(20, 24, 15), np.linspace(PHONE_Y_M, PHONE_Y_M + 3.0, 15), np.zeros(15)]
+    )
+    floor_2 = line((24, 0), (24, 15), y_m=PHONE_Y_M + 3.0)
+    positions = np.concatenate([floor_1, stairs[1:], floor_2[1:]])
+    tags = [(1.0, 1.4, -1.0), (25.0, 4.4, 14.0)]
+    pg = build_skeleton_from_arrays(positions, tag_ids=[1, 2], tag_positions_m=tags)
+    assert len(pg.floor_levels_m) == 2
+    assert nx.is_connected(pg.graph)
+    assert any(d["kind"] == STAIRS for _, _, d in pg.graph.edges(data=True))
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(2), floor_labels=["1", "2"])
+    stairs_steps = [s for s in route.steps if s.kind == "stairs"]
+    assert len(stairs_steps) == 1
+    assert stairs_steps[0].instruction.startswith("take the stairs up, ")
+    assert stairs_steps[0].instruction.endswith("to floor 2")
+    assert 4.0 <= stairs_steps[0].distance_m <= 6.0
+    assert [s.floor for s in route.steps if s.kind == "go"] == [0, 1]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    angle_rad=st.floats(0.0, 2 * math.pi),
+    shift=st.tuples(st.floats(-50, 50), st.floats(-50, 50)),
+    left=st.booleans(),
+)
+def test_an_l_corridor_has_one_turn_of_its_side_in_any_frame(angle_rad, shift, left) -> None:
+    """Turn detection does not depend on where the map's frame is (rotation about up, shift)."""
+    end_z = 15.0 if left else -15.0
+    positions = np.concatenate(
+        [walk((0, 0), (20, 0), (20, end_z)), walk((20, end_z), (20.6, 0), (0, 0.5))]
+    )
+    tags = np.array([(1.0, 1.4, -1.0), (21.0, 1.4, end_z * 0.9)])
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    up_R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    move = np.array([shift[0], 0.0, shift[1]])
+    pg = build_skeleton_from_arrays(
+        positions @ up_R.T + move, tag_ids=[1, 2], tag_positions_m=tags @ up_R.T + move
+    )
+    turns = announced_turns(plan_guided_route(pg, TagEnd(1), TagEnd(2)))
+    assert len(turns) == 1
+    # Walking +x then +z turns right (clockwise seen from above, y up); then −z turns left.
+    assert (turns[0].turn_deg > 0) == (not left)
+    assert np.hypot(*(np.array(turns[0].position_xz_m) - (up_R @ [20, 0, 0] + move)[[0, 2]])) < 2.0
+
+
+def test_tags_attach_beside_the_centreline() -> None:
+    positions = walk((0, 0), (20, 0))
+    pg = build_skeleton_from_arrays(positions, tag_ids=[7], tag_positions_m=[(8.0, 1.5, 1.0)])
+    anchor = pg.graph.nodes[pg.tags[7].node]["position_m"]
+    assert abs(anchor[0] - 8.0) < 0.35
+    assert abs(anchor[2]) < 0.35
+
+
+def test_parameters_are_checked() -> None:
+    with pytest.raises(ParameterError):
+        SkeletonParams(corridor_width_m=0.0)
+    with pytest.raises(ParameterError):
+        SkeletonParams(stub_max_m=-1.0)

@@ -1,0 +1,54 @@
+"""Scoring of announced turns (app.domain.turn_metrics): matching, zigzags, turn-arounds."""
+
+from __future__ import annotations
+
+from app.domain.routing import Route, Step
+from app.domain.turn_metrics import Turn, has_turn_around, has_zigzag, match_turns
+
+
+def turn(x: float, z: float, turn_deg: float, along_m: float = 0.0) -> Turn:
+    return Turn(position_xz_m=(x, z), turn_deg=turn_deg, along_m=along_m)
+
+
+def route(points, steps=()) -> Route:
+    return Route(
+        polyline_m=[(float(x), 0.0, float(z)) for x, z in points],
+        length_m=0.0,
+        floors=[0],
+        nodes=[],
+        steps=list(steps),
+    )
+
+
+def test_matching_is_one_to_one_same_side_and_near() -> None:
+    truth = [turn(0, 0, 90), turn(20, 0, -90)]
+    told = [turn(1, 1, 80), turn(0.5, 0, 85), turn(20, 3, 90), turn(40, 0, -90)]
+    # (1, 1) and (0.5, 0) both match the first real turn, only one counts; (20, 3) is the wrong
+    # side; (40, 0) is too far.
+    assert match_turns(told, truth) == (1, 1)
+    assert match_turns([], truth) == (0, 0)
+    assert match_turns(truth, truth) == (2, 2)
+
+
+def test_zigzags_are_opposite_turns_close_together() -> None:
+    assert has_zigzag([turn(0, 0, 60, 10.0), turn(0, 0, -60, 14.0)])
+    assert not has_zigzag([turn(0, 0, 60, 10.0), turn(0, 0, -60, 17.0)])
+    assert not has_zigzag([turn(0, 0, 60, 10.0), turn(0, 0, 60, 12.0)])
+
+
+def test_a_reversal_mid_route_is_a_turn_around() -> None:
+    out_and_back = route([(0, 0), (10, 0), (5, 0.1), (5, 8)])
+    assert has_turn_around(out_and_back)
+    corner = route([(0, 0), (10, 0), (10, 8)])
+    assert not has_turn_around(corner)
+    # A reversal right at the start (stepping off a tag) is not mid-route.
+    assert not has_turn_around(route([(0, 0), (0.5, 0), (0, 0.01), (0, 9)]))
+    told = Step(
+        instruction="turn around",
+        position_m=(10.0, 0.0, 0.0),
+        kind="turn",
+        distance_m=0.0,
+        turn_deg=180.0,
+        floor=0,
+    )
+    assert has_turn_around(route([(0, 0), (10, 0), (10, 8)], [told]))

@@ -1,0 +1,100 @@
+"""Simulated walkers that stray as real mappers do (app.domain.simulate.simulate_walk), and the
+turn precision and recall of routes on the corridor skeleton of their walks (issue 18)."""
+
+from __future__ import annotations
+
+import itertools
+
+import networkx as nx
+import numpy as np
+import pytest
+
+from app.domain.errors import ParameterError
+from app.domain.instructions import plan_guided_route
+from app.domain.path_graph import build_path_graph_from_arrays
+from app.domain.routing import plan_route
+from app.domain.simulate import SimulationConfig, WalkerConfig, corridor_graph, simulate_walk
+from app.domain.skeleton import build_skeleton_from_arrays
+from app.domain.turn_metrics import score_tag_routes
+
+BUILDING = SimulationConfig(num_poses=2)  # only the building and the walker's route are used
+TWO_FLOORS = SimulationConfig(num_poses=2, two_floors=True, blocks=(2, 2))
+
+
+def sampled_pairs(tag_ids, count: int, seed: int) -> list[tuple[int, int]]:
+    pairs = list(itertools.permutations(tag_ids, 2))
+    rng = np.random.default_rng(seed)
+    return [pairs[i] for i in rng.choice(len(pairs), size=min(count, len(pairs)), replace=False)]
+
+
+def test_the_walker_steps_to_tags_and_back() -> None:
+    calm = simulate_walk(BUILDING, WalkerConfig(tag_step_probability=0.0, seed=3))
+    stepping = simulate_walk(BUILDING, WalkerConfig(tag_step_probability=1.0, seed=3))
+    standoff_m = WalkerConfig().tag_standoff_m
+
+    def tags_reached(walk) -> int:
+        reached = 0
+        for p in walk.tag_positions_m:
+            horizontal = np.hypot(*(walk.positions_m[:, [0, 2]] - p[[0, 2]]).T)
+            reached += bool(horizontal.min() <= standoff_m + 0.15)
+        return reached
+
+    assert tags_reached(calm) == 0  # tags are on the walls, ≥ 0.5 m from any calm pass
+    assert tags_reached(stepping) >= 0.8 * len(stepping.tag_ids)
+
+
+def test_a_cut_corridor_is_walked_from_both_ends_without_meeting() -> None:
+    walk = simulate_walk(BUILDING, WalkerConfig(cut_corridors=1, cut_gap_m=2.0, seed=5))
+    (edge,) = walk.cut_edges
+    a, b = walk.building.edge_polylines_m[edge][[0, -1]]
+    middle = (a + b) / 2
+    horizontal = np.hypot(*(walk.positions_m[:, [0, 2]] - middle[[0, 2]]).T)
+    assert horizontal.min() >= 0.6  # nobody walked through the middle of the corridor …
+    for end in (a, b):  # … but both halves were walked
+        quarter = middle + (end - middle) / 2
+        assert np.hypot(*(walk.positions_m[:, [0, 2]] - quarter[[0, 2]]).T).min() < 1.2
+
+
+def test_passes_of_a_corridor_are_offset() -> None:
+    walk = simulate_walk(BUILDING, WalkerConfig(pass_offset_m=0.6, sway_m=0.0, seed=2))
+    # Across the corridor z = 0 at x = 7.5 (between two crossings), the passes' z spread.
+    near = np.abs(walk.positions_m[:, 0] - 7.5) < 0.2
+    near &= np.abs(walk.positions_m[:, 2]) < 1.0
+    assert np.ptp(walk.positions_m[near, 2]) >= 0.3
+
+
+def test_walker_parameters_are_checked() -> None:
+    with pytest.raises(ParameterError):
+        WalkerConfig(spacing_m=0.0)
+    with pytest.raises(ParameterError):
+        WalkerConfig(tag_step_probability=1.5)
+
+
+@pytest.mark.parametrize(("config", "seed"), [(BUILDING, 0), (BUILDING, 1), (TWO_FLOORS, 2)])
+def test_turns_on_the_skeleton_are_real_and_complete(config, seed) -> None:
+    walk = simulate_walk(config, WalkerConfig(seed=seed, length_m=700.0))
+    reference = corridor_graph(walk)
+    pairs = sampled_pairs(walk.tag_ids, 150, seed)
+    kwargs = {"tag_ids": walk.tag_ids, "tag_positions_m": walk.tag_positions_m}
+    skeleton = build_skeleton_from_arrays(walk.positions_m, **kwargs)
+    assert nx.is_connected(skeleton.graph)
+    after = score_tag_routes(skeleton, reference, pairs, plan=plan_guided_route)
+    assert after.routes >= 0.9 * len(pairs)
+    assert after.real > 0
+    assert after.precision >= 0.95
+    assert after.recall >= 0.95
+    assert after.zigzag_share == 0.0
+    assert after.turn_around_share == 0.0
+    assert after.length_ratio_p90 <= 1.1
+
+
+def test_the_walkers_make_the_walked_line_fail_as_real_maps_do() -> None:
+    """The failure the skeleton fixes shows in simulation: on the walked line, many announced
+    turns are not real and routes detour round cut corridors."""
+    walk = simulate_walk(BUILDING, WalkerConfig(seed=0, length_m=700.0))
+    pairs = sampled_pairs(walk.tag_ids, 150, 0)
+    kwargs = {"tag_ids": walk.tag_ids, "tag_positions_m": walk.tag_positions_m}
+    walked = build_path_graph_from_arrays(walk.positions_m, **kwargs)
+    before = score_tag_routes(walked, corridor_graph(walk), pairs, plan=plan_route)
+    assert before.precision < 0.8
+    assert before.length_ratio_p90 > 1.2
