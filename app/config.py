@@ -8,17 +8,27 @@ when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
 ``keep_alive_s``],
 ``INVISIBLE_MAP_MAX_UPLOAD_BYTES`` [32 MiB: the body as sent], ``INVISIBLE_MAP_MAX_SESSION_BYTES``
 [256 MiB: the body after gunzip], ``INVISIBLE_MAP_MAX_REQUEST_BYTES`` [4 MiB: any other request's
-body], ``INVISIBLE_MAP_LEASE_S`` [30], ``INVISIBLE_MAP_HEARTBEAT_S``
-[5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle worker looks for work],
+body], ``INVISIBLE_MAP_MAX_POSES`` [100,000 poses per session], ``INVISIBLE_MAP_LEASE_S``
+[30], ``INVISIBLE_MAP_HEARTBEAT_S`` [5], ``INVISIBLE_MAP_POLL_S`` [0.25: how often an idle
+worker looks for work],
 ``INVISIBLE_MAP_MAX_ATTEMPTS`` [3], ``INVISIBLE_MAP_RETRY_BACKOFF_S`` [2: first retry delay,
 doubling per attempt], ``INVISIBLE_MAP_SESSION_SECRET`` [unset: a random secret kept in the file
 ``admin-session-secret`` of the data directory (mode 0600), so that every API process sharing
-that directory agrees; it signs the admin dashboard's login cookies].
+that directory agrees; it signs the admin dashboard's login cookies],
+``INVISIBLE_MAP_TRUSTED_PROXIES`` [empty: the proxies whose forwarded headers are believed],
+``INVISIBLE_MAP_HEADER_TIMEOUT_S`` [10], ``INVISIBLE_MAP_BODY_TIMEOUT_S`` [30],
+``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS`` [128] (``app.api.connection_guard``),
+``INVISIBLE_MAP_JOB_TIME_BUDGET_S`` [3600: a job attempt running longer fails for good],
+``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` [30 per device key],
+``INVISIBLE_MAP_DEVICE_MAX_AUTO_TUNE_TRIALS`` [20], ``INVISIBLE_MAP_DB_LOCK_TIMEOUT_S`` [5],
+``INVISIBLE_MAP_DB_STATEMENT_TIMEOUT_S`` [120], ``INVISIBLE_MAP_DB_IDLE_IN_TRANSACTION_TIMEOUT_S``
+[60] (PostgreSQL's limits on the API's and the workers' connections).
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
+from ipaddress import ip_network
 from pathlib import Path
 
 from pydantic import AliasChoices, Field, field_validator, model_validator
@@ -55,8 +65,18 @@ class Settings(BaseSettings):
     #: nginx's upstream keepalive and AWS load balancers: 60 s), and they are the ones that
     #: close them. Keep it above the idle timeout of any proxy in front of the API.
     keep_alive_s: int = Field(default=75, ge=1)
+    #: ``serve``: a request's line and headers must arrive within this, s (0: no limit;
+    #: ``app.api.connection_guard``).
+    header_timeout_s: float = Field(default=10.0, ge=0)
+    #: ``serve``: the longest pause in a request's body while it is read, s.
+    body_timeout_s: float = Field(default=30.0, gt=0)
+    #: ``serve``: connections one client address may hold open (0: no cap; the trusted proxies'
+    #: addresses are exempt).
+    max_connections_per_address: int = Field(default=128, ge=0)
     max_upload_bytes: int = Field(default=32 * 2**20, gt=0)
     max_session_bytes: int = Field(default=256 * 2**20, gt=0)
+    #: the most poses an uploaded session may have (checked before it is parsed)
+    max_poses: int = Field(default=100_000, gt=0)
     #: any other request's body (routes, localization updates, keys, sweeps, dashboard forms)
     max_request_bytes: int = Field(default=4 * 2**20, gt=0)
     lease_s: float = Field(default=30.0, gt=0)
@@ -64,10 +84,29 @@ class Settings(BaseSettings):
     poll_s: float = Field(default=0.25, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     retry_backoff_s: float = Field(default=2.0, ge=0)
+    #: PostgreSQL: the longest an API request or a worker waits for a row lock, s.
+    db_lock_timeout_s: float = Field(default=5.0, gt=0)
+    #: PostgreSQL: the longest one statement runs, s.
+    db_statement_timeout_s: float = Field(default=120.0, gt=0)
+    #: PostgreSQL: a connection idle this long inside a transaction (its process stalled) is
+    #: ended by the server, and the locks it held are released, s.
+    db_idle_in_transaction_timeout_s: float = Field(default=60.0, gt=0)
+    #: Uploads one device key may make per minute (per API process; 0: no limit): 429 with
+    #: Retry-After beyond.
+    uploads_per_minute: int = Field(default=30, ge=0)
+    #: The most auto-tuning trials a device key may ask for with an upload (admins: 1000).
+    device_max_auto_tune_trials: int = Field(default=20, ge=0, le=1000)
+    #: A job attempt that runs longer than this fails for good, with the reason (0: no budget).
+    job_time_budget_s: float = Field(default=3600.0, ge=0)
     session_secret: str | None = Field(
         default=None,
         description="signs the admin dashboard's cookies; unset: a random secret in data_dir",
     )
+    #: The proxies in front of ``serve`` whose ``X-Forwarded-For`` / ``X-Forwarded-Proto`` are
+    #: believed: addresses or networks, comma-separated (``"127.0.0.1,10.0.0.0/8"``). Empty (the
+    #: default): none; the client address is the TCP peer's, and forwarded headers are ignored
+    #: (anyone could send them).
+    trusted_proxies: str = ""
 
     @field_validator("database_url")
     @classmethod
@@ -77,6 +116,19 @@ class Settings(BaseSettings):
             if url.startswith(prefix):
                 return "postgresql+psycopg://" + url.removeprefix(prefix)
         return url
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _addresses(cls, proxies: str) -> str:
+        entries = [entry.strip() for entry in proxies.split(",") if entry.strip()]
+        for entry in entries:
+            try:
+                ip_network(entry, strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"INVISIBLE_MAP_TRUSTED_PROXIES: {entry!r} is no IP address or network"
+                ) from None
+        return ",".join(entries)
 
     @field_validator("admin_key")
     @classmethod

@@ -18,7 +18,7 @@ from fastapi import Depends, FastAPI
 
 from app.admin.router import router as admin_router
 from app.api.body_limit import BodyLimit
-from app.api.deps import KeyUsage, current_principal
+from app.api.deps import KeyUsage, UploadRate, current_principal
 from app.api.docs_pages import install_docs
 from app.api.errors import install_error_handlers
 from app.api.routes import (
@@ -31,10 +31,11 @@ from app.api.routes import (
     sweeps,
     system,
 )
+from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
-from app.services.system import package_version
+from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
-from app.storage.db import Database
+from app.storage.db import Database, ServerTimeouts
 from app.storage.migrate import head_revision
 
 DESCRIPTION = """\
@@ -65,7 +66,7 @@ OPENAPI_TAGS = [
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Open the database for the app's life; close its pools at shutdown."""
     settings: Settings = app.state.settings
-    database = Database(settings.resolved_database_url)
+    database = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     app.state.db = database
     app.state.head_revision = head_revision()
     try:
@@ -74,8 +75,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         database.dispose()
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The API with its routes and error handlers; ``settings`` default to the environment's."""
+def create_app(
+    settings: Settings | None = None, *, worker_pool: WorkerPool | None = None
+) -> FastAPI:
+    """The API with its routes and error handlers; ``settings`` default to the environment's.
+    ``worker_pool``: the worker processes this server supervises (``serve --workers N``), whose
+    liveness ``/readyz`` and ``/v1/info`` report."""
     app = FastAPI(
         title="Invisible Map",
         version=package_version(),
@@ -87,11 +92,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
+    app.state.upload_rate = UploadRate(app.state.settings.uploads_per_minute)
     app.state.version_cache = VersionCache()
+    app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(
         BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]
     )
+    app.add_middleware(SecurityHeaders)  # outermost: every answer, errors included
     app.include_router(system.router)
     install_docs(app)  # /docs, /redoc: Swagger UI and ReDoc from the installed package
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key

@@ -86,6 +86,11 @@ from app.client import Client  # noqa: E402
 from app.domain.localize import session_update_documents  # noqa: E402
 from app.domain.session import load_session  # noqa: E402
 
+#: Every simulated phone connects from this machine's one address: no cap on connections per
+#: address (``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS``), which real phones, each with its own
+#: address, never reach.
+ONE_ADDRESS = {"INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS": "0"}
+
 SESSIONS = REPO / "data" / "sessions"
 UPLOAD_SESSIONS = sorted(SESSIONS.glob("*.json"))
 DEFAULT_POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -436,7 +441,10 @@ def sqlite_deployment(folder: Path) -> Iterator[Deployment]:
     """Embedded: ``serve --workers 2`` on a new SQLite file."""
     url = f"sqlite:///{folder / 'load.sqlite3'}"
     log = folder / "server.log"
-    env = {"INVISIBLE_MAP_DATA_DIR": str(folder)}
+    env = {
+        "INVISIBLE_MAP_DATA_DIR": str(folder),
+        **ONE_ADDRESS,
+    }
     with ServerProcess(url, workers=2, env=env, log_path=log) as server:
         yield Deployment(
             backend="SQLite",
@@ -458,7 +466,10 @@ def postgres_deployment(folder: Path, admin_url: str) -> Iterator[Deployment]:
         connection.execute(text(f'CREATE DATABASE "{name}"'))
     try:
         url = make_url(admin_url).set(database=name).render_as_string(hide_password=False)
-        env = {"INVISIBLE_MAP_DATA_DIR": str(folder)}
+        env = {
+            "INVISIBLE_MAP_DATA_DIR": str(folder),
+            **ONE_ADDRESS,
+        }
         api_log, worker_log = folder / "api.log", folder / "worker.log"
         with (
             ServerProcess(url, workers=0, env=env, log_path=api_log) as server,

@@ -41,7 +41,7 @@ from types import FrameType
 
 from app.config import Settings
 from app.storage import queue
-from app.storage.db import Database, database_fault, first_line
+from app.storage.db import Database, ServerTimeouts, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
 from workers.allocator import preloading_jemalloc
@@ -152,6 +152,7 @@ class Worker:
                     stages=self.pipelines[lease.kind],
                     control=control,
                     retry_backoff_s=self.settings.retry_backoff_s,
+                    time_budget_s=self.settings.job_time_budget_s,
                 )
         except Exception as err:
             # Recording the outcome failed (the database went away for longer than the lease):
@@ -342,7 +343,7 @@ def configure_logging() -> None:
 
 def run_worker(settings: Settings, *, signums: Sequence[int]) -> int:
     """Run one worker in this process until a signal in ``signums`` stops it; returns 0."""
-    db = Database(settings.resolved_database_url)
+    db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)
         handle_signals(worker, signums)
@@ -365,7 +366,7 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
     forwards it as SIGTERM, which must count once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     configure_logging()
-    db = Database(settings.resolved_database_url)
+    db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)
         handle_signals(worker, [signal.SIGTERM])
@@ -377,9 +378,12 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
         db.dispose()
 
 
-def start_worker_processes(settings: Settings, processes: int) -> list[BaseProcess]:
+def start_worker_processes(
+    settings: Settings, processes: int, *, first_number: int = 1
+) -> list[BaseProcess]:
     """Start ``processes`` worker processes (spawn context, preloading jemalloc where the
-    machine has it: ``workers.allocator``) and return them (none for 0)."""
+    machine has it: ``workers.allocator``), named ``worker-{first_number}``, …, and return them
+    (none for 0)."""
     if processes < 0:
         raise ValueError(f"processes must be at least 0, got {processes}")
     context = multiprocessing.get_context("spawn")
@@ -387,7 +391,7 @@ def start_worker_processes(settings: Settings, processes: int) -> list[BaseProce
         context.Process(
             target=_worker_process_main,
             args=(settings, os.getpid()),
-            name=f"worker-{k + 1}",
+            name=f"worker-{first_number + k}",
         )
         for k in range(processes)
     ]

@@ -44,6 +44,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from sqlalchemy.exc import DataError
+
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.joint import JointMap, optimize_sessions
@@ -88,6 +90,12 @@ T = TypeVar("T")
 class PermanentJobError(Exception):
     """Raised by a stage when the job can never succeed as given (an input is missing or
     corrupt in storage); the job fails at once instead of being retried."""
+
+
+class Interrupted(Exception):
+    """Raised inside a stage (:meth:`JobContext.check_interrupted`, from an optimizer's iteration
+    callback or between trials) when a cancel or a release was asked: the runner then cancels or
+    releases the job at once instead of at the next stage boundary."""
 
 
 class Outcome(enum.StrEnum):
@@ -158,6 +166,9 @@ class JobContext:
     stage_start: float = 0.0
     stage_weight: float = 0.0
     _last_write_s: float = field(default=-math.inf, repr=False)
+    #: time.monotonic() after which the attempt fails (``Settings.job_time_budget_s``)
+    deadline_s: float = math.inf
+    time_budget_s: float = 0.0
 
     def begin_stage(self, name: str, *, start: float, weight: float) -> None:
         """Set the stage that :meth:`report` reports within (its first report is always
@@ -168,6 +179,22 @@ class JobContext:
     def log(self, message: str) -> None:
         """Add a timestamped line to the job's log tail (written with the next progress write)."""
         self.log_tail = queue.append_log(self.log_tail, message)
+
+    def check_interrupted(self) -> None:
+        """Stop the stage now if the job must stop: :class:`Interrupted` for a cancel or a
+        release, LeaseLost for a lost lease, PermanentJobError past the time budget. Stages call
+        it where they can stop safely (each optimizer iteration, each trial): a cancel then
+        takes effect within a heartbeat (``heartbeat_s``) and one iteration."""
+        control = self.control
+        if control.lease_lost:
+            raise LeaseLost(self.lease.job_id)
+        if control.cancel_requested or control.release_requested:
+            raise Interrupted(self.stage)
+        if time.monotonic() > self.deadline_s:
+            raise PermanentJobError(
+                f"the job ran longer than its time budget of {self.time_budget_s:g} s "
+                "(INVISIBLE_MAP_JOB_TIME_BUDGET_S)"
+            )
 
     def report(self, fraction_within_stage: float, message: str | None = None) -> None:
         """Report progress within the current stage (0–1), and optionally log ``message``.
@@ -277,8 +304,10 @@ def tune(ctx: JobContext) -> None:
     plan = SweepPlan(method="sampler", space=SearchSpace.paper_grid(), trials=ctx.auto_tune_trials)
     trials: list[Trial] = []
     while batch := plan.next_batch(trials, len(trials)):
-        trials.extend(target.run(values) for values in batch)
-        ctx.report(len(trials) / plan.total)
+        for values in batch:
+            ctx.check_interrupted()
+            trials.append(target.run(values))
+            ctx.report(len(trials) / plan.total)
     best = best_trial(trials, "shift")
     if best is None:
         ctx.log(f"tune: no trial of {len(trials)} converged; keeping the parameters")
@@ -315,6 +344,7 @@ def optimize(ctx: JobContext) -> None:
 
     def on_iteration(iteration: int, _error: float) -> None:
         ctx.report(1.0 - 0.6**iteration)
+        ctx.check_interrupted()  # a cancel stops the optimization here, not after it
 
     started_s = time.perf_counter()
     ctx.result = optimize_session(session, _need(ctx.params, "params"), on_iteration=on_iteration)
@@ -394,10 +424,16 @@ def evaluate(ctx: JobContext) -> None:
             shift_opt=ctx.joint.shift_metric(),
         )
     ctx.report(0.5)
-    ctx.plot_png = render_map_png(result, session)
+    try:
+        ctx.plot_png = render_map_png(result, session)
+    except Exception as err:  # a plot is a picture of the map: the map is built without one
+        logger.warning("job %d: the plot failed", ctx.lease.job_id, exc_info=True)
+        ctx.log(f"evaluate: no plot ({type(err).__name__}); the map is stored without one")
+        ctx.plot_png = None
     ctx.log(
         f"evaluate: shift metric {ctx.evaluation.shift_opt:.4g} "
-        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), plot {len(ctx.plot_png) / 1e3:.0f} kB"
+        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), "
+        + (f"plot {len(ctx.plot_png) / 1e3:.0f} kB" if ctx.plot_png is not None else "no plot")
     )
 
 
@@ -477,8 +513,12 @@ PIPELINES: Mapping[str, Sequence[Stage]] = {BUILD_MAP: BUILD_MAP_STAGES}
 
 
 def is_permanent(err: BaseException) -> bool:
-    """Whether retrying cannot help: the core refused the input, or a stored input is bad."""
-    return isinstance(err, InvisibleMapError | PermanentJobError)
+    """Whether retrying cannot help: the core refused the input, a stored input is bad, or the
+    error is deterministic (the database refusing a value as such, SQLSTATE class 22; text
+    that cannot be encoded; a number that overflows): the same input fails the same way."""
+    return isinstance(
+        err, InvisibleMapError | PermanentJobError | DataError | UnicodeError | OverflowError
+    )
 
 
 def through_outages(control: JobControl, job_id: int, what: str, call: Callable[[], T]) -> T:
@@ -514,8 +554,11 @@ def run_job(
     stages: Sequence[Stage],
     control: JobControl,
     retry_backoff_s: float,
+    time_budget_s: float = 0.0,
 ) -> JobReport:
     """Run ``stages`` for ``lease``'s job and record how it ended; see the module docstring.
+    ``time_budget_s`` > 0: the attempt fails for good (PermanentJobError, with the reason) once
+    it has run that long, at the next :meth:`JobContext.check_interrupted`.
 
     Never raises for an ``Exception`` of a stage (it is recorded on the job), only when recording
     fails too (the database unreachable: the lease then expires and the reaper requeues the job).
@@ -524,6 +567,8 @@ def run_job(
     """
     started_s = time.perf_counter()
     ctx = JobContext(db=db, lease=lease, control=control, log_tail=lease.log_tail)
+    if time_budget_s > 0:
+        ctx.time_budget_s, ctx.deadline_s = time_budget_s, time.monotonic() + time_budget_s
     total_weight = sum(stage.weight for stage in stages) or 1.0
 
     def ended(outcome: Outcome, error: str | None = None) -> JobReport:
@@ -567,10 +612,24 @@ def run_job(
         raise PermanentJobError(f"the {lease.kind} pipeline ended without storing a result")
     except LeaseLost:
         return ended(Outcome.LEASE_LOST)
+    except Interrupted:
+        try:
+            if control.release_requested:
+                ctx.log(f"release requested: stopping {ctx.stage}")
+                retrying(lambda: queue.release(db, lease, log_tail=ctx.log_tail), "release")
+                return ended(Outcome.RELEASED)
+            ctx.log(f"cancel requested: stopped during {ctx.stage}")
+            retrying(lambda: queue.mark_canceled(db, lease, log_tail=ctx.log_tail), "cancel")
+        except LeaseLost:
+            return ended(Outcome.LEASE_LOST)
+        return ended(Outcome.CANCELED)
     except Exception as err:
         error = f"{ctx.stage or 'start'}: {type(err).__name__}: {err}"
         permanent = is_permanent(err)
-        ctx.log(f"{'permanent' if permanent else 'transient'} error in {error}")
+        # the log tail is readable with a device key: only the core's own messages go there in
+        # full (app.services.jobs.public_job_error); the whole error is in job.error and the log
+        shown = error if permanent else f"{ctx.stage or 'start'}: {type(err).__name__}"
+        ctx.log(f"{'permanent' if permanent else 'transient'} error in {shown}")
         try:
             state = retrying(
                 lambda: queue.fail(

@@ -15,7 +15,6 @@ from app.domain.ground_truth import parse_ground_truth_json
 from app.domain.params import SlamParams
 from app.domain.tuning import TuningTarget
 from app.storage import queue, sweeps
-from app.storage.queue import LeaseLost
 from workers.pipeline import JobContext, PermanentJobError, Stage, load_session_upload
 
 #: Prepared sessions a worker process keeps, by (database, sweep id, sweep creation time).
@@ -73,10 +72,7 @@ def run_trials(ctx: JobContext) -> None:
         raise PermanentJobError(f"job {ctx.lease.job_id} has no trial values")
     trials = []
     for k, trial_values in enumerate(values):
-        if ctx.control.lease_lost:
-            raise LeaseLost(ctx.lease.job_id)
-        if ctx.control.cancel_requested:
-            return  # the runner cancels the job before the next stage
+        ctx.check_interrupted()  # a cancel (or release, lost lease, spent budget) stops here
         trials.append(target.run(trial_values))
         ctx.report((k + 1) / len(values))
     ctx.trials = trials

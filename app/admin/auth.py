@@ -1,17 +1,19 @@
 """Who is logged in to the dashboard, and the checks every request and form goes through.
 
 Logging in takes an admin API key (a key with role admin, or ``INVISIBLE_MAP_ADMIN_KEY``); a
-device key is refused. The login is a signed cookie (:mod:`app.admin.signing`) carrying the key's
-identity, a random nonce and an expiry — no table. On every request the key is checked again: a
-key revoked or expired since (or a changed ``INVISIBLE_MAP_ADMIN_KEY``) ends the login at once.
+device key is refused. The login is a row of ``admin_login`` (:mod:`app.storage.admin_logins`)
+and a signed cookie (:mod:`app.admin.signing`) carrying its token, the key's identity, a random
+nonce and an expiry. On every request both are checked again: a login ended since (logout,
+"end all dashboard sessions", the key revoked) or a key revoked or expired since (or a changed
+``INVISIBLE_MAP_ADMIN_KEY``) is no login, so a cookie copied before logout opens nothing.
 
     user: DashboardUserDep          # a page: 303 to /admin/login?next=… without a valid login
     form: CheckedFormDep            # a form post: the login, then its CSRF token (403 if wrong)
 
 CSRF: every form carries ``csrf_token``, an HMAC of the login's nonce, checked against the cookie
 (synchronizer token; the cookie is also ``SameSite=Strict``). The login form itself, made before
-there is a login, uses a double-submit cookie. Login attempts are limited per client address
-(:class:`LoginThrottle`, in memory per process).
+there is a login, uses a double-submit cookie. Failed logins are limited per key tried and in
+all (:class:`LoginThrottle`, in memory per process), never per client address.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from starlette.datastructures import FormData
 from app.admin.signing import Signer, load_or_create_secret
 from app.api.deps import DbDep, SettingsDep
 from app.config import Settings
-from app.storage import keys
+from app.storage import admin_logins, keys
 from app.storage.db import Database
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
 from app.storage.orm import Role
@@ -43,8 +45,10 @@ COOKIE_PATH = "/admin"
 LOGIN_TTL_S = 8 * 3600
 #: How long the login form's CSRF cookie lasts, s.
 LOGIN_FORM_TTL_S = 3600
-#: Login attempts allowed per client address per window.
+#: Failed logins allowed per key tried per window (:class:`LoginThrottle`).
 LOGIN_ATTEMPTS = 10
+#: Failed logins allowed in all per window, per API process.
+LOGIN_ATTEMPTS_OVERALL = 100
 LOGIN_WINDOW_S = 60.0
 
 
@@ -66,28 +70,70 @@ class CsrfRefused(Exception):
 
 
 class LoginThrottle:
-    """At most ``attempts`` login attempts per client address in any ``window_s`` seconds."""
+    """Limits failed logins by what an attacker cannot vary freely: at most ``per_key`` failures
+    per key tried (an ``im_<prefix>_…`` key by its prefix; any other string, such as
+    ``INVISIBLE_MAP_ADMIN_KEY``, counts as one key) and at most ``overall`` failures in all, in
+    any ``window_s`` seconds (per API process).
 
-    def __init__(self, attempts: int = LOGIN_ATTEMPTS, window_s: float = LOGIN_WINDOW_S) -> None:
-        self.attempts = attempts
+    Not by client address: an address is free to choose for whoever can send
+    ``X-Forwarded-For`` through a trusted proxy, and one shared by many (a NAT, the proxy itself)
+    would let ten wrong tries lock the real admin out. A guesser of one key's secret is held to
+    ``per_key`` tries a window; guessing across keys is held to ``overall``; an admin whose own
+    key nobody is guessing logs in unless the overall budget is spent (a flood of wrong keys;
+    the answer says so)."""
+
+    def __init__(
+        self,
+        per_key: int = LOGIN_ATTEMPTS,
+        overall: int = LOGIN_ATTEMPTS_OVERALL,
+        window_s: float = LOGIN_WINDOW_S,
+    ) -> None:
+        self.per_key = per_key
+        self.overall = overall
         self.window_s = window_s
-        self._times: dict[str, deque[float]] = {}
+        self._failures: dict[str, deque[float]] = {}
+        self._all: deque[float] = deque()
         self._lock = threading.Lock()
 
-    def retry_after_s(self, client: str) -> int | None:
-        """Record an attempt from ``client``; None if allowed, else the seconds to wait."""
+    @staticmethod
+    def target(key: str) -> str:
+        """What a login attempt counts against: the key's prefix, or one bucket for the rest."""
+        scheme, _, rest = key.partition("_")
+        prefix = rest.partition("_")[0]
+        return f"{scheme}_{prefix}"[:40] if scheme == keys.KEY_SCHEME and prefix else "other"
+
+    def retry_after_s(self, key: str) -> int | None:
+        """None if an attempt with ``key`` may be checked now, else the seconds to wait."""
         now_s = time.monotonic()
         with self._lock:
-            times = self._times.setdefault(client, deque())
-            while times and times[0] <= now_s - self.window_s:
+            self._forget(now_s)
+            waits = [
+                times[0] + self.window_s - now_s
+                for times, limit in (
+                    (self._failures.get(self.target(key), deque()), self.per_key),
+                    (self._all, self.overall),
+                )
+                if len(times) >= limit
+            ]
+        return max(1, int(max(waits) + 1)) if waits else None
+
+    def failed(self, key: str) -> None:
+        """Record a failed attempt with ``key``."""
+        now_s = time.monotonic()
+        with self._lock:
+            self._failures.setdefault(self.target(key), deque()).append(now_s)
+            self._all.append(now_s)
+
+    def _forget(self, now_s: float) -> None:
+        horizon_s = now_s - self.window_s
+        while self._all and self._all[0] <= horizon_s:
+            self._all.popleft()
+        for target in list(self._failures):
+            times = self._failures[target]
+            while times and times[0] <= horizon_s:
                 times.popleft()
-            if len(times) >= self.attempts:
-                return max(1, int(times[0] + self.window_s - now_s + 1))
-            times.append(now_s)
-            if len(self._times) > 10_000:  # forget idle addresses
-                for address in [a for a, t in self._times.items() if not t]:
-                    del self._times[address]
-            return None
+            if not times:
+                del self._failures[target]
 
 
 class AdminState:
@@ -133,18 +179,40 @@ class DashboardUser:
 
 
 def start_login(
-    response: Response, request: Request, state: AdminState, principal: Principal, key: str
+    response: Response,
+    request: Request,
+    state: AdminState,
+    db: Database,
+    principal: Principal,
+    key: str,
 ) -> None:
-    """Set the login cookie for ``principal``, who logged in with ``key``. The cookie names a
-    stored key by id; the environment's admin key (which has none) by a keyed fingerprint."""
-    payload = {"sub": principal.subject, "kid": principal.key_id, "nonce": secrets.token_hex(16)}
+    """Store a login of ``principal``, who logged in with ``key``, and set its cookie. The cookie
+    carries the login's token and names a stored key by id; the environment's admin key (which
+    has none) by a keyed fingerprint."""
+    with db.transaction() as db_session:
+        login_token = admin_logins.start_login(
+            db_session, subject=principal.subject, key_id=principal.key_id, ttl_s=LOGIN_TTL_S
+        )
+    payload = {
+        "sub": principal.subject,
+        "kid": principal.key_id,
+        "sid": login_token,
+        "nonce": secrets.token_hex(16),
+    }
     if principal.key_id is None:
         payload["fp"] = state.signer.fingerprint(key)
     token = state.signer.sign("login", payload, ttl_s=LOGIN_TTL_S)
     set_cookie(response, request, LOGIN_COOKIE, token, max_age_s=LOGIN_TTL_S)
 
 
-def end_login(response: Response) -> None:
+def end_login(response: Response, request: Request, state: AdminState, db: Database) -> None:
+    """End the request's login on the server (its cookie opens nothing from now on) and drop the
+    cookie."""
+    payload = state.signer.unsign("login", request.cookies.get(LOGIN_COOKIE))
+    login_token = None if payload is None else payload.get("sid")
+    if isinstance(login_token, str):
+        with db.transaction() as db_session:
+            admin_logins.end_login(db_session, login_token)
     response.delete_cookie(LOGIN_COOKIE, path=COOKIE_PATH, httponly=True, samesite="strict")
 
 
@@ -187,10 +255,6 @@ def login_form_token_ok(request: Request, state: AdminState, submitted: object) 
     return hmac.compare_digest(str(payload.get("token", "")), submitted)
 
 
-def client_address(request: Request) -> str:
-    return request.client.host if request.client else "unknown"
-
-
 # --------------------------------------------------------------------------- every request
 
 
@@ -212,8 +276,18 @@ def dashboard_user(
 def _still_valid(
     payload: dict[str, object], state: AdminState, settings: Settings, db: Database
 ) -> Principal | None:
-    """The principal the login cookie's payload stands for, if its key still works."""
-    key_id = payload.get("kid")
+    """The principal the login cookie's payload stands for, if its login has not ended and its
+    key still works."""
+    login_token, key_id = payload.get("sid"), payload.get("kid")
+    if not isinstance(login_token, str):
+        return None
+    with db.read() as db_session:
+        login = admin_logins.find_login(db_session, login_token)
+        if login is None or login.key_id != key_id or login.subject != payload.get("sub"):
+            return None
+        principal = (
+            None if login.key_id is None else keys.active_principal(db_session, login.key_id)
+        )
     if key_id is None:
         fingerprint = payload.get("fp")
         admin_key = settings.admin_key
@@ -224,10 +298,6 @@ def _still_valid(
         if not hmac.compare_digest(fingerprint, state.signer.fingerprint(admin_key)):
             return None
         return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
-    if not isinstance(key_id, int):
-        return None
-    with db.read() as db_session:
-        principal = keys.active_principal(db_session, key_id)
     return principal if principal is not None and principal.is_admin else None
 
 

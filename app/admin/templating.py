@@ -21,6 +21,7 @@ from fastapi.templating import Jinja2Templates
 
 from app.admin.auth import DashboardUser, admin_state, set_cookie
 from app.admin.nav import NAV
+from app.api.security import COMMON_HEADERS, PAGE_CSP
 from app.services.system import package_version
 
 TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
@@ -30,17 +31,8 @@ FLASH_TTL_S = 60
 #: On every dashboard response. Nothing is loaded from another origin; no page may frame these.
 #: Scripts only from our files (no inline script). Styles allow 'unsafe-inline' because plotly.js
 #: styles its plots with inline style rules (its own stylesheet is not in the plotly package).
-SECURITY_HEADERS = {
-    "Content-Security-Policy": (
-        "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
-        "img-src 'self' data:; font-src 'self'; connect-src 'self'; object-src 'none'; "
-        "base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
-    ),
-    "X-Content-Type-Options": "nosniff",
-    "X-Frame-Options": "DENY",
-    "Referrer-Policy": "same-origin",
-    "Cross-Origin-Opener-Policy": "same-origin",
-}
+#: The dashboard's answers: the server's one policy (``app.api.security``) for its own pages.
+SECURITY_HEADERS = {**COMMON_HEADERS, "Content-Security-Policy": PAGE_CSP}
 
 
 def _when(value: datetime | None) -> str:

@@ -25,8 +25,10 @@ else's is a 404, so a device cannot learn what exists)::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -92,6 +94,10 @@ WriteDbSessionDep = Annotated[Session, Depends(write_db_session, scope="function
 
 
 # --------------------------------------------------------------------------- authentication
+
+
+#: The window of :class:`UploadRate`, s.
+UPLOAD_WINDOW_S = 60.0
 
 
 class KeyUsage:
@@ -226,12 +232,72 @@ def valid_id(value: int, what: str) -> int:
 # --------------------------------------------------------------------------- upload body
 
 
-async def upload_body(request: Request, settings: SettingsDep) -> RawBody:
-    """The raw upload (415 for another media type or encoding, 413 over the raw limit)."""
+class UploadRate:
+    """At most ``per_minute`` uploads stored per device key in any 60 s (per API process; refused
+    uploads and replays do not count); admin keys are not limited. One phone cannot fill the
+    queue for everyone."""
+
+    def __init__(self, per_minute: int) -> None:
+        self.per_minute = per_minute
+        self._times: dict[str, deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def retry_after_s(self, subject: str) -> int | None:
+        """None if ``subject`` may upload now, else the seconds until it may."""
+        if self.per_minute <= 0:
+            return None
+        now_s = time.monotonic()
+        with self._lock:
+            times = self._times.get(subject)
+            if times is None:
+                return None
+            while times and times[0] <= now_s - UPLOAD_WINDOW_S:
+                times.popleft()
+            if len(times) < self.per_minute:
+                return None
+            return max(1, math.ceil(times[0] + UPLOAD_WINDOW_S - now_s))
+
+    def accepted(self, subject: str) -> None:
+        """Count an upload of ``subject`` that was stored (refused ones do not count)."""
+        if self.per_minute <= 0:
+            return
+        with self._lock:
+            self._times.setdefault(subject, deque()).append(time.monotonic())
+            if len(self._times) > 10_000:  # forget keys that went quiet
+                horizon_s = time.monotonic() - UPLOAD_WINDOW_S
+                for quiet in [n for n, kept in self._times.items() if kept[-1] <= horizon_s]:
+                    del self._times[quiet]
+
+
+def upload_rate(request: Request) -> UploadRate:
+    rate: UploadRate = request.app.state.upload_rate
+    return rate
+
+
+async def upload_body(
+    request: Request,
+    settings: SettingsDep,
+    principal: CurrentPrincipal,
+    rate: Annotated[UploadRate, Depends(upload_rate)],
+) -> RawBody:
+    """The raw upload (415 for another media type or encoding, 413 over the raw limit); 429 with
+    ``Retry-After`` before reading it when the device key uploaded its
+    ``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` already."""
+    if not principal.is_admin:
+        wait_s = rate.retry_after_s(principal.subject)
+        if wait_s is not None:
+            raise ApiError(
+                429,
+                "rate_limited",
+                f"this key uploaded {rate.per_minute} sessions in the last minute, its limit; "
+                f"try again in {wait_s} s",
+                headers={"Retry-After": str(wait_s)},
+            )
     return await read_body(request, max_upload_bytes=settings.max_upload_bytes)
 
 
 UploadBodyDep = Annotated[RawBody, Depends(upload_body)]
+UploadRateDep = Annotated[UploadRate, Depends(upload_rate)]
 
 
 async def image_body(request: Request) -> bytes:

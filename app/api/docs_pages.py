@@ -8,6 +8,7 @@ CDN, so the pages work on a machine with no internet.
 from __future__ import annotations
 
 import functools
+import re
 from importlib.resources import files
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
+
+from app.api.security import page_csp
 
 #: Where the pages' own scripts, styles and icon are served from.
 ASSETS_PATH = "/docs-assets"
@@ -35,6 +38,17 @@ def redoc_script_offline() -> bytes:
     return script.replace(REDOC_REMOTE_LOGO, EMPTY_SVG)
 
 
+_INLINE_SCRIPT = re.compile(r"<script>(.*?)</script>", re.S)
+
+
+def with_page_policy(page: HTMLResponse, *, workers: bool = False) -> HTMLResponse:
+    """``page`` with the server's page policy (``app.api.security``), allowing exactly its own
+    inline scripts."""
+    scripts = _INLINE_SCRIPT.findall(bytes(page.body).decode())
+    page.headers["Content-Security-Policy"] = page_csp(inline_scripts=scripts, workers=workers)
+    return page
+
+
 def install_docs(app: FastAPI) -> None:
     """Serve ``/docs`` and ``/redoc`` with their assets from this server (not in the schema)."""
 
@@ -47,20 +61,25 @@ def install_docs(app: FastAPI) -> None:
 
     @app.get("/docs", include_in_schema=False)
     async def swagger_ui() -> HTMLResponse:
-        return get_swagger_ui_html(
-            openapi_url=openapi_url,
-            title=f"{app.title} — API",
-            swagger_js_url=f"{ASSETS_PATH}/swagger-ui-bundle.js",
-            swagger_css_url=f"{ASSETS_PATH}/swagger-ui.css",
-            swagger_favicon_url=f"{ASSETS_PATH}/favicon.png",
+        return with_page_policy(
+            get_swagger_ui_html(
+                openapi_url=openapi_url,
+                title=f"{app.title} — API",
+                swagger_js_url=f"{ASSETS_PATH}/swagger-ui-bundle.js",
+                swagger_css_url=f"{ASSETS_PATH}/swagger-ui.css",
+                swagger_favicon_url=f"{ASSETS_PATH}/favicon.png",
+            )
         )
 
     @app.get("/redoc", include_in_schema=False)
     async def redoc() -> HTMLResponse:
-        return get_redoc_html(
-            openapi_url=openapi_url,
-            title=f"{app.title} — API",
-            redoc_js_url=f"{ASSETS_PATH}/redoc.standalone.js",
-            redoc_favicon_url=f"{ASSETS_PATH}/favicon.png",
-            with_google_fonts=False,
+        return with_page_policy(
+            get_redoc_html(
+                openapi_url=openapi_url,
+                title=f"{app.title} — API",
+                redoc_js_url=f"{ASSETS_PATH}/redoc.standalone.js",
+                redoc_favicon_url=f"{ASSETS_PATH}/favicon.png",
+                with_google_fonts=False,
+            ),
+            workers=True,
         )

@@ -57,6 +57,7 @@ CODE_OF_STATUS = {
     413: "payload_too_large",
     415: "unsupported_media_type",
     422: "validation_error",
+    429: "rate_limited",
     500: "internal_error",
     503: "service_unavailable",
 }
@@ -236,6 +237,8 @@ _EXAMPLES: dict[int, tuple[str, str, str, str | None]] = {
           "Content-Type must be application/json, got text/plain", "Content-Type"),
     422: ("Invalid input", "invalid_session", "pose_data[3].pose: rotation not orthonormal",
           "pose_data[3].pose"),
+    429: ("Too many uploads with this key (see Retry-After)", "rate_limited",
+          "this key uploaded 30 sessions in the last minute, its limit; try again in 12 s", None),
     503: ("The database is unavailable, full or read-only (database_unavailable, storage_full, "
           "storage_read_only, storage_unavailable); nothing was changed", "database_unavailable",
           "the database is unavailable or busy; nothing was changed; try again shortly", None),

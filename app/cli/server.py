@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     import uvicorn
 
     from app.client import Client
+    from app.config import Settings
 
 
 #: The longest ``keys create --expires-in-days`` (100 years).
@@ -104,8 +105,10 @@ def add_server_commands(commands: Any) -> None:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from app.api import access_log
+    from app.api.connection_guard import guarded_protocol
     from app.main import create_app
-    from workers.main import start_worker_processes, stop_worker_processes
+    from workers.supervisor import WorkerSupervisor
 
     if not 0 < args.port < 65536:
         raise CommandError(f"--port must be 1–65535, got {args.port}")
@@ -132,13 +135,14 @@ def _serve(args: argparse.Namespace) -> int:
         listener.close()
         raise
 
-    processes = start_worker_processes(settings, settings.workers)
+    supervisor = WorkerSupervisor(settings, settings.workers)  # restarts any that dies
+    supervisor.start()
     url = f"http://{args.host}:{args.port}"
     print(f"Invisible Map server at {url}  (API docs: {url}/docs)")
     if generated_key:
         print(f"admin key for this run: {settings.admin_key}")
         print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
-    print(f"worker processes: {len(processes)}", flush=True)
+    print(f"worker processes: {supervisor.configured}", flush=True)
     if args.demo:
         assert settings.admin_key is not None
         threading.Thread(
@@ -146,15 +150,17 @@ def _serve(args: argparse.Namespace) -> int:
             args=(url, settings.admin_key, settings.workers),
             daemon=True,
         ).start()
-    server = uvicorn.Server(
-        uvicorn.Config(
-            create_app(settings),
-            host=args.host,
-            port=args.port,
-            log_level="info",
-            timeout_keep_alive=settings.keep_alive_s,
-        )
+    config = uvicorn.Config(
+        create_app(settings, worker_pool=supervisor if settings.workers else None),
+        host=args.host,
+        port=args.port,
+        log_level="info",
+        timeout_keep_alive=settings.keep_alive_s,
+        http=guarded_protocol(settings),  # header/body timeouts, connections per address
+        **proxy_options(settings),
     )
+    access_log.install()  # after uvicorn configured its loggers: no key in the access log
+    server = uvicorn.Server(config)
     # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
     # previous handler: with the default one the process would die right there, before stopping
     # its workers (and exit by the signal). This handler makes that a no-op, and makes a SIGTERM
@@ -170,12 +176,22 @@ def _serve(args: argparse.Namespace) -> int:
         if server.started:
             raise
     finally:
-        stop_worker_processes(processes, timeout_s=30.0)
+        supervisor.stop(timeout_s=30.0)
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)
     if not server.started:
         raise CommandError(f"the server could not start at {url} (see the log above)")
     return 0
+
+
+def proxy_options(settings: Settings) -> dict[str, Any]:
+    """uvicorn's options for forwarded headers: believed only from
+    ``INVISIBLE_MAP_TRUSTED_PROXIES`` (uvicorn's own default believes any from 127.0.0.1, so
+    anything on the machine, or a proxy passing a client's header on, could choose the client
+    address the server sees)."""
+    if not settings.trusted_proxies:
+        return {"proxy_headers": False}
+    return {"proxy_headers": True, "forwarded_allow_ips": settings.trusted_proxies}
 
 
 async def _serve_with_threads(

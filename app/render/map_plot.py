@@ -4,12 +4,15 @@
 
 Each panel shows the raw odometry and the optimized trajectory, the pre-optimized tags (first
 observation) and the optimized ones with 2σ position ellipses, and, when given, ground-truth tags
-aligned to the optimized map by a best-fit rigid transform. Uses matplotlib's Agg backend.
+aligned to the optimized map by a best-fit rigid transform. Uses matplotlib's Agg backend. Names
+from users (the map's, the points of interest's) are drawn literally (``parse_math=False``: a
+"$" is a dollar sign, never mathtext that could fail to parse).
 """
 
 from __future__ import annotations
 
 import io
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -94,7 +97,14 @@ def render_map_png(
             x, y, z = result.world_T_poi[poi_k, :3, 3]
             if assign_floors(np.array([y]), levels_m)[0] == floor:
                 axis.scatter([x], [z], marker="*", s=90, color="black")
-                axis.annotate(name, (x, z), fontsize=8, xytext=(4, -8), textcoords="offset points")
+                axis.annotate(
+                    name,
+                    (x, z),
+                    fontsize=8,
+                    xytext=(4, -8),
+                    textcoords="offset points",
+                    parse_math=False,  # a user's "$" is a dollar sign, not mathtext
+                )
         axis.set_aspect("equal", adjustable="datalim")
         axis.set_xlabel("x (m)")
         axis.set_ylabel("z (m)")
@@ -105,11 +115,16 @@ def render_map_png(
         axis.legend(loc="best", fontsize=7)
     figure.suptitle(
         title
-        or f"{result.map_id}: {len(result.tag_ids)} tags, {result.world_T_phone.shape[0]} poses"
+        or f"{result.map_id}: {len(result.tag_ids)} tags, {result.world_T_phone.shape[0]} poses",
+        parse_math=False,  # the map's name is the user's: drawn as written
     )
-    figure.tight_layout()
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110)
+    with warnings.catch_warnings():  # a name in a script the font lacks: boxes, not a failure
+        warnings.filterwarnings(
+            "ignore", message=r"Glyph \d+ .* missing from font", category=UserWarning
+        )
+        figure.tight_layout()
+        figure.savefig(buffer, format="png", dpi=110)
     plt.close(figure)
     png = buffer.getvalue()
     if path is not None:

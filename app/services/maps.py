@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.domain.errors import ParameterError
@@ -19,6 +20,7 @@ from app.storage import images, maps, queue, sessions
 from app.storage.images import MapImage, StoredImage
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.navigation import path_graph_document
+from app.storage.orm import MapRow
 from app.storage.sessions import BUILD_MAP, SESSION_IDS
 
 
@@ -32,7 +34,11 @@ def enqueue_rebuild(
 ) -> tuple[MapInfo, int]:
     """Queue a build of map ``map_id`` with ``overrides`` (already checked, see
     :func:`checked_overrides`) from its sessions, or from ``session_ids`` (an older version's,
-    to make it again); returns the map and the job's id. Raises MapNotFound."""
+    to make it again); returns the map and the job's id. Raises MapNotFound, also when a delete
+    of the map commits meanwhile: the map row is share-locked first (PostgreSQL ``FOR KEY
+    SHARE``), so a delete waits for this transaction, or this one for the delete and then finds
+    no map (never a job referring to a deleted map)."""
+    lock_map(db_session, map_id)
     info = maps.get_map(db_session, map_id)
     ids = list(session_ids or info.session_ids)
     params = dict(overrides)
@@ -129,6 +135,20 @@ def merge_maps(
     return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
 
 
+def lock_map(db_session: Session, map_id: int) -> None:
+    """Share-lock map ``map_id``'s row to the end of the transaction so that it goes on existing
+    (PostgreSQL ``FOR KEY SHARE``: a delete waits; SQLite's writers run one at a time anyway).
+    No row, no lock: the caller's read then says MapNotFound."""
+    db_session.execute(
+        select(MapRow.id).where(MapRow.id == map_id).with_for_update(read=True, key_share=True)
+    )
+
+
+#: The most Levenberg–Marquardt iterations a rebuild may ask for (the default is 100; each one
+#: costs a linear solve of the whole graph).
+MAX_ITERATIONS = 10_000
+
+
 def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), or a 422
     naming the first bad parameter."""
@@ -142,6 +162,12 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
         params = defaults.with_overrides(overrides).to_dict()
     except ParameterError as err:
         raise InvalidInput("invalid_parameter", str(err), field="params") from err
+    if params["max_iterations"] > MAX_ITERATIONS:
+        raise InvalidInput(
+            "invalid_parameter",
+            f"max_iterations must be at most {MAX_ITERATIONS}, got {params['max_iterations']:.3g}",
+            field="params.max_iterations",
+        )
     return {name: params[name] for name in overrides}
 
 
@@ -168,7 +194,10 @@ def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
     """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel)."""
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The delete
+    locks the map row, so a rebuild racing it waits for it (:func:`enqueue_rebuild`). (Jobs are
+    updated before the map is locked: a worker storing a version updates its job first, then
+    locks the map, and the other order would deadlock with it.)"""
     queue.cancel_unfinished_for_map(db_session, map_id)
     maps.delete_map(db_session, map_id)
 

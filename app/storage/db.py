@@ -10,25 +10,71 @@ the file is in WAL mode so readers never wait for a writer. On PostgreSQL both a
 from __future__ import annotations
 
 import enum
+import os
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Engine, create_engine, event, make_url, text
 from sqlalchemy import exc as sqlalchemy_exc
 from sqlalchemy.orm import Session, sessionmaker
+
+if TYPE_CHECKING:
+    from app.config import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 #: ``Session.info`` key of the sessions :meth:`Database.transaction` made (they may write).
 WRITES = "invisible_map_writes"
 
 
-class Database:
-    """The engines for one database URL; create one per process (after any fork)."""
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ServerTimeouts:
+    """PostgreSQL's limits on a server process's connections (``Settings.db_timeouts``; SQLite
+    has its busy timeout, :data:`SQLITE_BUSY_TIMEOUT_MS`). A limit that runs out is a database
+    fault (503 ``database_unavailable`` to a request, a wait-and-retry to a worker).
 
-    def __init__(self, url: str, *, echo: bool = False) -> None:
+    lock_s: the longest a statement waits for a lock (a row another transaction holds).
+    statement_s: the longest a statement runs.
+    idle_in_transaction_s: a session idle this long inside a transaction (its process stalled,
+        e.g. stopped with SIGSTOP) is ended by the server, and its locks with it.
+    """
+
+    lock_s: float
+    statement_s: float
+    idle_in_transaction_s: float
+
+    @classmethod
+    def of(cls, settings: Settings) -> ServerTimeouts:
+        """``INVISIBLE_MAP_DB_LOCK_TIMEOUT_S`` and the others."""
+        return cls(
+            lock_s=settings.db_lock_timeout_s,
+            statement_s=settings.db_statement_timeout_s,
+            idle_in_transaction_s=settings.db_idle_in_transaction_timeout_s,
+        )
+
+    def options(self) -> str:
+        """libpq's ``options``: ``-c lock_timeout=5000 …`` (ms)."""
+        return " ".join(
+            f"-c {name}={round(seconds * 1000)}"
+            for name, seconds in (
+                ("lock_timeout", self.lock_s),
+                ("statement_timeout", self.statement_s),
+                ("idle_in_transaction_session_timeout", self.idle_in_transaction_s),
+            )
+        )
+
+
+class Database:
+    """The engines for one database URL; create one per process (after any fork).
+    ``timeouts``: :class:`ServerTimeouts` for PostgreSQL's sessions (the API and the workers pass
+    them; the CLI's commands, such as ``migrate`` and ``export``, run without)."""
+
+    def __init__(
+        self, url: str, *, echo: bool = False, timeouts: ServerTimeouts | None = None
+    ) -> None:
         self.url = make_url(url)
         self.is_sqlite = self.url.get_backend_name() == "sqlite"
         if self.is_sqlite:
@@ -36,8 +82,14 @@ class Database:
             self.engine = _sqlite_engine(url, echo=echo, begin="BEGIN IMMEDIATE")
             self.read_engine = _sqlite_engine(url, echo=echo, begin="BEGIN")
         else:
+            connect_args = {} if timeouts is None else {"options": timeouts.options()}
             self.engine = create_engine(
-                url, echo=echo, pool_pre_ping=True, pool_size=10, max_overflow=20
+                url,
+                echo=echo,
+                pool_pre_ping=True,
+                pool_size=10,
+                max_overflow=20,
+                connect_args=connect_args,
             )
             self.read_engine = self.engine
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
@@ -151,8 +203,27 @@ def first_line(err: BaseException) -> str:
 
 
 def _ensure_sqlite_folder(database: str | None) -> None:
+    """Make the SQLite file's folder, and the file itself readable by its owner only (0600:
+    it holds every upload and the keys' digests; SQLite gives its ``-wal`` and ``-shm`` files
+    the database file's mode). An existing file of ours that others may read is made 0600."""
     if database and database != ":memory:" and not database.startswith("file:"):
-        Path(database).expanduser().resolve().parent.mkdir(parents=True, exist_ok=True)
+        path = Path(database).expanduser().resolve()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o600))
+            for file in (
+                path,
+                path.with_name(path.name + "-wal"),
+                path.with_name(path.name + "-shm"),
+            ):
+                if (
+                    file.exists()
+                    and file.stat().st_mode & 0o077
+                    and file.stat().st_uid == os.getuid()
+                ):
+                    file.chmod(0o600)
+        except OSError:
+            pass  # a read-only folder or file: opening it says so, naming the file
 
 
 def _sqlite_engine(url: str, *, echo: bool, begin: str) -> Engine:

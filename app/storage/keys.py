@@ -11,10 +11,10 @@ import secrets
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from app.storage.orm import ApiKey, Role, utc_now
+from app.storage.orm import AdminLogin, ApiKey, Role, utc_now
 from app.storage.rows import info_from_row
 
 KEY_SCHEME = "im"
@@ -132,12 +132,14 @@ def list_keys(db_session: Session) -> list[KeyInfo]:
 
 
 def revoke_key(db_session: Session, key_id: int, *, now: datetime | None = None) -> KeyInfo:
-    """Revoke a key (idempotent: revoking a revoked key keeps its first revocation time)."""
+    """Revoke a key (idempotent: revoking a revoked key keeps its first revocation time) and end
+    the dashboard logins it opened."""
     row = db_session.get(ApiKey, key_id)
     if row is None:
         raise KeyNotFound(key_id)
     if row.revoked_at is None:
         row.revoked_at = now or utc_now()
+    db_session.execute(delete(AdminLogin).where(AdminLogin.key_id == key_id))
     db_session.flush()
     return KeyInfo.from_row(row)
 

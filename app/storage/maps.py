@@ -259,7 +259,11 @@ def store_version(
 ) -> VersionInfo:
     """Add the next version of ``map_id`` in the caller's transaction; ``path_graph`` is
     ``app.domain.path_graph.path_graph_to_json`` of it. ``session_ids``: the sessions it was made
-    from, in order; ``sessions``: what each contributed (``statistics["sessions"]``)."""
+    from, in order; ``sessions``: what each contributed (``statistics["sessions"]``). Two builds
+    of one map storing at once take their numbers in turn (the map row's lock, held to the
+    commit; PostgreSQL's ``FOR NO KEY UPDATE`` does not hold back uploads or rebuilds that refer
+    to the map)."""
+    db_session.execute(select(MapRow.id).where(MapRow.id == map_id).with_for_update(key_share=True))
     number = 1 + (
         db_session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id))
         or 0

@@ -1,11 +1,11 @@
 """SQLAlchemy 2 models. Alembic migrations in ``migrations/`` create these tables (never
 ``create_all``); ``tests/migrations`` checks that the two agree.
 
-Tables (singular, snake_case): ``api_key``, ``session`` with its ``session_upload`` (the raw
-upload, gzip-compressed, written once), ``map``, ``map_version`` with one ``map_tag`` row per tag,
-``job`` (the queue) and ``worker`` (who is alive and what it runs), ``localization``, and
-``sweep`` with one ``sweep_trial`` row per finished trial, and ``session_image`` (the app's
-picture of a session's map).
+Tables (singular, snake_case): ``api_key`` with its dashboard logins (``admin_login``),
+``session`` with its ``session_upload`` (the raw upload, gzip-compressed, written once), ``map``,
+``map_version`` with one ``map_tag`` row per tag, ``job`` (the queue) and ``worker`` (who is alive
+and what it runs), ``localization``, ``sweep`` with one ``sweep_trial`` row per finished trial,
+and ``session_image`` (the app's picture of a session's map).
 """
 
 from __future__ import annotations
@@ -137,6 +137,24 @@ class ApiKey(Base):
     expires_at: Mapped[datetime | None]
     revoked_at: Mapped[datetime | None]
     last_used_at: Mapped[datetime | None]
+
+
+class AdminLogin(Base):
+    """A login to the admin dashboard (``app.admin.auth``), kept on the server so that logging
+    out, revoking the key that opened it, or "end all dashboard sessions" ends it for good (a
+    copied cookie is worth nothing once its row is gone). Only a SHA-256 of the login's token is
+    stored; the cookie carries the token. ``key_id`` is null for ``INVISIBLE_MAP_ADMIN_KEY``."""
+
+    __tablename__ = "admin_login"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    token_sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    key_id: Mapped[int | None] = mapped_column(
+        ForeignKey("api_key.id", ondelete="CASCADE"), index=True
+    )
+    subject: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    expires_at: Mapped[datetime]
 
 
 class SessionRow(Base):

@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, Update, and_, func, select, update
+from sqlalchemy import ColumnElement, Update, and_, delete, func, select, update
 from sqlalchemy.orm import Session
 
 from app.storage.db import Database
-from app.storage.orm import TERMINAL_STATES, Job, JobState, WorkerRow, utc_now
+from app.storage.orm import TERMINAL_STATES, Job, JobState, SessionRow, WorkerRow, utc_now
 from app.storage.rows import info_from_row
 
 #: How many lines of a job's log are kept on its row.
@@ -271,17 +271,53 @@ def claim(
     kinds: tuple[str, ...] | None = None,
     now: datetime | None = None,
 ) -> Lease | None:
-    """Take the next runnable job (highest priority, then oldest), or None if there is none."""
+    """Take the next runnable job, or None if there is none: the highest priority first, then
+    in turns across uploaders, then the oldest.
+
+    Turns: a waiting job's turn is its place among its uploader's waiting jobs (1 for the oldest)
+    plus how many of that uploader's jobs were started since the oldest waiting job was queued.
+    So a key that was just served waits for the others' next job, and one key's hundred queued
+    uploads do not make another key's one wait behind them (sweeps' trials count as their
+    session's uploader's). Computed per claim over the waiting jobs and the jobs started since
+    the oldest waiting one: a scan of the queue, not of the job table's history."""
     now = now or utc_now()
+    uploader = func.coalesce(SessionRow.uploaded_by, "")
+    queued = and_(Job.state == JobState.QUEUED.value, Job.run_after <= now)
+    if kinds is not None:
+        queued = and_(queued, Job.kind.in_(kinds))
+    waiting = (
+        select(
+            Job.id.label("id"),
+            uploader.label("uploader"),
+            func.row_number()
+            .over(partition_by=uploader, order_by=(Job.priority.desc(), Job.id))
+            .label("place"),
+        )
+        .select_from(Job)
+        .outerjoin(SessionRow, SessionRow.id == Job.session_id)
+        .where(queued)
+        .subquery()
+    )
+    oldest_waiting = (
+        select(func.min(Job.created_at)).where(Job.state == JobState.QUEUED.value).scalar_subquery()
+    )
+    served = (
+        select(uploader.label("uploader"), func.count().label("jobs"))
+        .select_from(Job)
+        .outerjoin(SessionRow, SessionRow.id == Job.session_id)
+        .where(Job.started_at >= oldest_waiting)
+        .group_by(uploader)
+        .subquery()
+    )
+    turn = waiting.c.place + func.coalesce(served.c.jobs, 0)
     candidate = (
         select(Job.id)
-        .where(Job.state == JobState.QUEUED.value, Job.run_after <= now)
-        .order_by(Job.priority.desc(), Job.id)
+        .join(waiting, waiting.c.id == Job.id)
+        .outerjoin(served, served.c.uploader == waiting.c.uploader)
+        .order_by(Job.priority.desc(), turn, Job.id)
         .limit(1)
-        .with_for_update(skip_locked=True)
+        .with_for_update(skip_locked=True, of=Job)
     )
-    if kinds is not None:
-        candidate = candidate.where(Job.kind.in_(kinds))
     statement = (
         update(Job)
         .where(Job.id == candidate.scalar_subquery(), Job.state == JobState.QUEUED.value)
@@ -507,6 +543,31 @@ def reap_expired(db: Database, *, backoff_s: float, now: datetime | None = None)
             row.lease_expires_at = None
             row.updated_at = now
     return len(rows)
+
+
+def expire_leases_of_dead_process(
+    db: Database, *, hostname: str, pid: int, now: datetime | None = None
+) -> int:
+    """End now the leases of worker process ``pid`` on ``hostname``, which its supervisor saw die
+    (and reaped), and remove its worker row: the reaper then requeues its job at once instead of
+    when the lease would have run out. Returns how many leases ended. (Worker ids are
+    ``{hostname[:60]}:{pid}:{8 hex}``; call it before a new process can have that pid.)"""
+    now = now or utc_now()
+    owner = f"{hostname[:60]}:{pid}:"
+    with db.transaction() as db_session:
+        ended = _rowcount(
+            db_session,
+            update(Job)
+            .where(
+                Job.state == JobState.RUNNING.value,
+                Job.lease_owner.startswith(owner, autoescape=True),
+            )
+            .values(lease_expires_at=now, updated_at=now),
+        )
+        db_session.execute(
+            delete(WorkerRow).where(WorkerRow.hostname == hostname, WorkerRow.pid == pid)
+        )
+    return ended
 
 
 # --------------------------------------------------------------------------- workers

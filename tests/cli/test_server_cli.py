@@ -625,6 +625,38 @@ def test_worker_runs_a_queued_job_and_stops_on_sigterm(db: Database, tmp_path: P
     assert "Traceback" not in log_path.read_text()
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize(("trusted", "seen"), [("", "127.0.0.1"), ("127.0.0.1", "203.0.113.7")])
+def test_serve_believes_forwarded_headers_only_from_configured_proxies(
+    tmp_path: Path, trusted: str, seen: str
+) -> None:
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    env = {
+        "INVISIBLE_MAP_DATA_DIR": str(tmp_path / "var"),
+        "INVISIBLE_MAP_TRUSTED_PROXIES": trusted,
+    }
+    log = tmp_path / "serve.log"
+    with ServerProcess(url, workers=0, env=env, log_path=log) as server:
+        answer = httpx.get(server.url + "/healthz", headers={"X-Forwarded-For": "203.0.113.7"})
+        assert answer.status_code == 200
+        # a key in the query string is refused, and never written to the access log
+        leaked = httpx.get(server.url + "/v1/info?api_key=im_0a1b2c3d_query-secret")
+        assert leaked.status_code == 401
+        server.stop()
+    text = log.read_text()
+    lines = [line for line in text.splitlines() if "GET /healthz" in line]
+    assert lines, text
+    assert all(f"{seen}:" in line for line in lines), lines
+    assert "query-secret" not in text
+    assert "GET /v1/info?api_key=*** " in text
+
+
+def test_a_trusted_proxy_must_be_an_address(env: pytest.MonkeyPatch, run_main: RunMain) -> None:
+    env.setenv("INVISIBLE_MAP_TRUSTED_PROXIES", "127.0.0.1, proxy.example")
+    status, _, err = run_main("serve", "--port", "1")
+    assert_one_line_error(status, err, "'proxy.example' is no IP address or network")
+
+
 def test_the_listening_socket_gives_connections_tcp_nodelay() -> None:
     """serve's own socket must be IPPROTO_TCP: asyncio turns on TCP_NODELAY only for such
     sockets, and without it every answer waited ~40 ms for a delayed ACK (bench/http.py)."""

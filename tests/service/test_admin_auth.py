@@ -19,7 +19,7 @@ from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
-from app.admin.auth import LOGIN_ATTEMPTS, LOGIN_COOKIE
+from app.admin.auth import LOGIN_ATTEMPTS, LOGIN_COOKIE, LoginThrottle
 from app.admin.router import router as admin_router
 from app.admin.signing import SECRET_FILE_NAME, Signer
 from app.admin.templating import SECURITY_HEADERS
@@ -201,13 +201,39 @@ def test_the_login_form_without_its_token_is_refused(api: Api) -> None:
     assert "security token" in response.text
 
 
-def test_login_attempts_are_limited_per_address(api: Api) -> None:
+def test_failed_logins_are_limited_per_key_tried(api: Api) -> None:
     for _ in range(LOGIN_ATTEMPTS):
-        assert log_in(api.client, "im_wrong_key").status_code == 401
-    refused = log_in(api.client)  # even the right key, until the minute is over
+        assert log_in(api.client, "im_0badc0de_wrong").status_code == 401
+    refused = log_in(api.client, "im_0badc0de_another-guess")  # the same key's prefix
     assert refused.status_code == 429
     assert int(refused.headers["retry-after"]) >= 1
-    assert "Too many login attempts" in refused.text
+    assert "Too many failed logins" in refused.text
+    # another key is not held back by the guesses at this one: the admin still logs in
+    assert log_in(api.client).status_code == 303
+
+
+def test_failed_logins_are_limited_in_all(api: Api) -> None:
+    assert api.client.get("/admin/login").status_code == 200  # the dashboard's state is made
+    api.app.state.admin.throttle = LoginThrottle(per_key=3, overall=5)
+    for k in range(5):  # a different key each time: no key's budget is spent
+        assert log_in(api.client, f"im_{k:08x}_wrong").status_code == 401
+    refused = log_in(api.client)  # even the right key, until the window is over
+    assert refused.status_code == 429
+    assert int(refused.headers["retry-after"]) >= 1
+
+
+def test_forwarded_headers_change_nothing_of_the_throttle(api: Api) -> None:
+    for k in range(LOGIN_ATTEMPTS + 5):
+        forwarded = {"X-Forwarded-For": f"203.0.113.{k}"}
+        form = api.client.get("/admin/login")
+        token = re.search(r'name="form_token" value="([^"]+)"', form.text)
+        assert token is not None
+        answer = api.client.post(
+            "/admin/login",
+            data={"form_token": token.group(1), "key": "im_0badc0de_wrong", "next": "/admin"},
+            headers=forwarded,
+        )
+        assert answer.status_code == (401 if k < LOGIN_ATTEMPTS else 429)
 
 
 # --------------------------------------------------------------------------- while logged in

@@ -1,5 +1,5 @@
 """``/admin/keys``: API keys — create (the secret shown once, on the answer to the form), list,
-revoke. Revoking the key you are logged in with ends your dashboard login."""
+revoke; end every dashboard login. Revoking a key ends the dashboard logins it opened."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from app.api.deps import DbDep, valid_id
 from app.api.schemas.keys import KeyCreate
 from app.services.errors import InvalidInput, ServiceError
 from app.services.keys import create_checked_key
-from app.storage import keys
+from app.storage import admin_logins, keys
 from app.storage.orm import Role
 
 router = admin_router()
@@ -32,6 +32,7 @@ def _keys_page(
 ) -> Response:
     with db.read() as db_session:
         infos = keys.list_keys(db_session)
+        open_logins = admin_logins.count_logins(db_session)
     now = datetime.now(UTC)
     return render(
         request,
@@ -40,6 +41,7 @@ def _keys_page(
         section="keys",
         title="API keys",
         keys=infos,
+        open_logins=open_logins,
         now=now,
         roles=list(Role),
         created=created,

@@ -1,9 +1,12 @@
-"""``/admin/login`` and ``/admin/logout``.
+"""``/admin/login``, ``/admin/logout`` and ``/admin/logins/end-all``.
 
 A login takes an admin API key. The answers: a device key 403 ("a device key cannot log in"), an
-unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` attempts a
-minute from one address 429 with ``Retry-After``, a form without its CSRF token 403. Success sets
-the login cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` failures a
+minute with one key (or :data:`~app.admin.auth.LOGIN_ATTEMPTS_OVERALL` with any) 429 with
+``Retry-After``, a form without its CSRF token 403. Success stores
+the login and sets its cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+Logging out ends the login on the server; ``/admin/logins/end-all`` (on the API keys page) ends
+every login.
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ from app.admin.auth import (
     AdminStateDep,
     CheckedFormDep,
     PostedFormDep,
-    client_address,
     end_login,
     login_form_token,
     login_form_token_ok,
@@ -27,7 +29,7 @@ from app.admin.auth import (
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, KeyUsage, SettingsDep
-from app.storage import keys
+from app.storage import admin_logins, keys
 
 router = admin_router()
 
@@ -68,17 +70,6 @@ def login_form(
 def log_in(
     request: Request, state: AdminStateDep, settings: SettingsDep, db: DbDep, form: PostedFormDep
 ) -> Response:
-    wait_s = state.throttle.retry_after_s(client_address(request))
-    if wait_s is not None:
-        response = _login_page(
-            request,
-            state,
-            next_url="/admin",
-            error=f"Too many login attempts from your address. Wait {wait_s} s and try again.",
-            status_code=429,
-        )
-        response.headers["Retry-After"] = str(wait_s)
-        return response
     next_url = str(form.get("next") or "/admin")
     if not login_form_token_ok(request, state, form.get("form_token")):
         return _login_page(
@@ -93,8 +84,22 @@ def log_in(
         return _login_page(
             request, state, next_url=next_url, error="Enter an admin API key.", status_code=422
         )
+    wait_s = state.throttle.retry_after_s(key)
+    if wait_s is not None:
+        response = _login_page(
+            request,
+            state,
+            next_url=next_url,
+            error=f"Too many failed logins with this key, or with any key. Wait {wait_s} s and "
+            "try again.",
+            status_code=429,
+        )
+        response.headers["Retry-After"] = str(wait_s)
+        return response
     with db.read() as db_session:
         principal = keys.authenticate(db_session, key, admin_key=settings.admin_key)
+    if principal is None or not principal.is_admin:
+        state.throttle.failed(key)
     if principal is None:
         return _login_page(
             request,
@@ -117,12 +122,25 @@ def log_in(
             with db.transaction() as db_session:
                 keys.touch(db_session, principal.key_id)
     response = redirect(request, safe_next(next_url), flash="You are logged in.")
-    start_login(response, request, state, principal, key)
+    start_login(response, request, state, db, principal, key)
     return response
 
 
 @router.post("/logout")
-def log_out(request: Request, _form: CheckedFormDep) -> Response:
+def log_out(request: Request, state: AdminStateDep, db: DbDep, _form: CheckedFormDep) -> Response:
     response = redirect(request, "/admin/login", flash="You are logged out.")
-    end_login(response)
+    end_login(response, request, state, db)
     return response
+
+
+@router.post("/logins/end-all")
+def end_all_logins(request: Request, db: DbDep, _form: CheckedFormDep) -> Response:
+    """End every dashboard login, this one included (a cookie someone copied, a shared
+    computer, …)."""
+    with db.transaction() as db_session:
+        ended = admin_logins.end_all_logins(db_session)
+    return redirect(
+        request,
+        "/admin/login",
+        flash=f"Every dashboard session is ended ({ended}), yours too. Log in again.",
+    )

@@ -5,7 +5,8 @@
 //   data-job-state, or data-sweep-id and data-sweep-state) are announced in #live-announcer, a
 //   polite live region, for screen-reader users.
 // - <script type="application/json" id="map-figure"> holds a map's plot data (see
-//   app/admin/map_figure.py); each .plot element draws one floor of it with plotly.js.
+//   app/admin/map_figure.py); each .plot element draws one floor of it with plotly.js, every
+//   user string escaped (plotlyLiteral).
 // - A form with data-confirm="…" asks before it is submitted.
 // - On the route tester, clicking the map sets the From or To list.
 "use strict";
@@ -106,6 +107,13 @@
   // one colour per session of a map of several (distinct for common colour blindness)
   const SESSION_COLOURS = ["#0b4fa8", "#e69f00", "#009e73", "#cc79a7", "#56b4e9", "#8c564b"];
 
+  // plotly.js reads the text it draws as markup (<a href>, <span style>, <br>, <b>, …; it
+  // decodes &lt; &gt; &amp;): every string from a user (a point of interest's name, …) goes
+  // through this, so that it is drawn as written and never becomes a link or styled text.
+  function plotlyLiteral(text) {
+    return String(text).replace(/&/g, "&amp;").replace(/</g, "&lt;").replace(/>/g, "&gt;");
+  }
+
   function lineTrace(line, name, colour, extra) {
     return Object.assign({
       type: "scatter", mode: "lines", name: name, x: line.x, y: line.z,
@@ -130,7 +138,7 @@
     traces.push({
       type: "scatter", mode: "markers+text", name: "Tags",
       x: floor.tags.map((t) => t.x), y: floor.tags.map((t) => t.z),
-      text: floor.tags.map((t) => String(t.id)), textposition: "top right",
+      text: floor.tags.map((t) => plotlyLiteral(t.id)), textposition: "top right",
       customdata: floor.tags.map((t) => "tag:" + t.id),
       hovertext: floor.tags.map((t) => `Tag ${t.id}: ${t.detections} detections`),
       hoverinfo: "text",
@@ -140,7 +148,7 @@
       traces.push({
         type: "scatter", mode: "markers+text", name: "Points of interest",
         x: floor.pois.map((p) => p.x), y: floor.pois.map((p) => p.z),
-        text: floor.pois.map((p) => p.name), textposition: "bottom right",
+        text: floor.pois.map((p) => plotlyLiteral(p.name)), textposition: "bottom right",
         customdata: floor.pois.map((p) => "poi:" + p.name),
         hoverinfo: "text",
         marker: { symbol: "star", size: 13, color: COLOURS.pois },

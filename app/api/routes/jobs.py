@@ -13,7 +13,14 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from app.api.deps import AdminPrincipal, JobDep, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.api.deps import (
+    AdminPrincipal,
+    CurrentPrincipal,
+    JobDep,
+    ReadDbSessionDep,
+    WriteDbSessionDep,
+    valid_id,
+)
 from app.api.errors import error_responses
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.jobs import JobPublic, JobsPublic
@@ -55,8 +62,8 @@ def list_jobs(
     "attempts, error, timings and log tail. A device key may read the jobs of its own uploads.",
     responses=error_responses(401, 404, 422),
 )
-def get_job(job: JobDep) -> JobPublic:
-    return JobPublic.from_domain(job)
+def get_job(job: JobDep, principal: CurrentPrincipal) -> JobPublic:
+    return JobPublic.from_domain(job, full_error=principal.is_admin)
 
 
 @router.post(

@@ -30,6 +30,7 @@ def create_key(
         db_session, name=new.name, role=new.role, expires_at=new.expires_at
     )
     response.headers["Location"] = f"/v1/keys/{info.id}"
+    response.headers["Cache-Control"] = "no-store"  # the answer carries the secret
     return KeyCreated(**KeyPublic.model_validate(info).model_dump(), key=secret)
 
 

@@ -25,9 +25,10 @@ from app.api.deps import (
     SessionDep,
     SettingsDep,
     UploadBodyDep,
+    UploadRateDep,
     admin_principal,
 )
-from app.api.errors import error_responses
+from app.api.errors import ApiError, error_responses, unauthorized
 from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
@@ -36,7 +37,8 @@ from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
 from app.domain.session import decode_json_bytes, parse_session
 from app.services.maps import image_url, merge_maps, store_session_image
-from app.storage import maps, sessions
+from app.services.uploads import check_pose_count, check_storable
+from app.storage import keys, maps, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
@@ -155,6 +157,7 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
         413,
         415,
         422,
+        429,
         examples={
             409: (
                 "idempotency_conflict",
@@ -167,6 +170,7 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
 def upload_session(
     principal: CurrentPrincipal,
     body: UploadBodyDep,
+    rate: UploadRateDep,
     db: DbDep,
     settings: SettingsDep,
     response: Response,
@@ -194,12 +198,27 @@ def upload_session(
 ) -> SessionCreated:
     if into_map is not None:
         admin_principal(principal)  # 403 for a device key
+    if not principal.is_admin and auto_tune_trials > settings.device_max_auto_tune_trials:
+        raise ApiError(
+            422,
+            "validation_error",
+            f"auto_tune_trials: a device key may ask for at most "
+            f"{settings.device_max_auto_tune_trials} trials (an admin key up to 1000), got "
+            f"{auto_tune_trials}",
+            field="auto_tune_trials",
+        )
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
     result = _replayed(db, principal, idempotency_key, upload.sha256)
     if result is None:
-        parsed = _parse(upload.json_bytes)
+        parsed = _parse(upload.json_bytes, max_poses=settings.max_poses)
         # The write transaction starts only now: parsing never holds SQLite's write lock.
         with db.transaction() as db_session:
+            # the key may have been revoked while the body arrived: check it again, in the
+            # transaction that stores
+            if principal.key_id is not None and not keys.active_principal(
+                db_session, principal.key_id
+            ):
+                raise unauthorized("API key revoked or expired while uploading")
             result = sessions.create_session(
                 db_session,
                 parsed=parsed,
@@ -220,6 +239,8 @@ def upload_session(
                     job_id=job_id,
                     shares_tags_with=tuple(t for t in result.shares_tags_with if t[0] != info.id),
                 )
+        if not result.replayed:
+            rate.accepted(principal.subject)
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:
         response.headers["Idempotent-Replayed"] = "true"
@@ -238,13 +259,16 @@ def _replayed(
         return None if earlier is None else sessions.replay_upload(db_session, earlier, sha256)
 
 
-def _parse(json_bytes: bytes) -> ParsedSession:
+def _parse(json_bytes: bytes, *, max_poses: int) -> ParsedSession:
     """The validated session; SessionFormatError (422, naming the field) otherwise."""
-    parsed = parse_session(decode_json_bytes(json_bytes))
+    document = decode_json_bytes(json_bytes)
+    check_pose_count(document, max_poses)
+    parsed = parse_session(document)
     if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
         raise SessionFormatError(
             "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
         )
+    check_storable(parsed)
     return parsed
 
 

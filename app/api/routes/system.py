@@ -9,8 +9,8 @@ from sqlalchemy.exc import SQLAlchemyError
 from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, SettingsDep
 from app.api.errors import ApiError, error_responses
 from app.api.route_class import SessionEndingRoute
-from app.api.schemas.system import Health, Info, Ready, WorkerPublic
-from app.services.system import ALIVE_HEARTBEATS, package_version
+from app.api.schemas.system import Health, Info, Ready, WorkerProcesses, WorkerPublic
+from app.services.system import ALIVE_HEARTBEATS, WorkerPool, no_worker_alive, package_version
 from app.storage import migrate, queue
 from app.storage.orm import JobState
 
@@ -25,7 +25,8 @@ async def healthz() -> Health:
 @router.get(
     "/readyz",
     summary="Readiness",
-    description="200 when the database answers and its schema is at the newest migration; 503 "
+    description="200 when the database answers, its schema is at the newest migration and (when "
+    "this server runs worker processes, `serve --workers N`) at least one of them is alive; 503 "
     "with the reason otherwise (no key needed).",
     responses=error_responses(503, examples={503: ("not_ready", "database schema is not "
                                                    "migrated: at None, the code needs 0001")}),
@@ -44,6 +45,9 @@ def readyz(request: Request, db: DbDep) -> Ready:
             f"database schema is not migrated: at {revision}, the code needs {head} "
             "(run: invisible-map migrate)",
         )
+    no_worker = no_worker_alive(request.app.state.worker_pool)
+    if no_worker is not None:
+        raise ApiError(503, "no_worker", no_worker)
     return Ready(database=db.backend, schema_revision=revision)
 
 
@@ -55,15 +59,25 @@ def readyz(request: Request, db: DbDep) -> Ready:
     responses=error_responses(401),
 )
 def info(
-    principal: CurrentPrincipal, db_session: ReadDbSessionDep, db: DbDep, settings: SettingsDep
+    request: Request,
+    principal: CurrentPrincipal,
+    db_session: ReadDbSessionDep,
+    db: DbDep,
+    settings: SettingsDep,
 ) -> Info:
     counts = queue.count_by_state(db_session)
     workers = queue.alive_workers(db_session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s)
+    pool: WorkerPool | None = request.app.state.worker_pool
+    no_worker = no_worker_alive(pool)
     return Info(
         version=package_version(),
         database=db.backend,
         queue_depth=counts.get(JobState.QUEUED.value, 0),
         jobs_by_state=counts,
         workers=[WorkerPublic.model_validate(worker) for worker in workers],
+        worker_processes=None
+        if pool is None
+        else WorkerProcesses(configured=pool.configured, alive=pool.alive, restarts=pool.restarts),
+        warnings=[] if no_worker is None else [no_worker],
         principal={"subject": principal.subject, "role": principal.role.value},
     )

@@ -8,6 +8,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
+from app.services.jobs import public_job_error
 from app.storage.orm import JobState
 from app.storage.queue import JobInfo
 
@@ -48,7 +49,10 @@ class JobPublic(BaseModel):
     stage: str | None = Field(description="the stage running now (parse, optimize, store, …)")
     attempts: int
     max_attempts: int
-    error: str | None
+    error: str | None = Field(
+        description="why the last attempt failed; with a device key only what the upload or "
+        "the parameters can change (anything else is an internal error, detailed to admins)"
+    )
     log_tail: str = Field(description="the last lines of the job's log, timestamped, UTC")
     cancel_requested: bool
     map_id: int | None
@@ -65,7 +69,10 @@ class JobPublic(BaseModel):
     )
 
     @classmethod
-    def from_domain(cls, job: JobInfo, *, now: datetime | None = None) -> JobPublic:
+    def from_domain(
+        cls, job: JobInfo, *, now: datetime | None = None, full_error: bool = True
+    ) -> JobPublic:
+        """The job; ``full_error=False`` (a device's view) gives :func:`public_job_error`."""
         if job.started_at is None:
             duration_s = None
         else:
@@ -79,7 +86,7 @@ class JobPublic(BaseModel):
             stage=job.stage,
             attempts=job.attempts,
             max_attempts=job.max_attempts,
-            error=job.error,
+            error=job.error if full_error else public_job_error(job.error),
             log_tail=job.log_tail,
             cancel_requested=job.cancel_requested,
             map_id=job.map_id,

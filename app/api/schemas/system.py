@@ -57,6 +57,16 @@ class WorkerPublic(BaseModel):
     heartbeat_at: datetime
 
 
+class WorkerProcesses(BaseModel):
+    """The worker processes ``serve`` supervises (embedded mode): it restarts any that dies."""
+
+    model_config = examples({"configured": 1, "alive": 1, "restarts": 0})
+
+    configured: int = Field(description="how many it keeps (`--workers`)")
+    alive: int = Field(description="how many are alive now")
+    restarts: int = Field(description="how many were started in place of one that died")
+
+
 class Info(BaseModel):
     """The server: its version, database, queue and workers."""
 
@@ -73,6 +83,8 @@ class Info(BaseModel):
                 "canceled": 1,
             },
             "workers": [_WORKER_EXAMPLE],
+            "worker_processes": {"configured": 1, "alive": 1, "restarts": 0},
+            "warnings": [],
             "principal": {"subject": "key:3", "role": "device"},
         }
     )
@@ -82,4 +94,14 @@ class Info(BaseModel):
     queue_depth: int = Field(description="jobs waiting (queued)")
     jobs_by_state: dict[str, int]
     workers: list[WorkerPublic] = Field(description="workers alive (heartbeat in 3 × heartbeat_s)")
+    worker_processes: WorkerProcesses | None = Field(
+        default=None,
+        description="the worker processes this server supervises (`serve --workers N`); null "
+        "when it supervises none (`--workers 0`: workers run elsewhere)",
+    )
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="what keeps the server from doing its work now, e.g. that none of its "
+        "worker processes is alive (uploads are then queued, no map is built)",
+    )
     principal: dict[str, str] = Field(description="who the presented key stands for")

@@ -1,0 +1,71 @@
+"""What an upload must be, beyond what the parser checks, for it to be stored and built: checked
+at the door (``POST /v1/sessions``), so that a session accepted with 202 can always be stored
+and rendered, and a bad one is a 422 naming the field instead of a 500 or a build that fails.
+
+    check_pose_count(document, max_poses)   # before parsing (INVISIBLE_MAP_MAX_POSES)
+    check_storable(parsed)                  # after it
+    # each: SessionFormatError (422 invalid_session, naming the field)
+
+- text (``map_id``, the points of interest's names) must be encodable as UTF-8 (no lone surrogate
+  such as ``"\\ud800"``, which JSON allows) and hold no NUL (PostgreSQL's text cannot);
+- tag ids must fit the database's 32-bit integer column (``map_tag.tag_id``);
+- the session's duration and path length must be finite numbers (timestamps of ±1e308 make
+  their difference infinite, which JSON cannot carry back).
+"""
+
+from __future__ import annotations
+
+import math
+
+from app.domain.errors import SessionFormatError
+from app.domain.session import Session as ParsedSession
+
+#: The largest tag id the database stores (``map_tag.tag_id`` is a 32-bit integer).
+MAX_TAG_ID = 2**31 - 1
+
+
+def check_pose_count(document: object, max_poses: int) -> None:
+    """SessionFormatError (``pose_data``) if the decoded upload has more than ``max_poses``
+    poses (``INVISIBLE_MAP_MAX_POSES``): checked before the session is parsed, so that a small
+    gzip body that inflates to millions of poses costs no parse, no build, no stored map."""
+    poses = document.get("pose_data") if isinstance(document, dict) else None
+    if isinstance(poses, list) and len(poses) > max_poses:
+        raise SessionFormatError(
+            "pose_data",
+            f"{len(poses)} poses; a session may have at most {max_poses} (INVISIBLE_MAP_MAX_POSES)",
+        )
+
+
+def check_text(field: str, value: str) -> None:
+    """SessionFormatError naming ``field`` if ``value`` cannot be stored as text everywhere."""
+    if "\x00" in value:
+        raise SessionFormatError(field, "holds a NUL character (U+0000)")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError as err:
+        raise SessionFormatError(
+            field, f"holds a lone surrogate (U+{ord(value[err.start]):04X}), which is no text"
+        ) from None
+
+
+def check_storable(parsed: ParsedSession) -> None:
+    """Refuse (SessionFormatError) what the parser accepts but storage or rendering cannot hold;
+    see the module docstring."""
+    check_text("map_id", parsed.map_id)
+    for k, poi in enumerate(parsed.pois):
+        check_text(f"location_data[{k}].name", poi.name)
+    too_large = [tag for tag in parsed.tag_ids if tag > MAX_TAG_ID]
+    if too_large:
+        raise SessionFormatError(
+            "tag_data", f"tag id {too_large[0]} is larger than {MAX_TAG_ID}, the largest stored"
+        )
+    if parsed.num_poses:
+        duration_s = float(parsed.timestamp_s[-1]) - float(parsed.timestamp_s[0])  # no warning
+        if not math.isfinite(duration_s):
+            raise SessionFormatError(
+                "pose_data", "the timestamps span more time than a number can hold"
+            )
+        if not math.isfinite(parsed.path_length_m()):
+            raise SessionFormatError(
+                "pose_data", "the poses span more distance than a number can hold"
+            )

@@ -1,0 +1,139 @@
+"""What one big session costs the server (docs/operations.md, Reliability): the API process's
+memory growth while it accepts the upload, and how long each build stage takes, the ``store``
+stage being the build's one write transaction (on SQLite it holds the write lock that long), and
+how soon a cancel stops the build's running optimization.
+
+    .venv/bin/python bench/big_session.py                    # 100,000 poses (the most accepted)
+    .venv/bin/python bench/big_session.py --poses 20000
+    .venv/bin/python bench/big_session.py --postgres-url postgresql+psycopg://postgres@127.0.0.1/x
+
+The session is simulated (``app.domain.simulate``) and sent gzipped, as the app sends it. Memory
+is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
+the upload.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import httpx  # noqa: E402
+
+from app.cli.server_process import ServerProcess  # noqa: E402
+from app.config import Settings  # noqa: E402
+from app.storage import queue  # noqa: E402
+from app.storage.db import Database  # noqa: E402
+from app.storage.migrate import upgrade_to_head  # noqa: E402
+from tests.service.helpers import get_job, insert_session, simulated_bytes  # noqa: E402
+from workers import pipeline  # noqa: E402
+from workers.main import Worker  # noqa: E402
+
+
+def status_kib(pid: int, field: str) -> int:
+    """A ``/proc/<pid>/status`` field in KiB (``VmRSS``, ``VmHWM``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise LookupError(field)
+
+
+def api_memory_growth(raw: bytes, folder: Path) -> None:
+    body = gzip.compress(raw)
+    log = folder / "serve.log"
+    env = {"INVISIBLE_MAP_DATA_DIR": str(folder)}
+    with ServerProcess(
+        f"sqlite:///{folder / 'api.sqlite3'}", workers=0, env=env, log_path=log
+    ) as server:
+        auth = {"Authorization": f"Bearer {server.admin_key}"}
+        httpx.get(server.url + "/v1/info", headers=auth)  # warm: the first request's imports
+        peak_before = status_kib(server.pid, "VmHWM")
+        started_s = time.monotonic()
+        answer = httpx.post(
+            server.url + "/v1/sessions",
+            content=body,
+            headers={**auth, "Content-Type": "application/json", "Content-Encoding": "gzip"},
+            timeout=600,
+        )
+        took_s = time.monotonic() - started_s
+        peak_after = status_kib(server.pid, "VmHWM")
+    print(
+        f"upload of {len(body) / 2**20:.1f} MiB gzip ({len(raw) / 2**20:.1f} MiB JSON): "
+        f"{answer.status_code} in {took_s:.1f} s; API peak memory {peak_before / 1024:.0f} → "
+        f"{peak_after / 1024:.0f} MiB (+{(peak_after - peak_before) / 1024:.0f} MiB)"
+    )
+
+
+def stage_times(raw: bytes, url: str) -> None:
+    db = Database(url)
+    upgrade_to_head(db)
+    job_id = insert_session(db, raw).job_id
+    seconds: dict[str, float] = {}
+
+    def timed(stage: pipeline.Stage) -> pipeline.Stage:
+        def run(ctx: pipeline.JobContext) -> None:
+            started_s = time.perf_counter()
+            stage.run(ctx)
+            seconds[stage.name] = time.perf_counter() - started_s
+
+        return pipeline.Stage(name=stage.name, weight=stage.weight, run=run)
+
+    stages = tuple(timed(stage) for stage in pipeline.BUILD_MAP_STAGES)
+    settings = Settings(database_url=url, lease_s=120.0, heartbeat_s=5.0)
+    Worker(db, settings, pipelines={"build_map": stages}).run_once()
+    state = get_job(db, job_id).state.value
+    db.dispose()
+    times = ", ".join(f"{name} {value:.2f} s" for name, value in seconds.items())
+    print(f"build on {db.backend}: {state}; {times} (store: one write transaction)")
+
+
+def cancel_latency(raw: bytes, url: str) -> None:
+    """Cancel the build 0.5 s into its optimization; how long until the job is canceled."""
+    db = Database(url)
+    upgrade_to_head(db)
+    job_id = insert_session(db, raw).job_id
+    settings = Settings(database_url=url, lease_s=30.0, heartbeat_s=5.0)
+    thread = threading.Thread(target=Worker(db, settings).run_once)
+    thread.start()
+    while get_job(db, job_id).stage != "optimize":
+        time.sleep(0.05)
+    time.sleep(0.5)
+    asked_s = time.monotonic()
+    with db.transaction() as db_session:
+        queue.request_cancel(db_session, job_id)
+    while get_job(db, job_id).state.value == "running":
+        time.sleep(0.02)
+    latency_s = time.monotonic() - asked_s
+    thread.join()
+    state = get_job(db, job_id).state.value
+    db.dispose()
+    print(
+        f"cancel 0.5 s into optimize (heartbeat 5 s): {state} {latency_s:.2f} s after it was asked"
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=100_000, help="poses of the session")
+    parser.add_argument("--postgres-url", help="also build on this (empty, migrated) database")
+    args = parser.parse_args()
+    raw = simulated_bytes(args.poses)
+    print(f"a simulated session of {args.poses} poses")
+    with tempfile.TemporaryDirectory() as folder:
+        api_memory_growth(raw, Path(folder))
+        stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
+        cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
+    if args.postgres_url:
+        stage_times(raw, args.postgres_url)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

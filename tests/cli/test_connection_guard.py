@@ -1,0 +1,103 @@
+"""``serve`` closes slow connections and caps connections per address (issue 19, finding 5;
+``app.api.connection_guard``): real sockets against a real server, with short limits."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from app.cli.server_process import ServerProcess
+
+pytestmark = pytest.mark.slow
+
+LIMITS = {
+    "INVISIBLE_MAP_HEADER_TIMEOUT_S": "1.5",
+    "INVISIBLE_MAP_BODY_TIMEOUT_S": "1.5",
+    "INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS": "5",
+}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    folder = tmp_path_factory.mktemp("guard")
+    env = {"INVISIBLE_MAP_DATA_DIR": str(folder), **LIMITS}
+    with ServerProcess(
+        f"sqlite:///{folder / 'db.sqlite3'}", workers=0, env=env, log_path=folder / "serve.log"
+    ) as process:
+        yield process
+
+
+def connect(server: ServerProcess) -> socket.socket:
+    return socket.create_connection(("127.0.0.1", server.port), timeout=10)
+
+
+def closed_after_s(sock: socket.socket) -> float:
+    """Seconds until the server closes ``sock`` (reading and dropping whatever it sends)."""
+    started = time.monotonic()
+    while sock.recv(4096):
+        pass
+    return time.monotonic() - started
+
+
+def test_a_connection_that_sends_nothing_is_closed(server: ServerProcess) -> None:
+    with connect(server) as sock:
+        assert closed_after_s(sock) < 4
+
+
+def test_headers_sent_a_byte_at_a_time_are_cut_off(server: ServerProcess) -> None:
+    request = b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 100
+    started = time.monotonic()
+    with connect(server) as sock:
+        for byte in request[:30]:  # 3 s of a byte every 0.1 s: longer than the 1.5 s allowed
+            try:
+                sock.sendall(bytes([byte]))
+            except OSError:  # reset: the server closed it already
+                break
+            time.sleep(0.1)
+        with contextlib.suppress(ConnectionResetError):
+            closed_after_s(sock)
+        assert time.monotonic() - started < 5
+
+
+def test_a_stalled_body_is_cut_off(server: ServerProcess) -> None:
+    head = (
+        f"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {server.admin_key}\r\n"
+        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+    ).encode()
+    with connect(server) as sock:
+        sock.sendall(head + b'{"map_id": "slow')
+        assert closed_after_s(sock) < 5
+
+
+def test_connections_per_address_are_capped(server: ServerProcess) -> None:
+    held = [connect(server) for _ in range(5)]
+    try:
+        time.sleep(0.2)
+        with connect(server) as extra:
+            answer = extra.recv(4096)
+            assert answer.startswith(b"HTTP/1.1 503"), answer
+            assert b"Retry-After: 1" in answer
+    finally:
+        for sock in held:
+            sock.close()
+    time.sleep(0.3)
+    assert httpx.get(server.url + "/healthz").status_code == 200
+
+
+def test_keep_alive_and_ordinary_requests_still_work(server: ServerProcess) -> None:
+    with httpx.Client(base_url=server.url) as client:
+        for _ in range(3):
+            assert client.get("/healthz").status_code == 200
+            time.sleep(0.5)
+
+
+def test_the_log_says_why(server: ServerProcess) -> None:
+    assert server.log_path is not None
+    text = Path(server.log_path).read_text()
+    assert "its request's headers did not arrive within 1.5 s" in text
+    assert "no byte of its request's body came for 1.5 s" in text
