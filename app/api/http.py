@@ -8,8 +8,9 @@ accepts_gzip("gzip, deflate, br")                 # True
 from __future__ import annotations
 
 import hashlib
+from typing import Annotated
 
-from fastapi import Response
+from fastapi import Header, Response
 from sqlalchemy.orm import Session
 
 from app.storage import sessions as stored_sessions
@@ -19,6 +20,16 @@ def strong_etag(*parts: object) -> str:
     """A strong entity tag (quoted) from the values the representation depends on."""
     digest = hashlib.sha256("\x1f".join(str(part) for part in parts).encode()).hexdigest()
     return f'"{digest[:32]}"'
+
+
+#: The ``If-None-Match`` request header, as a route parameter.
+IfNoneMatch = Annotated[
+    str | None,
+    Header(
+        alias="If-None-Match",
+        description="the ETag of the copy you hold: 304 if it is still current",
+    ),
+]
 
 
 def if_none_match_hits(if_none_match: str | None, etag: str) -> bool:

@@ -5,6 +5,7 @@ What the API routers and the dashboard pages both do; errors are :mod:`app.servi
 
 from __future__ import annotations
 
+import gzip
 import json
 from typing import Any
 
@@ -16,6 +17,7 @@ from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
 from app.domain.path_graph import path_graph_from_json
 from app.services.errors import Conflict, InvalidInput, NotFound
+from app.services.version_cache import VersionCache
 from app.storage import images, maps, queue, sessions
 from app.storage.images import MapImage, StoredImage
 from app.storage.maps import MapInfo, VersionInfo
@@ -180,6 +182,23 @@ APP_MAP_EXPORT = 2
 MAX_DISPLAY_NAME_LENGTH = 200
 #: Media type of the pictures the app sends.
 JPEG_MEDIA_TYPE = "image/jpeg"
+
+
+#: gzip level of the app-map kept in memory: made once per version, so the smaller file wins.
+APP_MAP_GZIP_LEVEL = 6
+
+
+def app_map_gzip(cache: VersionCache, db_session: Session, version: VersionInfo) -> bytes:
+    """:func:`app_map_content` of ``version``, gzip-compressed, made once per API process and
+    then served from ``cache`` (a version never changes; a rebuild is another version). Only
+    the compressed file is kept: a quarter of the memory, and a client that does not take gzip
+    costs a decompression (about 2 ms per MB) instead of a rebuild of the file (about 90 ms)."""
+    return cache.get(
+        ("app_map_gzip", version.id),
+        lambda: gzip.compress(
+            app_map_content(db_session, version), compresslevel=APP_MAP_GZIP_LEVEL, mtime=0
+        ),
+    )
 
 
 def app_map_content(db_session: Session, version: VersionInfo) -> bytes:

@@ -79,3 +79,12 @@ def planned_route(
 def geojson_content(graph: PathGraph) -> str:
     """The path graph as a GeoJSON FeatureCollection, compact JSON."""
     return json.dumps(path_graph_to_geojson(graph), separators=(",", ":"), allow_nan=False)
+
+
+def geojson_bytes(cache: VersionCache, db_session: Session, version: VersionInfo) -> bytes:
+    """:func:`geojson_content` of ``version``'s path graph as UTF-8, made once per API process
+    (a version never changes)."""
+    return cache.get(
+        ("geojson", version.id),
+        lambda: geojson_content(version_path_graph(cache, db_session, version)).encode(),
+    )

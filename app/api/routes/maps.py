@@ -23,7 +23,7 @@ from __future__ import annotations
 import gzip
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Header, Query, Response
+from fastapi import APIRouter, Body, Header, Query, Request, Response
 
 from app.api.deps import (
     AdminPrincipal,
@@ -34,7 +34,7 @@ from app.api.deps import (
     valid_id,
 )
 from app.api.errors import ApiError, error_responses
-from app.api.http import accepts_gzip, if_none_match_hits, strong_etag
+from app.api.http import IfNoneMatch, accepts_gzip, if_none_match_hits, strong_etag
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.maps import (
     AddSessionRequest,
@@ -54,7 +54,7 @@ from app.api.schemas.maps import (
 from app.services.maps import (
     APP_MAP_EXPORT,
     add_session_to_map,
-    app_map_content,
+    app_map_gzip,
     checked_overrides,
     checked_session_ids,
     chosen_version,
@@ -74,13 +74,6 @@ router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute
 
 Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
 Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]
-IfNoneMatch = Annotated[
-    str | None,
-    Header(
-        alias="If-None-Match",
-        description="the ETag of the copy you hold: 304 if it is still current",
-    ),
-]
 VersionQuery = Annotated[
     int | None,
     Query(ge=1, le=2**31, description="a version number; the current version when left out"),
@@ -324,6 +317,7 @@ def _accepted(response: Response, info: MapInfo, job_id: int) -> RebuildAccepted
 def get_app_map(
     info: MapDep,
     db_session: ReadDbSessionDep,
+    request: Request,
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
@@ -335,10 +329,11 @@ def get_app_map(
     headers = {"ETag": etag, "Vary": "Accept-Encoding"}
     if if_none_match_hits(if_none_match, etag):
         return Response(status_code=304, headers=headers)
-    content = app_map_content(db_session, chosen)
+    content = app_map_gzip(request.app.state.version_cache, db_session, chosen)
     if accepts_gzip(accept_encoding):
-        content = gzip.compress(content, compresslevel=1, mtime=0)  # 3 ms; 6 takes 18 ms
         headers["Content-Encoding"] = "gzip"
+    else:
+        content = gzip.decompress(content)
     return Response(content=content, media_type="application/json", headers=headers)
 
 

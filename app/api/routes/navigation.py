@@ -8,19 +8,24 @@ version built before path graphs existed is a 409 ``no_path_graph`` (rebuild the
 
 from __future__ import annotations
 
+import gzip
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 
 from app.api.deps import MapDep, ReadDbSessionDep
 from app.api.errors import error_responses
-from app.api.http import strong_etag
+from app.api.http import IfNoneMatch, accepts_gzip, if_none_match_hits, strong_etag
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.domain.routing import (
     search_pois,
 )
-from app.services.navigation import current_path_graph, geojson_content, planned_route
+from app.services.maps import chosen_version
+from app.services.navigation import current_path_graph, geojson_bytes, planned_route
+
+#: GeoJSON smaller than this is sent as it is (gzip would save too little to pay its time).
+GZIP_MIN_BYTES = 4096
 
 router = APIRouter(prefix="/maps", tags=["navigation"], route_class=SessionEndingRoute)
 
@@ -105,7 +110,9 @@ def plan(
     description="A FeatureCollection of the current version's path graph: points with "
     "`properties.kind` node, junction, tag or poi; lines (edges) with `properties.kind` walk, "
     "stairs or elevator, `floor` and `length_m`. Coordinates are metres in the map frame "
-    "(see the document's `coordinate_system`), not longitude and latitude.",
+    "(see the document's `coordinate_system`), not longitude and latitude. With `If-None-Match` "
+    "of the ETag you hold: 304 while the map's current version is the same; gzip-compressed for "
+    "clients that accept it.",
     response_class=Response,
     responses={
         200: {
@@ -125,13 +132,26 @@ def plan(
                 }
             },
         },
+        304: {"description": "Not modified: the copy with this ETag is current"},
         **error_responses(401, 404, 409, 422, examples={409: NOT_READY}),
     },
 )
-def geojson(info: MapDep, db_session: ReadDbSessionDep, request: Request) -> Response:
-    version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
-    return Response(
-        content=geojson_content(graph),
-        media_type="application/geo+json",
-        headers={"ETag": strong_etag("geojson", info.id, version.number, version.content_sha256)},
-    )
+def geojson(
+    info: MapDep,
+    db_session: ReadDbSessionDep,
+    request: Request,
+    if_none_match: IfNoneMatch = None,
+    accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> Response:
+    version = chosen_version(db_session, info, None)
+    headers = {
+        "ETag": strong_etag("geojson", info.id, version.number, version.content_sha256),
+        "Vary": "Accept-Encoding",
+    }
+    if if_none_match_hits(if_none_match, headers["ETag"]):
+        return Response(status_code=304, headers=headers)
+    content = geojson_bytes(request.app.state.version_cache, db_session, version)
+    if accepts_gzip(accept_encoding) and len(content) > GZIP_MIN_BYTES:
+        content = gzip.compress(content, compresslevel=1, mtime=0)
+        headers["Content-Encoding"] = "gzip"
+    return Response(content=content, media_type="application/geo+json", headers=headers)
