@@ -13,6 +13,7 @@ and the unique ``(sweep_id, number)`` makes a trial stored twice impossible.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from datetime import datetime
@@ -207,7 +208,9 @@ def cancel_sweep(db_session: Session, sweep_id: int) -> SweepInfo:
         )
     ).all()
     for job_id in job_ids:
-        queue.request_cancel(db_session, job_id)
+        # a job that finished since the select has nothing left to cancel (not an error)
+        with contextlib.suppress(queue.InvalidTransition):
+            queue.request_cancel(db_session, job_id)
     if row.state == "running":
         row.state, row.finished_at = "canceled", utc_now()
     db_session.flush()

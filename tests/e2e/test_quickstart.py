@@ -220,7 +220,7 @@ def check_map(ran: Ran) -> None:
 
 def check_app_map(ran: Ran) -> None:
     app_map = json.loads((ran.folder / "floor_2_pois.app-map.json").read_text())
-    assert set(app_map) == {"tag_vertices", "odometry_vertices", "waypoints_vertices"}
+    assert set(app_map) == {"tag_vertices", "odometry_vertices", "waypoints_vertices", "notes"}
     assert {waypoint["id"] for waypoint in app_map["waypoints_vertices"]} == DEMO_POIS
 
 
