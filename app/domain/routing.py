@@ -63,6 +63,7 @@ import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
 from app.domain.path_graph import ELEVATOR, STAIRS, WALK, Anchor, PathGraph
+from app.domain.path_graph.geometry import douglas_peucker
 
 Point3: TypeAlias = tuple[float, float, float]
 FloatArray: TypeAlias = npt.NDArray[np.float64]
@@ -295,23 +296,8 @@ def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M)
     """Douglas–Peucker on (N, 3) points (map frame, m) in the horizontal x–z plane: indices of the
     points to keep (first and last always), so that no dropped point is farther than
     ``tolerance_m`` from the kept segment spanning it."""
-    n = len(points_m)
-    if n <= 2:
-        return list(range(n))
-    xz = np.asarray(points_m, dtype=np.float64)[:, [0, 2]]
-    keep = np.zeros(n, dtype=bool)
-    keep[0] = keep[-1] = True
-    stack = [(0, n - 1)]
-    while stack:
-        i, j = stack.pop()
-        if j <= i + 1:
-            continue
-        distance = _distance_to_segment_xz(xz[i + 1 : j], xz[i], xz[j])
-        k = int(np.argmax(distance))
-        if distance[k] > tolerance_m:
-            keep[i + 1 + k] = True
-            stack += [(i, i + 1 + k), (i + 1 + k, j)]
-    return [int(i) for i in np.flatnonzero(keep)]
+    xz = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
+    return [int(i) for i in np.flatnonzero(douglas_peucker(xz, tolerance_m))]
 
 
 # --------------------------------------------------------------------------- endpoints → graph
@@ -520,21 +506,6 @@ def _projection_xz(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
     numerator = np.einsum("ij,ij->i", p - a, ab)
     t = np.divide(numerator, denominator, out=np.zeros_like(numerator), where=denominator > 0)
     return np.asarray(np.clip(t, 0.0, 1.0), dtype=np.float64)
-
-
-def _distance_to_segment_xz(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """(N,) distance of each of (N, 2) points to the segment a→b (2,)."""
-    t = _projection_xz_many(points, a, b)
-    closest = a + t[:, None] * (b - a)
-    return np.asarray(np.linalg.norm(points - closest, axis=1), dtype=np.float64)
-
-
-def _projection_xz_many(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    ab = b - a
-    denominator = float(ab @ ab)
-    if denominator == 0.0:
-        return np.zeros(len(points))
-    return np.clip((points - a) @ ab / denominator, 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------- search

@@ -59,6 +59,7 @@ from app.domain.floors import assign_floors, find_floor_levels
 from app.domain.frames import FloatArray
 from app.domain.map_result import MapResult
 from app.domain.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, Anchor, PathGraph
+from app.domain.path_graph.geometry import douglas_peucker, points_array
 from app.domain.raster import densify, dilate, thin
 
 IntArray = npt.NDArray[np.int64]
@@ -146,8 +147,8 @@ def build_skeleton_from_arrays(
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
-    world_p_tag = _points(tag_positions_m, len(tag_ids), "tag_positions_m")
-    world_p_poi = _points(poi_positions_m, len(poi_names), "poi_positions_m")
+    world_p_tag = points_array(tag_positions_m, len(tag_ids), "tag_positions_m")
+    world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
     if not np.all(np.isfinite(world_p_phone)):
         raise ParameterError("positions_m must be finite")
     levels_m = find_floor_levels(world_p_phone[:, 1])
@@ -180,14 +181,6 @@ def build_skeleton_from_arrays(
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
     )
-
-
-def _points(values: npt.ArrayLike | None, count: int, name: str) -> FloatArray:
-    points = np.empty((0, 3)) if values is None else np.asarray(values, dtype=np.float64)
-    points = points.reshape(-1, 3)
-    if points.shape[0] != count:
-        raise ParameterError(f"{name} has {points.shape[0]} rows for {count} names")
-    return points
 
 
 # --------------------------------------------------------------------------- floors
@@ -319,7 +312,7 @@ def _emit(
             keep = interior >= radius_m
             keep[0] = keep[-1] = True
             xz = xz[keep]
-        kept = _douglas_peucker(xz, params.straight_tolerance_m)
+        kept = _kept_indices(xz, params.straight_tolerance_m)
         chain = [key_node(u)]
         chain += [_new_node(G, xz[k], floor, height_m) for k in kept[1:-1]]
         chain.append(key_node(v))
@@ -349,35 +342,9 @@ def _add_walk_edge(G: nx.Graph[int], a: int, b: int, floor: int, kind: str = WAL
     G.add_edge(a, b, length_m=length_m, kind=kind, floor=floor)
 
 
-def _douglas_peucker(points: FloatArray, tolerance_m: float) -> list[int]:
-    """Indices of the points (K, 2) kept (first and last always)."""
-    n = len(points)
-    if n <= 2:
-        return list(range(n))
-    keep = np.zeros(n, dtype=np.bool_)
-    keep[0] = keep[-1] = True
-    stack = [(0, n - 1)]
-    while stack:
-        i, j = stack.pop()
-        if j <= i + 1:
-            continue
-        distance = _distance_to_segment(points[i + 1 : j], points[i], points[j])
-        k = int(np.argmax(distance))
-        if distance[k] > tolerance_m:
-            keep[i + 1 + k] = True
-            stack += [(i, i + 1 + k), (i + 1 + k, j)]
-    return [int(i) for i in np.flatnonzero(keep)]
-
-
-def _distance_to_segment(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    ab = b - a
-    denominator = float(ab @ ab)
-    t = (
-        np.zeros(len(points))
-        if denominator == 0
-        else np.clip((points - a) @ ab / denominator, 0, 1)
-    )
-    return np.asarray(np.linalg.norm(points - (a + t[:, None] * ab), axis=1), dtype=np.float64)
+def _kept_indices(points: FloatArray, tolerance_m: float) -> list[int]:
+    """:func:`douglas_peucker`'s kept points as their indices."""
+    return [int(i) for i in np.flatnonzero(douglas_peucker(points, tolerance_m))]
 
 
 # --------------------------------------------------------------------------- stairs, anchors
@@ -410,9 +377,9 @@ def _add_floor_change(
 def _douglas_peucker3(points: FloatArray, tolerance_m: float) -> list[int]:
     """Douglas–Peucker on (K, 3) points via the x–z and x–y projections (both within
     tolerance)."""
-    horizontal = set(_douglas_peucker(points[:, [0, 2]], tolerance_m))
+    horizontal = set(_kept_indices(points[:, [0, 2]], tolerance_m))
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-    vertical = set(_douglas_peucker(np.column_stack([arc, points[:, 1]]), tolerance_m))
+    vertical = set(_kept_indices(np.column_stack([arc, points[:, 1]]), tolerance_m))
     return sorted(horizontal | vertical)
 
 

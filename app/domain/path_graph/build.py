@@ -72,7 +72,14 @@ from app.domain.errors import ParameterError
 from app.domain.floors import assign_floors, find_floor_levels
 from app.domain.frames import FloatArray
 from app.domain.map_result import MapResult
-from app.domain.path_graph.geometry import cross_2d, node_position, project_to_segments, tuple3
+from app.domain.path_graph.geometry import (
+    cross_2d,
+    douglas_peucker,
+    node_position,
+    points_array,
+    project_to_segments,
+    tuple3,
+)
 from app.domain.path_graph.model import (
     EDGE_KINDS,
     ELEVATOR,
@@ -214,8 +221,8 @@ def build_path_graph_from_arrays(
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
-    world_p_tag = _points(tag_positions_m, len(tag_ids), "tag_positions_m")
-    world_p_poi = _points(poi_positions_m, len(poi_names), "poi_positions_m")
+    world_p_tag = points_array(tag_positions_m, len(tag_ids), "tag_positions_m")
+    world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
     if not np.all(np.isfinite(world_p_phone)):
         raise ParameterError("positions_m must be finite")
     total = world_p_phone.shape[0]
@@ -244,14 +251,6 @@ def build_path_graph_from_arrays(
         tags={int(t): a for t, a in tags.items()},
         pois=pois,
     )
-
-
-def _points(values: npt.ArrayLike | None, count: int, name: str) -> FloatArray:
-    points = np.empty((0, 3)) if values is None else np.asarray(values, dtype=np.float64)
-    points = points.reshape(-1, 3)
-    if points.shape[0] != count:
-        raise ParameterError(f"{name} has {points.shape[0]} rows for {count} names")
-    return points
 
 
 # --------------------------------------------------------------------------- the walk and floors
@@ -1099,12 +1098,12 @@ def _simplify(G: nx.Graph[int], keep: set[int], tolerance_m: float) -> None:
 
     for chain in chains:
         points = np.array([G.nodes[n]["position_m"] for n in chain], dtype=np.float64)
-        kept = _douglas_peucker(points, tolerance_m)
+        kept = douglas_peucker(points, tolerance_m)
         ends = (chain[0], chain[-1])
         if kept.sum() == 2 and (ends[0] == ends[1] or G.has_edge(*ends)):
             far = 1 + int(np.argmax(_segment_distance(points[1:-1], points[0], points[-1])))
-            kept = _douglas_peucker(points[: far + 1], tolerance_m)
-            kept = np.concatenate([kept, _douglas_peucker(points[far:], tolerance_m)[1:]])
+            kept = douglas_peucker(points[: far + 1], tolerance_m)
+            kept = np.concatenate([kept, douglas_peucker(points[far:], tolerance_m)[1:]])
         if kept.all():
             continue
         data = G.edges[chain[0], chain[1]]
@@ -1116,24 +1115,6 @@ def _simplify(G: nx.Graph[int], keep: set[int], tolerance_m: float) -> None:
             if k1 > k0 + 1:
                 length_m = float(sum(lengths[k0:k1]))
                 _add_edge(G, chain[k0], chain[k1], length_m=length_m, kind=kind, floor=floor)
-
-
-def _douglas_peucker(points: FloatArray, tolerance_m: float) -> BoolArray:
-    """(M,) which of the (M, 3) points to keep so none is farther than tolerance from the rest."""
-    m = points.shape[0]
-    kept = np.zeros(m, dtype=np.bool_)
-    kept[0] = kept[-1] = True
-    stack = [(0, m - 1)]
-    while stack:
-        s, e = stack.pop()
-        if e - s < 2:
-            continue
-        distance_m = _segment_distance(points[s + 1 : e], points[s], points[e])
-        k = int(np.argmax(distance_m))
-        if distance_m[k] > tolerance_m:
-            kept[s + 1 + k] = True
-            stack += [(s, s + 1 + k), (s + 1 + k, e)]
-    return kept
 
 
 def _segment_distance(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
