@@ -348,6 +348,27 @@ def simulate_session(config: SimulationConfig) -> SimulatedSession:
         np.random.default_rng(s) for s in streams
     )
     building = build_building(config, rng_building)
+    return record_walk(config, building, (rng_walk, rng_odometry, rng_tags, rng_outliers, rng_poi))
+
+
+def record_walk(
+    config: SimulationConfig,
+    building: Building,
+    rngs: tuple[
+        np.random.Generator,
+        np.random.Generator,
+        np.random.Generator,
+        np.random.Generator,
+        np.random.Generator,
+    ],
+    *,
+    world_T_upload: FloatArray | None = None,
+) -> SimulatedSession:
+    """One walk through ``building`` as the app records it, drawing from ``rngs`` (walk,
+    odometry, tag measurements, outliers, points of interest). ``world_T_upload``: the pose of
+    the building in the frame the phone's odometry is uploaded in (identity when None); the
+    truth stays in the building's frame."""
+    rng_walk, rng_odometry, rng_tags, rng_outliers, rng_poi = rngs
     world_T_phone_true = walk_route(config, building, rng_walk)
     world_T_phone_odometry = drift_odometry(config, world_T_phone_true, rng_odometry)
 
@@ -360,9 +381,14 @@ def simulate_session(config: SimulationConfig) -> SimulatedSession:
     detections = measure_detections(config, camera_T_tag_true, rng_tags, rng_outliers)
     pois = points_of_interest_of(config, world_T_phone_true, rng_poi)
 
+    uploaded_odometry = (
+        world_T_phone_odometry
+        if world_T_upload is None
+        else world_T_upload @ world_T_phone_odometry
+    )
     upload = upload_document(
         config,
-        world_T_phone_odometry,
+        uploaded_odometry,
         pose_index,
         tag_ids[tag_row],
         detections,

@@ -22,23 +22,16 @@ import numpy as np
 
 from app.domain.errors import ParameterError
 from app.domain.frames import (
-    PHONE_T_CAMERA_CV,
     FloatArray,
     make_pose,
     rotation_about_y,
-    se3_inverse,
 )
 from app.domain.simulate import (
     Building,
     SimulatedSession,
     SimulationConfig,
     build_building,
-    drift_odometry,
-    measure_detections,
-    points_of_interest_of,
-    upload_document,
-    visible_pairs,
-    walk_route,
+    record_walk,
 )
 
 #: Largest offset of a walk's world origin from the building's, per horizontal axis, m.
@@ -68,8 +61,6 @@ def simulate_building_sessions(config: SimulationConfig, *, count: int) -> Simul
     building = build_building(
         config, np.random.default_rng(np.random.SeedSequence(config.seed).spawn(6)[0])
     )
-    tag_ids = np.array(sorted(building.world_T_tag), dtype=np.int64)
-    world_T_tags = np.stack([building.world_T_tag[int(t)] for t in tag_ids])
     sessions, frames = [], []
     for k in range(count):
         walk_config = dataclasses.replace(
@@ -79,14 +70,6 @@ def simulate_building_sessions(config: SimulationConfig, *, count: int) -> Simul
         rng_walk, rng_odometry, rng_tags, rng_outliers, rng_poi, rng_frame = (
             np.random.default_rng(s) for s in streams[1:]
         )
-        world_T_phone_true = walk_route(walk_config, building, rng_walk)
-        world_T_phone_odometry = drift_odometry(walk_config, world_T_phone_true, rng_odometry)
-        pose_index, tag_row = visible_pairs(walk_config, building, world_T_phone_true, world_T_tags)
-        camera_T_tag_true = (
-            PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone_true[pose_index]) @ world_T_tags[tag_row]
-        )
-        detections = measure_detections(walk_config, camera_T_tag_true, rng_tags, rng_outliers)
-        pois = points_of_interest_of(walk_config, world_T_phone_true, rng_poi)
         world_T_building = (
             np.eye(4)
             if k == 0
@@ -99,29 +82,12 @@ def simulate_building_sessions(config: SimulationConfig, *, count: int) -> Simul
                 ],
             )
         )
-        upload = upload_document(
-            walk_config,
-            world_T_building @ world_T_phone_odometry,
-            pose_index,
-            tag_ids[tag_row],
-            detections,
-            pois,
-        )
         sessions.append(
-            SimulatedSession(
-                config=walk_config,
-                upload=upload,
-                world_T_phone_true=world_T_phone_true,
-                world_T_phone_odometry=world_T_phone_odometry,
-                world_T_tag_true=dict(building.world_T_tag),
-                world_T_poi_true={
-                    name: world_T_phone_true[i] @ phone_T_poi for name, i, phone_T_poi in pois
-                },
-                detection_tag_id=tag_ids[tag_row],
-                detection_pose_index=pose_index,
-                camera_T_tag_true=camera_T_tag_true,
-                detection_is_outlier=detections.is_outlier,
-                building=building,
+            record_walk(
+                walk_config,
+                building,
+                (rng_walk, rng_odometry, rng_tags, rng_outliers, rng_poi),
+                world_T_upload=world_T_building,
             )
         )
         frames.append(world_T_building)
