@@ -95,6 +95,13 @@ class Api:
             return db_session.scalar(select(func.count()).select_from(table)) or 0
 
 
+def onetag(**changes: Any) -> dict[str, Any]:
+    """The onetag session's upload as a document, with top-level keys replaced by ``changes``."""
+    document: dict[str, Any] = json.loads(ONETAG.read_bytes())
+    document.update(changes)
+    return document
+
+
 @contextmanager
 def running_api(database_url: str, **settings: Any) -> Iterator[Api]:
     """The app on ``database_url`` with its lifespan running."""

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from api_support import ADMIN, ONETAG, Api, running_api
+from api_support import ADMIN, Api, onetag, running_api
 
 from app.config import Settings
 from app.storage.orm import Job, JobState, MapRow, MapVersion, SessionRow, SessionUpload
@@ -29,12 +29,6 @@ IDENTITY = [1.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
 def api(database_url: str) -> Iterator[Api]:
     with running_api(database_url) as running:
         yield running
-
-
-def onetag(**changes: Any) -> dict[str, Any]:
-    document: dict[str, Any] = json.loads(ONETAG.read_bytes())
-    document.update(changes)
-    return document
 
 
 def location(name: str, pose_id: int) -> dict[str, Any]:

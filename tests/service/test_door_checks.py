@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from api_support import ADMIN, JSON, ONETAG, Api, running_api
+from api_support import ADMIN, JSON, ONETAG, Api, onetag, running_api
 
 from app.api import access_log
 from app.api.routes import sessions as sessions_route
@@ -32,12 +32,6 @@ POIS = ONETAG.parents[1] / "demo" / "floor_2_pois.json"
 def api(database_url: str) -> Iterator[Api]:
     with running_api(database_url) as running:
         yield running
-
-
-def onetag(**changes: Any) -> dict[str, Any]:
-    document: dict[str, Any] = json.loads(ONETAG.read_bytes())
-    document.update(changes)
-    return document
 
 
 def with_tag_id(tag_id: int) -> dict[str, Any]:
