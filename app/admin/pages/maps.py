@@ -10,6 +10,7 @@ never change).
 
 from __future__ import annotations
 
+import gzip
 from typing import Annotated, Any
 
 from fastapi import Query, Request, Response
@@ -30,7 +31,7 @@ from app.domain.session import decode_json_bytes, parse_session
 from app.services.errors import ServiceError
 from app.services.maps import (
     add_session_to_map,
-    app_map_content,
+    app_map_gzip,
     chosen_version,
     delete_map_and_jobs,
     enqueue_rebuild,
@@ -39,7 +40,7 @@ from app.services.maps import (
     remove_session_from_map,
     rename_map,
 )
-from app.services.navigation import geojson_content, version_path_graph
+from app.services.navigation import geojson_bytes, version_path_graph
 from app.services.version_cache import VersionCache
 from app.storage import maps, queue, sessions
 from app.storage.maps import MapInfo, VersionInfo
@@ -314,6 +315,7 @@ def delete(request: Request, _form: CheckedFormDep, db: DbDep, map_id: int) -> R
 
 @router.get("/maps/{map_id}/app-map")
 def download_app_map(
+    request: Request,
     _user: DashboardUserDep,
     db_session: ReadDbSessionDep,
     map_id: int,
@@ -322,7 +324,7 @@ def download_app_map(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=app_map_content(db_session, chosen),
+        content=gzip.decompress(app_map_gzip(request.app.state.version_cache, db_session, chosen)),
         media_type="application/json",
         headers={
             "Content-Disposition": f'attachment; filename="map-{info.id}-v{chosen.number}.json"'
@@ -341,9 +343,7 @@ def download_geojson(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=geojson_content(
-            version_path_graph(request.app.state.version_cache, db_session, chosen)
-        ),
+        content=geojson_bytes(request.app.state.version_cache, db_session, chosen),
         media_type="application/geo+json",
         headers={
             "Content-Disposition": (
