@@ -60,7 +60,7 @@ from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
 from app.render.map_plot import render_map_png
-from app.storage import maps, queue
+from app.storage import blobs, maps, queue
 from app.storage.db import Database, database_fault, first_line
 from app.storage.maps import VersionInfo
 from app.storage.orm import JobState
@@ -469,12 +469,20 @@ def path_graph(ctx: JobContext) -> None:
 
 
 def store(ctx: JobContext) -> None:
-    """In ONE transaction: end the job as succeeded (fenced: raises LeaseLost, and the
-    transaction rolls back, if the lease is gone), then add the map version."""
+    """Write the version's bulk data (map document, plot, path graph) as blobs, each chunk in
+    a small transaction of its own; then, in ONE small transaction: end the job as succeeded
+    (fenced: raises LeaseLost, and the transaction rolls back, if the lease is gone) and add the
+    map version that refers to the blobs. So the build's write lock (SQLite's only one) is held
+    for milliseconds, not for the seconds the bulk data takes (issue 19, finding 4). Afterwards,
+    blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
     ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses")
+    bulk = maps.write_version_bulk(
+        ctx.db, result=result, plot_png=ctx.plot_png, path_graph=ctx.path_graph
+    )
+    ctx.report(0.9)
     with ctx.db.transaction() as tx:
         queue.finish(tx, ctx.lease, log_tail=ctx.log_tail)
         ctx.version = maps.store_version(
@@ -488,12 +496,18 @@ def store(ctx: JobContext) -> None:
                 if ctx.sessions
                 else session.path_length_m()
             ),
-            plot_png=ctx.plot_png,
-            path_graph=ctx.path_graph,
             session_ids=ctx.session_ids,
             sessions=_session_contributions(ctx),
+            bulk=bulk,
         )
     ctx.finished = True
+    try:
+        collected = blobs.collect_orphan_blobs(ctx.db)
+    except Exception as err:  # the map is stored; the orphans wait for the next build
+        log_failure(logger, f"job {ctx.lease.job_id}: collecting orphan blobs failed", err)
+    else:
+        if collected:
+            logger.info("job %d: %d orphan blobs collected", ctx.lease.job_id, collected)
 
 
 BUILD_MAP_STAGES: tuple[Stage, ...] = (

@@ -3,7 +3,10 @@
 A map belongs to one session. Each successful build job adds a *version* (numbered 1, 2, … per
 map); the newest version is the map's current one. A version keeps our lossless map document
 (``app.domain.map_io.map_to_json``, gzip-compressed), the plot, the parameters, statistics and
-metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable.
+metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable. The bulk data
+(document, plot, path graph) is in content-addressed blobs (``app.storage.blobs``) that a worker
+writes before the small transaction that stores the version (:func:`write_version_bulk`);
+versions stored before the blobs hold it in their row.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import gzip
 import hashlib
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -25,6 +29,8 @@ from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
 from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.session import display_name_of
+from app.storage import blobs
+from app.storage.db import Database
 from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
 from app.storage.rows import info_from_row
 
@@ -243,6 +249,57 @@ def maps_sharing_tags(
     )
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class VersionBulk:
+    """A version's bulk data, stored as blobs (``app.storage.blobs``) before the version:
+    what :func:`store_version` needs to refer to it, and the document's small parts."""
+
+    #: SHA-256 of the map document's JSON (the version's ``content_sha256``)
+    content_sha256: str
+    #: the blobs: the map document (gzip), the plot (None: no plot), the path graph (gzip)
+    map_json_sha256: str
+    plot_png_sha256: str | None
+    path_graph_sha256: str | None
+    #: the document's ``rejections`` (a column of the version)
+    rejections: list[dict[str, Any]]
+
+
+def write_version_bulk(
+    db: Database,
+    *,
+    result: MapResult,
+    plot_png: bytes | None,
+    path_graph: dict[str, Any] | None = None,
+) -> VersionBulk:
+    """Store a version's map document, plot and path graph as blobs, each chunk in a small
+    transaction of its own (never in the transaction that stores the version: issue 19,
+    finding 4); then :func:`store_version` with ``bulk=`` makes the version visible."""
+    return _version_bulk(
+        lambda data: blobs.put_blob(db, data),
+        result=result,
+        plot_png=plot_png,
+        path_graph=path_graph,
+    )
+
+
+def _version_bulk(
+    put: Callable[[bytes], str],
+    *,
+    result: MapResult,
+    plot_png: bytes | None,
+    path_graph: dict[str, Any] | None,
+) -> VersionBulk:
+    document = map_to_json(result)
+    encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
+    return VersionBulk(
+        content_sha256=hashlib.sha256(encoded).hexdigest(),
+        map_json_sha256=put(gzip.compress(encoded, compresslevel=6, mtime=0)),
+        plot_png_sha256=None if plot_png is None else put(plot_png),
+        path_graph_sha256=None if path_graph is None else put(_gzip_json(path_graph)),
+        rejections=document["rejections"],
+    )
+
+
 def store_version(
     db_session: Session,
     *,
@@ -251,24 +308,43 @@ def store_version(
     result: MapResult,
     evaluation: Evaluation,
     path_length_m: float,
-    plot_png: bytes | None,
+    plot_png: bytes | None = None,
     path_graph: dict[str, Any] | None = None,
     session_ids: list[int] | None = None,
     sessions: list[dict[str, Any]] | None = None,
+    bulk: VersionBulk | None = None,
 ) -> VersionInfo:
-    """Add the next version of ``map_id`` in the caller's transaction; ``path_graph`` is
-    ``app.domain.path_graph.path_graph_to_json`` of it. ``session_ids``: the sessions it was made
-    from, in order; ``sessions``: what each contributed (``statistics["sessions"]``). Two builds
-    of one map storing at once take their numbers in turn (the map row's lock, held to the
-    commit; PostgreSQL's ``FOR NO KEY UPDATE`` does not hold back uploads or rebuilds that refer
-    to the map)."""
+    """Add the next version of ``map_id`` in the caller's transaction. Its bulk data is
+    ``bulk``, written beforehand by :func:`write_version_bulk` (the worker: this transaction
+    then writes only small rows), or else ``plot_png`` and ``path_graph``
+    (``app.domain.path_graph.path_graph_to_json`` of it), written here as blobs in this
+    transaction. ``session_ids``: the sessions it was made from, in order; ``sessions``: what
+    each contributed (``statistics["sessions"]``). Two builds of one map storing at once take
+    their numbers in turn (the map row's lock, held to the commit; PostgreSQL's
+    ``FOR NO KEY UPDATE`` does not hold back uploads or rebuilds that refer to the map).
+    Raises ``blobs.BlobMissing`` if a blob of ``bulk`` is gone (the caller writes it again)."""
+    if bulk is None:
+        bulk = _version_bulk(
+            lambda data: blobs.put_blob_in(db_session, data),
+            result=result,
+            plot_png=plot_png,
+            path_graph=path_graph,
+        )
+    elif plot_png is not None or path_graph is not None:
+        raise ValueError("store_version: give the bulk data as bulk= or as plot_png/path_graph")
+    blobs.require_blobs(
+        db_session,
+        [
+            sha256
+            for sha256 in (bulk.map_json_sha256, bulk.plot_png_sha256, bulk.path_graph_sha256)
+            if sha256 is not None
+        ],
+    )
     db_session.execute(select(MapRow.id).where(MapRow.id == map_id).with_for_update(key_share=True))
     number = 1 + (
         db_session.scalar(select(func.max(MapVersion.number)).where(MapVersion.map_id == map_id))
         or 0
     )
-    document = map_to_json(result)
-    encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
     metrics = {
         "shift_pre": _finite_or_none(evaluation.shift_pre),
         "shift_opt": _finite_or_none(evaluation.shift_opt),
@@ -304,12 +380,15 @@ def store_version(
         tag_count=len(result.tag_ids),
         detections_used=result.detections_used,
         detections_rejected=len(result.rejections),
-        rejections=document["rejections"],
+        rejections=bulk.rejections,
         warnings=list(result.warnings),
-        map_json_gzip=gzip.compress(encoded, compresslevel=6, mtime=0),
-        plot_png=plot_png,
-        content_sha256=hashlib.sha256(encoded).hexdigest(),
-        path_graph_gzip=None if path_graph is None else _gzip_json(path_graph),
+        map_json_gzip=None,
+        plot_png=None,
+        content_sha256=bulk.content_sha256,
+        path_graph_gzip=None,
+        map_json_sha256=bulk.map_json_sha256,
+        plot_png_sha256=bulk.plot_png_sha256,
+        path_graph_sha256=bulk.path_graph_sha256,
         session_ids=session_ids,
     )
     db_session.add(row)
@@ -448,12 +527,26 @@ def get_version(db_session: Session, map_id: int, number: int | None = None) -> 
 def map_document(db_session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
     """The version's map document (``app.domain.map_io`` format)."""
     row = _version_row(db_session, map_id, number)
-    document: dict[str, Any] = json.loads(gzip.decompress(row.map_json_gzip))
+    packed = version_bytes(db_session, row.map_json_gzip, row.map_json_sha256)
+    if packed is None:  # the column was NOT NULL before the blobs; nothing stores none
+        raise LookupError(f"version {row.id} of map {map_id} has no map document")
+    document: dict[str, Any] = json.loads(gzip.decompress(packed))
     return document
 
 
 def plot_png(db_session: Session, map_id: int, number: int | None = None) -> bytes | None:
-    return _version_row(db_session, map_id, number).plot_png
+    row = _version_row(db_session, map_id, number)
+    return version_bytes(db_session, row.plot_png, row.plot_png_sha256)
+
+
+def version_bytes(db_session: Session, inline: bytes | None, sha256: str | None) -> bytes | None:
+    """A version's bulk data: in its row (versions stored before the ``blob`` table, and
+    restored ones), else in the blob its row names; None when it has none."""
+    if inline is not None:
+        return bytes(inline)
+    if sha256 is None:
+        return None
+    return blobs.read_blob(db_session, sha256)
 
 
 def tag_poses(db_session: Session, version_id: int) -> list[TagPose]:

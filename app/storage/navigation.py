@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from app.storage.maps import MapNotFound
+from app.storage.maps import MapNotFound, version_bytes
 from app.storage.orm import Localization, MapRow, MapVersion, utc_now
 
 
@@ -57,10 +57,15 @@ class LocalizationInfo:
 
 def path_graph_document(db_session: Session, version_id: int) -> dict[str, Any] | None:
     """The version's path graph JSON, or None if the version has none."""
-    blob = db_session.scalar(select(MapVersion.path_graph_gzip).where(MapVersion.id == version_id))
-    if blob is None:
+    found = db_session.execute(
+        select(MapVersion.path_graph_gzip, MapVersion.path_graph_sha256).where(
+            MapVersion.id == version_id
+        )
+    ).first()
+    packed = None if found is None else version_bytes(db_session, *found)
+    if packed is None:
         return None
-    document: dict[str, Any] = json.loads(gzip.decompress(blob))
+    document: dict[str, Any] = json.loads(gzip.decompress(packed))
     return document
 
 

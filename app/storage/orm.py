@@ -3,7 +3,8 @@
 
 Tables (singular, snake_case): ``api_key`` with its dashboard logins (``admin_login``),
 ``session`` with its ``session_upload`` (the raw upload, gzip-compressed, written once), ``map``,
-``map_version`` with one ``map_tag`` row per tag, ``job`` (the queue) and ``worker`` (who is alive
+``map_version`` with one ``map_tag`` row per tag, ``blob`` with its ``blob_chunk`` rows (a
+version's bulk data, content-addressed), ``job`` (the queue) and ``worker`` (who is alive
 and what it runs), ``localization``, ``sweep`` with one ``sweep_trial`` row per finished trial,
 and ``session_image`` (the app's picture of a session's map).
 """
@@ -306,14 +307,49 @@ class MapVersion(Base):
     detections_rejected: Mapped[int]
     rejections: Mapped[list[dict[str, Any]]] = mapped_column(JSONValue)
     warnings: Mapped[list[str]] = mapped_column(JSONValue)
-    map_json_gzip: Mapped[bytes] = mapped_column(LargeBinary)
+    #: the map document, gzip, held in the row itself: versions stored before the ``blob``
+    #: table (and restored from archives); null when ``map_json_sha256`` names its blob
+    map_json_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
     plot_png: Mapped[bytes | None] = mapped_column(LargeBinary)
     content_sha256: Mapped[str] = mapped_column(String(64))
     #: ``app.domain.path_graph.path_graph_to_json``, gzip; null for versions built before it
     path_graph_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
+    #: the blobs (``blob.sha256``) holding the map document (gzip), the plot and the path graph
+    #: (gzip) of versions stored since the ``blob`` table: written before the small transaction
+    #: that stores the row (``app.storage.blobs``); null where the row holds the bytes itself
+    map_json_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
+    plot_png_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
+    path_graph_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     #: the sessions it was optimized from, in order (the first is the reference frame); null for
     #: versions built before maps held several sessions (their map's ``session_id`` alone)
     session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
+
+
+class Blob(Base):
+    """Bulk data stored by its SHA-256 (``app.storage.blobs``), in ``blob_chunk`` rows each
+    written in a transaction of its own, so that no write transaction holds a large write.
+    ``complete`` is set with the last chunk; ``touched_at`` is when it was last written or
+    found present by a writer (blobs nobody refers to are collected a while after it)."""
+
+    __tablename__ = "blob"
+
+    sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    size_bytes: Mapped[int]
+    chunk_count: Mapped[int]
+    complete: Mapped[bool] = mapped_column(default=False)
+    touched_at: Mapped[datetime] = mapped_column(default=utc_now, index=True)
+
+
+class BlobChunk(Base):
+    """A piece of a blob: ``number`` 0, 1, … in order, each at most ``blobs.CHUNK_BYTES``."""
+
+    __tablename__ = "blob_chunk"
+
+    sha256: Mapped[str] = mapped_column(
+        ForeignKey("blob.sha256", ondelete="CASCADE"), primary_key=True
+    )
+    number: Mapped[int] = mapped_column(primary_key=True, autoincrement=False)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
 
 
 class MapTag(Base):

@@ -93,6 +93,11 @@ class TableSpec:
     export_key: bool = True
     #: binary column → its member's name (``str.format`` of the row)
     blobs: Mapping[str, str] = field(default_factory=dict)
+    #: binary column → the column naming the content-addressed blob (``app.storage.blobs``)
+    #: that holds its bytes when the column is null; the archive holds the bytes as the
+    #: binary column's member (the blob columns are not exported), and an import stores them
+    #: as a blob again
+    blob_refs: Mapping[str, str] = field(default_factory=dict)
     #: column → table whose ids it holds (the row must be in the archive)
     refs: Mapping[str, str] = field(default_factory=dict)
     #: column → table whose ids it holds, or null when that row is not in the archive
@@ -122,7 +127,8 @@ class TableSpec:
 
     def columns(self) -> list[Column[Any]]:
         """The exported columns, in table order."""
-        return [c for c in self.table.columns if self.export_key or c.name != self.key]
+        skipped = set(self.blob_refs.values()) | (set() if self.export_key else {self.key})
+        return [c for c in self.table.columns if c.name not in skipped]
 
 
 #: In dependency order: a row's references come before it.
@@ -162,6 +168,11 @@ TABLES = (
             "map_json_gzip": "versions/{id}/map.json.gz",
             "plot_png": "versions/{id}/plot.png",
             "path_graph_gzip": "versions/{id}/path_graph.json.gz",
+        },
+        blob_refs={
+            "map_json_gzip": "map_json_sha256",
+            "plot_png": "plot_png_sha256",
+            "path_graph_gzip": "path_graph_sha256",
         },
     ),
     TableSpec(model=MapTag, export_key=False, refs={"map_version_id": "map_version"}),

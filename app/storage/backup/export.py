@@ -16,14 +16,16 @@ from typing import IO, Any
 
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import (
+    Column,
     ColumnElement,
     func,
+    or_,
     select,
     text,
 )
 from sqlalchemy.orm import Session
 
-from app.storage import queue, sweeps
+from app.storage import maps, queue, sweeps
 from app.storage.backup.archive import (
     CHUNK_BYTES,
     FORMAT_VERSION,
@@ -140,7 +142,7 @@ def _exported_rows(
     whether the row has one (its bytes are read by :func:`_copy_blob`)."""
     key = spec.table.c[spec.key]
     selected: list[ColumnElement[Any]] = [
-        column.is_not(None).label(column.name) if column.name in spec.blobs else column
+        _has_bytes(spec, column).label(column.name) if column.name in spec.blobs else column
         for column in spec.columns()
     ]
     if not spec.export_key:
@@ -160,6 +162,14 @@ def _exported_rows(
             if not spec.export_key:
                 del row[spec.key]
             yield _as_exported(db_session, spec.name, row, include_key_hashes, now)
+
+
+def _has_bytes(spec: TableSpec, column: Column[Any]) -> ColumnElement[bool]:
+    """Whether a row has bytes for a binary column: in the column, or in the blob it names."""
+    has: ColumnElement[bool] = column.is_not(None)
+    if column.name in spec.blob_refs:
+        has = or_(has, spec.table.c[spec.blob_refs[column.name]].is_not(None))
+    return has
 
 
 def _as_exported(
@@ -213,7 +223,15 @@ def _copy_blob(
     member: str,
 ) -> None:
     key = spec.table.c[spec.key]
-    data = db_session.scalar(select(spec.table.c[column]).where(key == row[spec.key]))
+    if column in spec.blob_refs:
+        inline, sha256 = db_session.execute(
+            select(spec.table.c[column], spec.table.c[spec.blob_refs[column]]).where(
+                key == row[spec.key]
+            )
+        ).one()
+        data = maps.version_bytes(db_session, inline, sha256)
+    else:
+        data = db_session.scalar(select(spec.table.c[column]).where(key == row[spec.key]))
     if data is not None:
         writer.write_blob(member, bytes(data))
 

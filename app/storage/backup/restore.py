@@ -27,6 +27,7 @@ from sqlalchemy import (
 from sqlalchemy.exc import DataError, IntegrityError
 from sqlalchemy.orm import Session
 
+from app.storage import blobs
 from app.storage.backup.archive import (
     CHUNK_BYTES,
     ID_SEQUENCE_TABLES,
@@ -242,6 +243,9 @@ class _ImportRun:
                 values[name] = self.ids[table].get(values[name])
         for name in spec.blobs:
             values[name] = self._blob(spec.table.c[name], raw[name], where)
+        for name, reference in spec.blob_refs.items():  # stored as the source stores them
+            data, values[name] = values[name], None
+            values[reference] = None if data is None else blobs.put_blob_in(self.db_session, data)
         return self._adjusted(spec.name, values, raw, where)
 
     def _mapped(self, table: str, archive_id: int, where: str) -> int:
