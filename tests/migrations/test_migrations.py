@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import gzip
+import json
+
 import pytest
 from alembic import command
 from alembic.util.exc import CommandError
 from sqlalchemy import inspect, text
 
+from app.storage import blobs, maps
 from app.storage.db import Database
 from app.storage.migrate import alembic_config, current_revision, head_revision, is_current
 from app.storage.orm import Base
@@ -119,3 +123,76 @@ def test_rows_survive_the_upgrade_and_ids_are_never_reused(empty_db):
             )
         ).scalar_one()
     assert new_id > map_ids[1], "a deleted map's id was given to a new map"
+
+
+BEFORE_BLOBS = "a1bdea7a7cb1"
+
+
+@BACKENDS
+def test_versions_stored_before_the_blobs_keep_working_and_blobs_go_back_on_downgrade(empty_db):
+    """Upgrading past the blob table leaves earlier versions' bytes in their rows (read as
+    before); a downgrade copies the blobs of later versions back into their rows."""
+    url = empty_db.url.render_as_string(hide_password=False)
+    config = alembic_config(url)
+    command.upgrade(config, BEFORE_BLOBS)
+    now = "2026-11-25 00:00:00"
+    document = {"tags": [], "rejections": [], "format": "old"}
+    packed = gzip.compress(json.dumps(document).encode())
+    with empty_db.engine.begin() as connection:
+        session_id = connection.execute(
+            text(
+                "INSERT INTO session (map_name, created_at, uploaded_by, raw_sha256,"
+                " raw_size_bytes, stored_size_bytes, pose_count, detection_count, tag_count,"
+                " poi_count, duration_s, path_length_m, tag_ids, warnings)"
+                f" VALUES ('m', '{now}', 'env-admin', 'x', 1, 1, 1, 0, 0, 0, 0, 0, '[]', '[]')"
+                " RETURNING id"
+            )
+        ).scalar_one()
+        map_id = connection.execute(
+            text(
+                f"INSERT INTO map (name, session_id, created_at) VALUES ('m', {session_id},"
+                f" '{now}') RETURNING id"
+            )
+        ).scalar_one()
+        connection.execute(
+            text(
+                "INSERT INTO map_version (map_id, number, created_at, params, statistics, metrics,"
+                " tag_count, detections_used, detections_rejected, rejections, warnings,"
+                " map_json_gzip, plot_png, content_sha256) VALUES (:map_id, 1, :now, '{}', '{}',"
+                " '{}', 0, 0, 0, '[]', '[]', :packed, :png, 'c')"
+            ),
+            {"map_id": map_id, "now": now, "packed": packed, "png": b"old plot"},
+        )
+
+    command.upgrade(config, "head")
+    with empty_db.transaction() as tx:
+        assert maps.map_document(tx, map_id, 1) == document
+        assert maps.plot_png(tx, map_id, 1) == b"old plot"
+        new_document = {"tags": [], "rejections": [], "format": "new"}
+        tx.execute(
+            text(
+                "INSERT INTO map_version (map_id, number, created_at, params, statistics, metrics,"
+                " tag_count, detections_used, detections_rejected, rejections, warnings,"
+                " content_sha256, map_json_sha256, plot_png_sha256) VALUES (:map_id, 2, :now,"
+                " '{}', '{}', '{}', 0, 0, 0, '[]', '[]', 'c', :doc, :png)"
+            ),
+            {
+                "map_id": map_id,
+                "now": now,
+                "doc": blobs.put_blob_in(tx, gzip.compress(json.dumps(new_document).encode())),
+                "png": blobs.put_blob_in(tx, b"new plot"),
+            },
+        )
+    with empty_db.read() as tx:
+        assert maps.map_document(tx, map_id, 2) == new_document
+        assert maps.plot_png(tx, map_id, 2) == b"new plot"
+
+    command.downgrade(config, BEFORE_BLOBS)
+    with empty_db.engine.begin() as connection:
+        rows = connection.execute(
+            text("SELECT number, map_json_gzip, plot_png FROM map_version ORDER BY number")
+        ).all()
+    assert [(n, json.loads(gzip.decompress(d))["format"], bytes(p)) for n, d, p in rows] == [
+        (1, "old", b"old plot"),
+        (2, "new", b"new plot"),
+    ]
