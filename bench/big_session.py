@@ -1,11 +1,14 @@
 """What one big session costs the server (docs/operations.md, Reliability): the API process's
 memory growth while it accepts the upload, and how long each build stage takes, the ``store``
-stage being the build's one write transaction (on SQLite it holds the write lock that long), and
+stage's write transactions (on SQLite each holds the write lock that long: the bulk data in
+chunks of 1 MiB, then one small fenced write), and
 how soon a cancel stops the build's running optimization.
 
-    .venv/bin/python bench/big_session.py                    # 100,000 poses (the most accepted)
-    .venv/bin/python bench/big_session.py --poses 20000
-    .venv/bin/python bench/big_session.py --postgres-url postgresql+psycopg://postgres@127.0.0.1/x
+    .venv/bin/python -m bench.big_session                    # 100,000 poses (the most accepted)
+    .venv/bin/python -m bench.big_session --poses 20000 --only sweep-cancel
+    .venv/bin/python -m bench.big_session --postgres-url postgresql+psycopg://postgres@127.0.0.1/x
+
+(``-m``: run as a file, ``bench/http.py`` would hide the standard library's ``http``.)
 
 The session is simulated (``app.domain.simulate``) and sent gzipped, as the app sends it. Memory
 is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
@@ -20,16 +23,21 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
+from sqlalchemy.orm import Session  # noqa: E402
 
 from app.cli.server_process import ServerProcess  # noqa: E402
 from app.config import Settings  # noqa: E402
-from app.storage import queue  # noqa: E402
+from app.domain.sweep_plan import SweepPlan  # noqa: E402
+from app.domain.tuning import SearchSpace  # noqa: E402
+from app.storage import queue, sweeps  # noqa: E402
 from app.storage.db import Database  # noqa: E402
 from app.storage.migrate import upgrade_to_head  # noqa: E402
 from tests.service.helpers import get_job, insert_session, simulated_bytes  # noqa: E402
@@ -72,15 +80,33 @@ def api_memory_growth(raw: bytes, folder: Path) -> None:
 
 
 def stage_times(raw: bytes, url: str) -> None:
+    """Each stage's time, and the longest write transaction of the ``store`` stage (on SQLite
+    the write lock is held that long: BEGIN IMMEDIATE to commit)."""
     db = Database(url)
     upgrade_to_head(db)
     job_id = insert_session(db, raw).job_id
     seconds: dict[str, float] = {}
+    store_transactions_s: list[float] = []
+    transaction = db.transaction
+
+    @contextmanager
+    def timed_transaction() -> Iterator[Session]:
+        started_s = time.perf_counter()
+        try:
+            with transaction() as db_session:
+                yield db_session
+        finally:
+            store_transactions_s.append(time.perf_counter() - started_s)
 
     def timed(stage: pipeline.Stage) -> pipeline.Stage:
         def run(ctx: pipeline.JobContext) -> None:
             started_s = time.perf_counter()
-            stage.run(ctx)
+            if stage.name == "store":
+                db.transaction = timed_transaction  # type: ignore[method-assign]
+            try:
+                stage.run(ctx)
+            finally:
+                db.transaction = transaction  # type: ignore[method-assign]
             seconds[stage.name] = time.perf_counter() - started_s
 
         return pipeline.Stage(name=stage.name, weight=stage.weight, run=run)
@@ -91,7 +117,12 @@ def stage_times(raw: bytes, url: str) -> None:
     state = get_job(db, job_id).state.value
     db.dispose()
     times = ", ".join(f"{name} {value:.2f} s" for name, value in seconds.items())
-    print(f"build on {db.backend}: {state}; {times} (store: one write transaction)")
+    print(f"build on {db.backend}: {state}; {times}")
+    print(
+        f"store on {db.backend}: {len(store_transactions_s)} write transactions, the longest "
+        f"{max(store_transactions_s) * 1e3:.0f} ms (the fenced one, that makes the version "
+        f"visible: {store_transactions_s[-1] * 1e3:.0f} ms)"
+    )
 
 
 def cancel_latency(raw: bytes, url: str) -> None:
@@ -119,18 +150,72 @@ def cancel_latency(raw: bytes, url: str) -> None:
     )
 
 
+def sweep_cancel_latency(raw: bytes, url: str) -> None:
+    """A sweep of the session (2 grid trials in one job) canceled 2 s into its first trial (the
+    warm start, a Levenberg–Marquardt run of the whole session, is part of it); how long until
+    its job is canceled (heartbeat 5 s, as served)."""
+    db = Database(url)
+    upgrade_to_head(db)
+    inserted = insert_session(db, raw)
+    plan = SweepPlan(
+        method="grid",
+        space=SearchSpace.from_dict(
+            {"odom_linear_var_m2_per_s": {"low": 1e-6, "high": 1e-1, "num": 2}}
+        ),
+    )
+    with db.transaction() as db_session:
+        queue.request_cancel(db_session, inserted.job_id)  # the build: not measured here
+        sweeps.create_sweep(
+            db_session,
+            map_id=inserted.map_id,
+            session_id=inserted.session_id,
+            plan=plan,
+            base_params={},
+            ground_truth=None,
+            max_attempts=3,
+        )
+    job_id = inserted.job_id + 1
+    settings = Settings(database_url=url, lease_s=30.0, heartbeat_s=5.0)
+    thread = threading.Thread(target=Worker(db, settings).run_once)
+    thread.start()
+    while get_job(db, job_id).stage != "trials":
+        time.sleep(0.05)
+    time.sleep(2.0)
+    asked_s = time.monotonic()
+    with db.transaction() as db_session:
+        queue.request_cancel(db_session, job_id)
+    while get_job(db, job_id).state.value == "running":
+        time.sleep(0.02)
+    latency_s = time.monotonic() - asked_s
+    thread.join()
+    state = get_job(db, job_id).state.value
+    db.dispose()
+    print(
+        f"cancel 2 s into a sweep's first trial (heartbeat 5 s): {state} {latency_s:.2f} s "
+        "after it was asked"
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=100_000, help="poses of the session")
     parser.add_argument("--postgres-url", help="also build on this (empty, migrated) database")
+    parser.add_argument(
+        "--only", choices=("memory", "stages", "cancel", "sweep-cancel"), help="one measurement"
+    )
     args = parser.parse_args()
     raw = simulated_bytes(args.poses)
     print(f"a simulated session of {args.poses} poses")
     with tempfile.TemporaryDirectory() as folder:
-        api_memory_growth(raw, Path(folder))
-        stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
-        cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
-    if args.postgres_url:
+        if args.only in (None, "memory"):
+            api_memory_growth(raw, Path(folder))
+        if args.only in (None, "stages"):
+            stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
+        if args.only in (None, "cancel"):
+            cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
+        if args.only in (None, "sweep-cancel"):
+            sweep_cancel_latency(raw, f"sqlite:///{Path(folder) / 'sweep.sqlite3'}")
+    if args.postgres_url and args.only in (None, "stages"):
         stage_times(raw, args.postgres_url)
     return 0
 

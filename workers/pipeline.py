@@ -196,6 +196,11 @@ class JobContext:
                 "(INVISIBLE_MAP_JOB_TIME_BUDGET_S)"
             )
 
+    def on_trial_iteration(self, _iteration: int, _error: float) -> None:
+        """The iteration callback of a tuning or sweep trial (``TuningTarget.run``): a cancel
+        stops the trial within one Levenberg–Marquardt iteration, not after the trial."""
+        self.check_interrupted()
+
     def report(self, fraction_within_stage: float, message: str | None = None) -> None:
         """Report progress within the current stage (0–1), and optionally log ``message``.
 
@@ -306,7 +311,7 @@ def tune(ctx: JobContext) -> None:
     while batch := plan.next_batch(trials, len(trials)):
         for values in batch:
             ctx.check_interrupted()
-            trials.append(target.run(values))
+            trials.append(target.run(values, on_iteration=ctx.on_trial_iteration))
             ctx.report(len(trials) / plan.total)
     best = best_trial(trials, "shift")
     if best is None:

@@ -72,8 +72,9 @@ def run_trials(ctx: JobContext) -> None:
         raise PermanentJobError(f"job {ctx.lease.job_id} has no trial values")
     trials = []
     for k, trial_values in enumerate(values):
-        ctx.check_interrupted()  # a cancel (or release, lost lease, spent budget) stops here
-        trials.append(target.run(trial_values))
+        ctx.check_interrupted()  # a cancel (or release, lost lease, spent budget) stops here,
+        # and inside the trial after any Levenberg–Marquardt iteration
+        trials.append(target.run(trial_values, on_iteration=ctx.on_trial_iteration))
         ctx.report((k + 1) / len(values))
     ctx.trials = trials
     best = min((t.shift for t in trials), default=float("nan"))

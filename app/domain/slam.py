@@ -461,20 +461,28 @@ class TrialGraph:
         )
         return graph
 
-    def optimize(self, params: SlamParams) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
+    def optimize(
+        self, params: SlamParams, *, on_iteration: IterationCallback | None = None
+    ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
         """As :func:`optimize_tag_poses`: LM from the initial values (a build's first stage)."""
-        return self.refine(params, self.inputs.initial)
+        return self.refine(params, self.inputs.initial, on_iteration=on_iteration)
 
     def refine(
-        self, params: SlamParams, start: gtsam.Values
+        self,
+        params: SlamParams,
+        start: gtsam.Values,
+        *,
+        on_iteration: IterationCallback | None = None,
     ) -> tuple[dict[int, FloatArray], int, gtsam.Values]:
         """LM with ``params`` from ``start`` (the optimum with other variances, for a build's
-        second stage): the tag poses, the iterations and the solution."""
+        second stage): the tag poses, the iterations and the solution. ``on_iteration(iteration,
+        error)`` is called after each LM iteration, as in :func:`optimize_session`; whatever it
+        raises stops the optimization there and propagates (a job's cancel check)."""
         graph = self.graph(params)
         if self._ordering is None:
             self._ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
         values, iterations, _ = _levenberg_marquardt(
-            graph, start, params, None, ordering=self._ordering
+            graph, start, params, on_iteration, ordering=self._ordering
         )
         poses = {
             tag_id: values.atPose3(L(tag_id)).matrix() for tag_id in sorted(self.inputs.tag_rows)

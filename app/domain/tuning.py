@@ -63,6 +63,7 @@ from app.domain.params import NOISE_VARIANCE_FIELDS, SlamParams
 from app.domain.session import Session, first_observation_tag_poses
 from app.domain.slam import (
     GraphInputs,
+    IterationCallback,
     TrialGraph,
     odometry_chi2,
     optimize_session,
@@ -326,11 +327,16 @@ class TuningTarget:
     def warm_start(self) -> gtsam.Values:
         """Where every trial starts LM: the optimum with the base parameters' default variances
         (computed once), which is the first stage of a build (``slam.optimize_session``)."""
+        return self._warm_start_values(None)
+
+    def _warm_start_values(self, on_iteration: IterationCallback | None) -> gtsam.Values:
         if self._warm_start is None:
             start = self.base_params.with_default_variances().with_overrides(
                 {"compute_marginals": False}
             )
-            self._start_map, self._start_iterations, self._warm_start = self.graph.optimize(start)
+            self._start_map, self._start_iterations, self._warm_start = self.graph.optimize(
+                start, on_iteration=on_iteration
+            )
         return self._warm_start
 
     @property
@@ -364,20 +370,26 @@ class TuningTarget:
         in the graph (as ``evaluate``'s ``gt_metric_pre``)."""
         return self.score_map(self.pre_map)
 
-    def run(self, values: Mapping[str, float]) -> Trial:
-        """Optimize with ``values`` and score the result; never raises on a solver failure."""
+    def run(
+        self, values: Mapping[str, float], *, on_iteration: IterationCallback | None = None
+    ) -> Trial:
+        """Optimize with ``values`` and score the result; never raises on a solver failure.
+        ``on_iteration(iteration, error)`` after each LM iteration (of the warm start too, the
+        first time): what it raises (a job's cancel) stops the trial there and propagates."""
         started = time.perf_counter()
         values = {name: float(value) for name, value in values.items()}
         params = self.trial_params(values)
         max_iterations = params.max_iterations
         try:
-            start = self.warm_start
+            start = self._warm_start_values(on_iteration)
             if params.has_default_variances and self.first_stage_is_map:
                 # a build makes the first stage its map
                 map_T_tag, iterations = self._start_map, self._start_iterations
                 max_iterations = self.base_params.max_iterations
             else:
-                map_T_tag, iterations, _ = self.graph.refine(params, start)
+                map_T_tag, iterations, _ = self.graph.refine(
+                    params, start, on_iteration=on_iteration
+                )
         except RuntimeError as err:  # gtsam: an indeterminant system at extreme settings
             return Trial(
                 values=values,

@@ -13,9 +13,11 @@ import pytest
 from api_support import ADMIN, running_api
 
 from app.config import Settings
+from app.domain import slam
 from app.domain.params import SlamParams
 from app.domain.session import decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
+from app.domain.tuning import TuningTarget
 from app.storage import queue
 from app.storage.db import Database
 from app.storage.orm import JobState
@@ -137,3 +139,88 @@ def test_a_cancel_stops_a_running_sweep_job_between_trials(database_url: str) ->
         thread.join(30)
         print(f"cancel of a running sweep took effect after {latency_s:.2f} s")
         assert latency_s < 10
+
+
+def test_the_iteration_callback_stops_a_trial_inside_its_optimization() -> None:
+    """``TrialGraph.refine`` (one sweep trial: one Levenberg–Marquardt run) calls the callback
+    after each iteration and stops where it raises; ``TuningTarget.run`` lets that through
+    instead of recording a failed trial."""
+    session = parse_session(decode_json_bytes(session_bytes("occam_room")))
+    target = TuningTarget.prepare(session, SlamParams())
+    values = {"odom_linear_var_m2_per_s": 1e-5}
+    seen: list[int] = []
+
+    def stop_at_1(iteration: int, _error: float) -> None:
+        seen.append(iteration)
+        if iteration >= 1:
+            raise Interrupted("trials")
+
+    with pytest.raises(Interrupted):  # the warm start, the first time
+        target.run(values, on_iteration=stop_at_1)
+    assert seen == [1]  # gtsam numbers its iterations from 1
+    seen.clear()
+    start = target.warm_start  # computed without a callback
+    with pytest.raises(Interrupted):
+        target.graph.refine(target.trial_params(values), start, on_iteration=stop_at_1)
+    assert seen == [1]
+    seen.clear()
+    with pytest.raises(Interrupted):
+        target.run(values, on_iteration=stop_at_1)
+    assert seen == [1]
+    finished = target.run(values, on_iteration=lambda i, _e: seen.append(i))
+    assert finished.error is None
+    assert len(seen) > 1  # every iteration of the whole trial
+
+
+def endless_levenberg_marquardt(
+    _graph: Any, _start: Any, _params: Any, on_iteration: Any, **_kwargs: Any
+) -> Any:
+    """A trial that would run 500 s: an iteration every 0.05 s, each calling back."""
+    for iteration in range(1, 10_000):
+        if on_iteration is not None:
+            on_iteration(iteration, 1.0)
+        time.sleep(ITERATION_S)
+    raise AssertionError("never stopped")
+
+
+def test_a_cancel_stops_a_running_sweep_inside_its_trial(
+    database_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cancel asked while a sweep's trials job is inside one long trial stops that trial
+    within an iteration (before, the trial ran to its end first)."""
+    with running_api(database_url) as api:
+        created = api.uploaded(session_bytes("onetag"))
+        url = api.db.url.render_as_string(hide_password=False)
+        build = Worker(api.db, Settings(database_url=url, lease_s=60, heartbeat_s=0.5))
+        assert build.run_once()  # the map's first version, with the real optimizer
+        monkeypatch.setattr(slam, "_levenberg_marquardt", endless_levenberg_marquardt)
+        space = {"odom_linear_var_m2_per_s": {"low": 1e-6, "high": 1e-1, "num": 2}}
+        started = api.client.post(
+            f"/v1/maps/{created['map_id']}/sweeps", json={"space": space}, headers=ADMIN
+        )
+        assert started.status_code == 202, started.text
+        thread = threading.Thread(target=build.run_once)
+        thread.start()
+
+        def running_trials() -> Any:
+            jobs = api.client.get("/v1/jobs?state=running", headers=ADMIN).json()["data"]
+            return next((j for j in jobs if j["kind"] == "sweep_trials"), None)
+
+        job = wait_for(
+            lambda: (
+                (found := running_trials()) is not None and found["stage"] == "trials" and found
+            ),
+            timeout_s=60,
+            what="the sweep's trials",
+        )
+        time.sleep(1.0)  # well inside the first trial
+        cancel = api.client.post(f"/v1/sweeps/{started.json()['sweep_id']}/cancel", headers=ADMIN)
+        assert cancel.status_code == 200, cancel.text
+        wait_for(
+            lambda: get_job(api.db, job["id"]).state == JobState.CANCELED,
+            timeout_s=30,
+            what="the trial to stop",
+        )
+        thread.join(30)
+        assert not thread.is_alive()
+        assert "cancel requested: stopped during trials" in get_job(api.db, job["id"]).log_tail
