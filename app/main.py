@@ -21,6 +21,7 @@ from app.api.body_limit import BodyLimit
 from app.api.deps import KeyUsage, UploadRate, current_principal
 from app.api.docs_pages import install_docs
 from app.api.errors import install_error_handlers
+from app.api.query_text import refuse_unstorable_query
 from app.api.routes import (
     jobs,
     keys,
@@ -89,6 +90,7 @@ def create_app(
         lifespan=lifespan,
         docs_url=None,  # served by install_docs, with no CDN
         redoc_url=None,
+        dependencies=[Depends(refuse_unstorable_query)],  # 422 for a NUL in a query string
     )
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()

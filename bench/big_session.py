@@ -26,6 +26,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -87,7 +88,8 @@ def stage_times(raw: bytes, url: str) -> None:
     job_id = insert_session(db, raw).job_id
     seconds: dict[str, float] = {}
     store_transactions_s: list[float] = []
-    transaction = db.transaction
+    fenced_s: list[float] = []
+    transaction, finish = db.transaction, queue.finish
 
     @contextmanager
     def timed_transaction() -> Iterator[Session]:
@@ -96,17 +98,26 @@ def stage_times(raw: bytes, url: str) -> None:
             with transaction() as db_session:
                 yield db_session
         finally:
-            store_transactions_s.append(time.perf_counter() - started_s)
+            took_s = time.perf_counter() - started_s
+            store_transactions_s.append(took_s)
+            if db_session.info.pop("finished_job", False):
+                fenced_s.append(took_s)
+
+    def noted_finish(db_session: Session, *args: Any, **kwargs: Any) -> Any:
+        db_session.info["finished_job"] = True
+        return finish(db_session, *args, **kwargs)
 
     def timed(stage: pipeline.Stage) -> pipeline.Stage:
         def run(ctx: pipeline.JobContext) -> None:
             started_s = time.perf_counter()
             if stage.name == "store":
                 db.transaction = timed_transaction  # type: ignore[method-assign]
+                queue.finish = noted_finish
             try:
                 stage.run(ctx)
             finally:
                 db.transaction = transaction  # type: ignore[method-assign]
+                queue.finish = finish
             seconds[stage.name] = time.perf_counter() - started_s
 
         return pipeline.Stage(name=stage.name, weight=stage.weight, run=run)
@@ -121,7 +132,7 @@ def stage_times(raw: bytes, url: str) -> None:
     print(
         f"store on {db.backend}: {len(store_transactions_s)} write transactions, the longest "
         f"{max(store_transactions_s) * 1e3:.0f} ms (the fenced one, that makes the version "
-        f"visible: {store_transactions_s[-1] * 1e3:.0f} ms)"
+        f"visible: {fenced_s[0] * 1e3:.0f} ms)"
     )
 
 
