@@ -8,9 +8,11 @@ header timeout, a body timeout and a cap on connections per client address.
   connection, from the request's first byte); a client that sends them a byte at a time, or
   connects and sends nothing, is disconnected when it runs out. (uvicorn has no such timeout;
   its keep-alive timeout only covers the time between requests.)
-- **Body timeout** (``INVISIBLE_MAP_BODY_TIMEOUT_S``, 30 s): while a body is being read, at most
-  this long may pass without a byte of it; a stalled upload is disconnected (the server's own
-  pauses, when the route reads slower than the client sends, do not count).
+- **Body timeout** (``INVISIBLE_MAP_BODY_TIMEOUT_S``, 30 s): while a body is being read, every
+  such span must bring at least :data:`MIN_BODY_BYTES_PER_TIMEOUT` (1 KiB, about 34 bytes/s at
+  30 s: far below any phone's link) of it; a stalled upload, or one trickled a few bytes at a
+  time (a "slow POST"), is disconnected (the server's own pauses, when the route reads slower
+  than the client sends, do not count).
 - **Connections per address** (``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS``, 128; 0: no cap):
   a client address with that many connections open gets ``503`` with ``Retry-After: 1`` and the
   connection closed on its next one. Addresses of ``INVISIBLE_MAP_TRUSTED_PROXIES`` are exempt
@@ -34,6 +36,9 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 from app.config import Settings
 
 logger = logging.getLogger("uvicorn.error")
+
+#: Least body bytes a client must send in each ``body_timeout_s`` while its body is read.
+MIN_BODY_BYTES_PER_TIMEOUT = 1024
 
 _TOO_MANY = (
     b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 1\r\nConnection: close\r\n"
@@ -72,6 +77,7 @@ class _Guarded(H11Protocol):
         super().__init__(*args, **kwargs)
         self._header_timer: asyncio.TimerHandle | None = None
         self._body_timer: asyncio.TimerHandle | None = None
+        self._body_bytes = 0  # received since the body timer was armed
         self._counted: str | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -111,11 +117,18 @@ class _Guarded(H11Protocol):
         if self._header_timer is not None:
             self._header_timer.cancel()
             self._header_timer = None
-        if self._body_timer is not None:
-            self._body_timer.cancel()
-            self._body_timer = None
-        if state is h11.SEND_BODY:
-            self._body_timer = self.loop.call_later(self.body_timeout_s, self._body_timed_out)
+        if state is not h11.SEND_BODY:
+            if self._body_timer is not None:
+                self._body_timer.cancel()
+                self._body_timer = None
+            return
+        self._body_bytes += len(data)
+        if self._body_timer is None:  # the body began: its first span starts now
+            self._arm_body_timer()
+
+    def _arm_body_timer(self) -> None:
+        self._body_bytes = 0
+        self._body_timer = self.loop.call_later(self.body_timeout_s, self._body_timed_out)
 
     def on_response_complete(self) -> None:
         super().on_response_complete()  # arms the keep-alive timer for the time between requests
@@ -144,10 +157,17 @@ class _Guarded(H11Protocol):
         self._body_timer = None
         if self.conn.their_state is not h11.SEND_BODY:
             return
-        if self.flow.read_paused:  # the server reads slower than the client sends: wait more
-            self._body_timer = self.loop.call_later(self.body_timeout_s, self._body_timed_out)
+        if self.flow.read_paused or self._body_bytes >= MIN_BODY_BYTES_PER_TIMEOUT:
+            self._arm_body_timer()  # it kept up (or the server paused it): the next span
             return
-        self._close("no byte of its request's body came for", self.body_timeout_s)
+        if self._body_bytes == 0:
+            self._close("no byte of its request's body came for", self.body_timeout_s)
+        else:
+            self._close(
+                f"its request's body brought {self._body_bytes} bytes (fewer than "
+                f"{MIN_BODY_BYTES_PER_TIMEOUT}) in",
+                self.body_timeout_s,
+            )
 
     def _close(self, why: str, seconds: float) -> None:
         if self.transport.is_closing():

@@ -101,3 +101,80 @@ def test_the_log_says_why(server: ServerProcess) -> None:
     text = Path(server.log_path).read_text()
     assert "its request's headers did not arrive within 1.5 s" in text
     assert "no byte of its request's body came for 1.5 s" in text
+
+
+PROBE_LIMITS = {
+    "INVISIBLE_MAP_HEADER_TIMEOUT_S": "2",
+    "INVISIBLE_MAP_BODY_TIMEOUT_S": "2",
+    "INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS": "0",  # the probe's 100 from one address
+}
+#: Seconds between two bytes of a slow client (each connection trickles, never stalls).
+TRICKLE_S = 0.25
+
+
+def test_a_hundred_slow_clients_are_all_closed_and_others_are_answered(
+    tmp_path: Path,
+) -> None:
+    """The outside probe of issue 19 (finding 5): 50 clients sending their headers a byte at a
+    time with no key, and 50 sending a body a byte at a time after whole headers with a key;
+    every one of them is closed by the server within its limit (2 s, plus the time to notice),
+    and ordinary requests are answered meanwhile."""
+    env = {"INVISIBLE_MAP_DATA_DIR": str(tmp_path), **PROBE_LIMITS}
+    with ServerProcess(
+        f"sqlite:///{tmp_path / 'db.sqlite3'}", workers=0, env=env, log_path=tmp_path / "log"
+    ) as server:
+        header_bytes = b"GET /v1/maps HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 1000
+        body_head = (
+            f"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {server.admin_key}"
+            "\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+        ).encode()
+        clients: list[tuple[socket.socket, bytes]] = []
+        for k in range(100):
+            sock = connect(server)
+            sock.setblocking(False)
+            if k % 2:  # a slow body: whole headers, then the body a byte at a time
+                sock.sendall(body_head)
+                clients.append((sock, b'{"map_id": "' + b"s" * 1000))
+            else:
+                clients.append((sock, header_bytes))
+        started_s = time.monotonic()
+        closed_after: dict[int, float] = {}
+        answered = []
+        sent = 0
+        while len(closed_after) < len(clients) and time.monotonic() - started_s < 8:
+            for k, (sock, trickle) in enumerate(clients):
+                if k in closed_after:
+                    continue
+                try:
+                    if sock.recv(4096) == b"":
+                        closed_after[k] = time.monotonic() - started_s
+                        continue
+                except BlockingIOError:
+                    pass
+                except OSError:  # reset
+                    closed_after[k] = time.monotonic() - started_s
+                    continue
+                try:
+                    sock.send(trickle[sent : sent + 1])
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    closed_after[k] = time.monotonic() - started_s
+            sent += 1
+            if sent % 4 == 0:  # someone else, meanwhile
+                answer = httpx.get(server.url + "/healthz", timeout=5)
+                answered.append(answer.status_code)
+            time.sleep(TRICKLE_S)
+        for sock, _ in clients:
+            sock.close()
+        assert len(closed_after) == 100, f"{100 - len(closed_after)} slow clients still open"
+        print(
+            f"100 slow clients closed {min(closed_after.values()):.1f}–"
+            f"{max(closed_after.values()):.1f} s in; {len(answered)} other requests answered"
+        )
+        assert max(closed_after.values()) < 5  # each within its 2 s (and the loop's rounds)
+        assert answered, answered
+        assert set(answered) == {200}
+        log = Path(server.log_path or "").read_text()
+        assert log.count("its request's headers did not arrive within 2 s") >= 50
+        assert log.count("its request's body brought") >= 50
