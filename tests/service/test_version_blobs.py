@@ -13,13 +13,13 @@ from typing import Any
 
 import pytest
 from api_support import ADMIN, ONETAG, running_api
-from sqlalchemy import select
+from sqlalchemy import select, update
 
 from app.storage import blobs, maps, queue
 from app.storage.blobs import BlobMissing
 from app.storage.db import Database
 from app.storage.navigation import path_graph_document
-from app.storage.orm import Blob, BlobChunk, JobState, MapVersion, utc_now
+from app.storage.orm import Blob, BlobChunk, Job, JobState, MapVersion, utc_now
 from app.storage.queue import LeaseLost
 from tests.service.helpers import get_job, insert_session, session_bytes, version_count
 from tests.service.test_worker import worker_with
@@ -212,3 +212,46 @@ def test_a_worker_stalled_while_writing_its_bulk_data_stops_no_other_writer(
         answer = api.client.get(f"/v1/maps/{building['map_id']}/app-map", headers=ADMIN)
         assert answer.status_code == 200, answer.text
         assert answer.json()["tag_vertices"]
+
+
+def test_the_reaper_acts_on_a_worker_stalled_in_its_store_and_fences_its_late_write(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On SQLite the reaper needs the write lock too: it used to wait for a worker stalled in
+    its store transaction. Now it requeues the stalled worker's job at once (here: its lease
+    taken as expired), the late worker's fenced write is refused when it wakes, and another
+    worker builds the map; the late worker's blobs are reused or collected."""
+    monkeypatch.setattr(blobs, "CHUNK_BYTES", 2048)
+    stalled, go_on = threading.Event(), threading.Event()
+    write_chunk = blobs.write_blob_chunk
+
+    def stalls_once(db: Database, sha256: str, number: int, chunk: bytes, **kw: Any) -> None:
+        write_chunk(db, sha256, number, chunk, **kw)
+        if number == 0 and not stalled.is_set():
+            stalled.set()
+            assert go_on.wait(60)
+
+    monkeypatch.setattr(blobs, "write_blob_chunk", stalls_once)
+    inserted = insert_session(db, session_bytes("onetag"))
+    late = threading.Thread(target=worker_with(db).run_once)
+    late.start()
+    try:
+        assert stalled.wait(60), "the worker never reached its store stage"
+        with db.transaction() as tx:  # as if it had stalled past its lease (SIGSTOP)
+            tx.execute(
+                update(Job)
+                .where(Job.id == inserted.job_id)
+                .values(lease_expires_at=utc_now() - timedelta(seconds=1))
+            )
+        assert queue.reap_expired(db, backoff_s=0.0) == 1
+        assert get_job(db, inserted.job_id).state == JobState.QUEUED
+    finally:
+        go_on.set()
+        late.join(60)
+    assert version_count(db, map_id=inserted.map_id) == 0  # the late write was fenced off
+    assert worker_with(db).run_once()
+    job = get_job(db, inserted.job_id)
+    assert (job.state, job.attempts) == (JobState.SUCCEEDED, 2), job.error
+    late_orphans = blob_shas(db) - version_blob_shas(db)  # what content did not reuse
+    assert blobs.collect_orphan_blobs(db, now=utc_now() + LATER) == len(late_orphans)
+    assert blob_shas(db) == version_blob_shas(db)
