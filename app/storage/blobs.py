@@ -27,7 +27,7 @@ import hashlib
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import delete, exists, func, or_, select, update
+from sqlalchemy import delete, exists, or_, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
@@ -139,10 +139,6 @@ def _orphan(cutoff: datetime) -> Any:
         MapVersion.path_graph_sha256 == Blob.sha256,
     )
     return (Blob.touched_at < cutoff) & ~exists().where(referred)
-
-
-def blob_count(db_session: Session) -> int:
-    return int(db_session.scalar(select(func.count()).select_from(Blob)) or 0)
 
 
 def _chunks(data: bytes) -> list[bytes]:
