@@ -3,8 +3,10 @@
 locks and are answered 503 ``database_unavailable`` with Retry-After instead of hanging (30 such
 requests used to hold the whole pool), and the server ends the stalled transaction after
 ``INVISIBLE_MAP_DB_IDLE_IN_TRANSACTION_TIMEOUT_S``, releasing its locks. (SQLite: one writer at
-a time; a stalled writer holds every other writer for SQLite's 30 s busy timeout, then 503 —
-see docs/operations.md, Reliability.)"""
+a time, so a writer stalled inside a transaction holds every other for SQLite's 30 s busy
+timeout, then 503; the worker's transactions are therefore all short, its bulk data written in
+chunks outside the fenced one: ``test_version_blobs.py`` stalls a worker there, on both
+databases.)"""
 
 from __future__ import annotations
 
