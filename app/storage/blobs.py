@@ -160,7 +160,14 @@ def _begin(db_session: Session, sha256: str, size_bytes: int, chunk_count: int) 
             index_elements=[Blob.sha256], set_={"touched_at": values["touched_at"]}
         )
     )
-    complete = db_session.scalar(select(Blob.complete).where(Blob.sha256 == sha256))
+    complete, chunks_before = db_session.execute(
+        select(Blob.complete, Blob.chunk_count).where(Blob.sha256 == sha256)
+    ).one()
+    if not complete and chunks_before != chunk_count:  # half-written with other chunk sizes
+        db_session.execute(delete(BlobChunk).where(BlobChunk.sha256 == sha256))
+        db_session.execute(
+            update(Blob).where(Blob.sha256 == sha256).values(chunk_count=chunk_count)
+        )
     return bool(complete)
 
 

@@ -102,7 +102,9 @@ def test_a_half_written_blob_is_never_read_and_the_next_writer_completes_it(
             blobs.require_blobs(tx, [sha256])
 
     monkeypatch.setattr(blobs, "write_blob_chunk", write_chunk)
+    monkeypatch.setattr(blobs, "CHUNK_BYTES", 7)  # another size: the old pieces are dropped
     assert blobs.put_blob(db, data) == sha256
+    assert chunk_rows(db, sha256) == [data[0:7], data[7:14], data[14:21], data[21:25]]
     with db.read() as tx:
         assert blobs.read_blob(tx, sha256) == data
         blobs.require_blobs(tx, [sha256])
