@@ -33,6 +33,8 @@ from app.api.routes import (
 )
 from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
+from app.services.keys import PrincipalCache
+from app.services.maps import MapPages, MapStates
 from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
 from app.storage.db import Database, ServerTimeouts
@@ -93,7 +95,11 @@ def create_app(
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
     app.state.upload_rate = UploadRate(app.state.settings.uploads_per_minute)
-    app.state.version_cache = VersionCache()
+    # Per-process memory of the hot read path (docs/api.md, "Caching and consistency").
+    app.state.principals = PrincipalCache(app.state.settings.key_cache_s)
+    app.state.map_states = MapStates(app.state.settings.map_cache_s)
+    app.state.map_pages = MapPages(app.state.settings.map_cache_s)
+    app.state.version_cache = VersionCache(max_bytes=app.state.settings.version_cache_bytes)
     app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(

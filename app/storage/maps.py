@@ -25,6 +25,7 @@ from app.domain.map_io import map_to_json
 from app.domain.map_result import MapResult
 from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.session import display_name_of
+from app.storage.changes import MAP_CHANGES
 from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
 from app.storage.rows import info_from_row
 
@@ -117,6 +118,7 @@ def create_map(
     db_session.flush()
     db_session.add(MapSession(map_id=row.id, session_id=session_id, added_at=now))
     db_session.flush()
+    MAP_CHANGES.note(db_session, row.id)
     return row.id
 
 
@@ -127,6 +129,7 @@ def set_display_name(db_session: Session, map_id: int, display_name: str) -> Map
         raise MapNotFound(map_id)
     row.display_name = display_name
     db_session.flush()
+    MAP_CHANGES.note(db_session, map_id)
     return _map_info(db_session, row)
 
 
@@ -169,6 +172,7 @@ def add_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
             "already_in_map", f"session {session_id} is already in map {map_id}"
         )
     _ensure_rows(db_session, map_id, ids)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.add(MapSession(map_id=map_id, session_id=session_id, added_at=utc_now()))
     db_session.flush()
     return [*ids, session_id]
@@ -188,6 +192,7 @@ def remove_session(db_session: Session, map_id: int, session_id: int) -> list[in
             f"delete the map instead",
         )
     _ensure_rows(db_session, map_id, ids)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.execute(
         delete(MapSession).where(MapSession.map_id == map_id, MapSession.session_id == session_id)
     )
@@ -347,6 +352,7 @@ def delete_map(db_session: Session, map_id: int) -> None:
     """Delete a map and its versions (the session and its raw upload stay)."""
     if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.execute(delete(MapRow).where(MapRow.id == map_id))
 
 
