@@ -16,7 +16,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from app.api.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
 from app.api.errors import error_responses
-from app.api.http import AcceptEncoding, IfNoneMatch, ReadyDocument, json_response, strong_etag
+from app.api.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
 from app.domain.path_graph import PathGraph
@@ -106,21 +106,26 @@ async def plan(
     db: DbDep,
 ) -> Response:
     version = current_version(state)
-    cache: VersionCache = request.app.state.version_cache
-    graph = kept_path_graph(cache, version)
-    if graph is None:
-        graph = await run_in_threadpool(_read_path_graph, cache, db, version)
-    route = planned_route(
-        graph,
-        body.from_.to_domain(),
-        body.to.to_domain(),
-        avoid=frozenset(body.avoid),
-        heading_rad=body.heading_rad(),
-        style=body.guidance_style(),
-    )
-    return json_response(
-        RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
-    )
+    answers: VersionCache = request.app.state.route_answers
+    question = (version.id, body.__pydantic_serializer__.to_json(body))
+    answer: bytes | None = answers.peek(question)
+    if answer is None:
+        cache: VersionCache = request.app.state.version_cache
+        graph = kept_path_graph(cache, version)
+        if graph is None:
+            graph = await run_in_threadpool(_read_path_graph, cache, db, version)
+        route = planned_route(
+            graph,
+            body.from_.to_domain(),
+            body.to.to_domain(),
+            avoid=frozenset(body.avoid),
+            heading_rad=body.heading_rad(),
+            style=body.guidance_style(),
+        )
+        public = RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
+        answer = public.__pydantic_serializer__.to_json(public)
+        answers.put(question, answer)
+    return Response(content=answer, media_type=JSON_MEDIA_TYPE)
 
 
 def _read_path_graph(cache: VersionCache, db: Database, version: VersionInfo) -> PathGraph:
