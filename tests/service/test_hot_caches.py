@@ -8,6 +8,7 @@ process's change counters (``app.storage.changes``), which is what this process'
 
 from __future__ import annotations
 
+import gzip
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from typing import Any
@@ -16,6 +17,7 @@ import pytest
 from api_support import ADMIN, OCCAM, ONETAG, Api, bearer, run_next_job, running_api
 from sqlalchemy import text
 
+from app.api.http import ReadyDocument
 from app.services.keys import PrincipalCache
 from app.services.maps import MapPages, MapStates
 from app.services.version_cache import VersionCache
@@ -287,3 +289,22 @@ def test_map_states_keep_only_settled_maps_and_are_bounded(api: Api, built: dict
     states.load(api.db, unbuilt["map_id"])
     assert states.fresh(unbuilt["map_id"]) is not None
     assert states.fresh(built["map_id"]) is None  # one entry
+
+
+def test_a_ready_document_answers_304_and_gzip_only_when_it_pays() -> None:
+    small = ReadyDocument.of(b'{"a":1}', media_type="application/json")
+    assert small.gzipped is None  # under 4 kB: sent as it is
+    assert small.response(None, "gzip").headers.get("Content-Encoding") is None
+    large = ReadyDocument.of(b"[" + b"1," * 5000 + b"1]", media_type="application/json")
+    assert large.gzipped is not None
+    zipped = large.response(None, "br, gzip;q=0.5")
+    assert zipped.headers["Content-Encoding"] == "gzip"
+    assert gzip.decompress(zipped.body) == large.content
+    assert large.response(None, "gzip;q=0").headers.get("Content-Encoding") is None
+    for held in (large.etag, f"W/{large.etag}", f'"other", {large.etag}', "*"):
+        not_modified = large.response(held, "gzip")
+        assert (not_modified.status_code, not_modified.body) == (304, b"")
+        assert not_modified.headers["ETag"] == large.etag
+    assert large.response('"other"', None).status_code == 200
+    named = ReadyDocument.of(b"x", media_type="text/plain", etag='"v2"')
+    assert named.etag == '"v2"'
