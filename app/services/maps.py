@@ -22,7 +22,7 @@ from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
 from app.domain.path_graph import path_graph_from_json
 from app.services.errors import Conflict, InvalidInput, NotFound
-from app.services.version_cache import VersionCache
+from app.services.version_cache import VersionCache, size_in_bytes
 from app.storage import images, maps, queue, sessions
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
@@ -287,6 +287,8 @@ def tag_poses_of(cache: VersionCache, db_session: Session, version_id: int) -> l
 
 #: Maps whose state one API process keeps.
 MAP_STATES_ENTRIES = 4096
+#: Bytes of answers (map documents) kept with those states.
+MAP_STATES_BYTES = 64 * 2**20
 
 
 class MapStates:
@@ -294,20 +296,32 @@ class MapStates:
     kept). A state is kept only while the map's newest job has finished (a queued or running
     build changes the map from another process at any time, so such maps are read on every
     request); this process's own changes of a map (``app.storage.changes.MAP_CHANGES``) drop
-    its state at once; another process's are seen within ``ttl_s``. Unknown maps are not kept."""
+    its state at once; another process's are seen within ``ttl_s``. Unknown maps are not kept.
+    Bounded by ``max_entries`` states and ``max_bytes`` of the answers made from them."""
 
     def __init__(
         self,
         ttl_s: float,
         *,
         max_entries: int = MAP_STATES_ENTRIES,
+        max_bytes: int = MAP_STATES_BYTES,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.ttl_s = ttl_s
         self.max_entries = max_entries
+        self.max_bytes = max_bytes
         self.clock = clock
         self._states: OrderedDict[int, MapState] = OrderedDict()
+        self._bytes = 0
         self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+    @property
+    def size_bytes(self) -> int:
+        """Bytes of the answers kept with the states now."""
+        return self._bytes
 
     def fresh(self, map_id: int) -> MapState | None:
         """The kept state of ``map_id`` if it is still good, else None (read it: :meth:`load`)."""
@@ -320,7 +334,7 @@ class MapStates:
         ):
             with self._lock:
                 if self._states.get(map_id) is state:
-                    del self._states[map_id]
+                    self._drop(map_id)
             return None
         return state
 
@@ -340,15 +354,32 @@ class MapStates:
         )
         if self.ttl_s > 0 and state.settled:
             with self._lock:
+                if map_id in self._states:
+                    self._drop(map_id)
                 self._states[map_id] = state
-                self._states.move_to_end(map_id)
-                while len(self._states) > self.max_entries:
-                    self._states.popitem(last=False)
+                self._evict()
         return state
 
-    def forget(self, map_id: int) -> None:
+    def attach(self, state: MapState, name: str, document: object) -> None:
+        """Keep ``document``, an answer made from exactly ``state``, with it (under ``name``);
+        its bytes count against ``max_bytes`` while the state is kept."""
         with self._lock:
-            self._states.pop(map_id, None)
+            if name in state.documents:
+                return
+            state.documents[name] = document
+            if self._states.get(state.info.id) is state:
+                self._bytes += size_in_bytes(document)
+                self._evict()
+
+    def _drop(self, map_id: int) -> None:
+        state = self._states.pop(map_id)
+        self._bytes -= sum(size_in_bytes(document) for document in state.documents.values())
+
+    def _evict(self) -> None:
+        while self._states and (
+            len(self._states) > self.max_entries or self._bytes > self.max_bytes
+        ):
+            self._drop(next(iter(self._states)))
 
 
 #: Pages of the maps list one API process keeps.

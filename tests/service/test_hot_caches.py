@@ -308,3 +308,25 @@ def test_a_ready_document_answers_304_and_gzip_only_when_it_pays() -> None:
     assert large.response('"other"', None).status_code == 200
     named = ReadyDocument.of(b"x", media_type="text/plain", etag='"v2"')
     assert named.etag == '"v2"'
+
+
+def test_map_states_are_bounded_by_the_bytes_of_their_answers(
+    api: Api, built: dict[str, Any]
+) -> None:
+    other = api.uploaded(ONETAG)
+    assert run_next_job(api.db) == other["job_id"]
+    states = MapStates(MAP_BOUND_S, max_bytes=1000)
+    first = states.load(api.db, built["map_id"])
+    second = states.load(api.db, other["map_id"])
+    states.attach(first, "map", b"x" * 600)
+    assert states.size_bytes == 600
+    states.attach(second, "map", b"y" * 600)  # 1200 bytes: the older state goes
+    assert states.size_bytes == 600
+    assert states.fresh(built["map_id"]) is None
+    kept = states.fresh(other["map_id"])
+    assert kept is not None
+    assert kept.documents["map"] == b"y" * 600
+    states.attach(first, "map", b"z" * 10)  # a state no longer kept counts nothing
+    assert states.size_bytes == 600
+    states.load(api.db, other["map_id"])  # read again: the old state's answer is dropped
+    assert (len(states), states.size_bytes) == (1, 0)

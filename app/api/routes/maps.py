@@ -164,6 +164,7 @@ async def get_map(
         document = await run_in_threadpool(
             _map_document, request.app.state.version_cache, db, state
         )
+        request.app.state.map_states.attach(state, MAP_DOCUMENT, document)
     return document.response(if_none_match, accept_encoding)
 
 
@@ -177,11 +178,9 @@ def _map_document(cache: VersionCache, db: Database, state: MapState) -> ReadyDo
     with db.read() as db_session:
         tags = tag_poses_of(cache, db_session, current.id) if current else []
     public = MapPublic.from_domain(state.info, tags=tags, latest_job=state.latest_job)
-    document = ReadyDocument.of(
+    return ReadyDocument.of(
         public.__pydantic_serializer__.to_json(public), media_type=JSON_MEDIA_TYPE
     )
-    state.documents[MAP_DOCUMENT] = document
-    return document
 
 
 @router.get(
