@@ -22,7 +22,10 @@ that directory agrees; it signs the admin dashboard's login cookies],
 ``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` [30 per device key],
 ``INVISIBLE_MAP_DEVICE_MAX_AUTO_TUNE_TRIALS`` [20], ``INVISIBLE_MAP_DB_LOCK_TIMEOUT_S`` [5],
 ``INVISIBLE_MAP_DB_STATEMENT_TIMEOUT_S`` [120], ``INVISIBLE_MAP_DB_IDLE_IN_TRANSACTION_TIMEOUT_S``
-[60] (PostgreSQL's limits on the API's and the workers' connections).
+[60] (PostgreSQL's limits on the API's and the workers' connections),
+``INVISIBLE_MAP_KEY_CACHE_S`` [5: how long an API process trusts a key it checked; see
+``key_cache_s``], ``INVISIBLE_MAP_MAP_CACHE_S`` [2: the same for a map's current version; see
+``map_cache_s``], ``INVISIBLE_MAP_VERSION_CACHE_BYTES`` [256 MiB: documents kept per process].
 """
 
 from __future__ import annotations
@@ -98,6 +101,19 @@ class Settings(BaseSettings):
     device_max_auto_tune_trials: int = Field(default=20, ge=0, le=1000)
     #: A job attempt that runs longer than this fails for good, with the reason (0: no budget).
     job_time_budget_s: float = Field(default=3600.0, ge=0)
+    #: How long an API process answers from its memory of a key it checked, s (0: every request
+    #: reads the key). The bound on seeing a revocation made by another process (the CLI,
+    #: another API process); a revocation in this process and a key's ``expires_at`` count at
+    #: once (docs/api.md, "Caching and consistency").
+    key_cache_s: float = Field(default=5.0, ge=0, le=3600)
+    #: How long an API process answers from its memory of a map (its current version, newest
+    #: job), s (0: every request reads it). The bound on seeing another process's change of a
+    #: map whose newest job has finished; a map whose job is queued or running is read on every
+    #: request, and this process's own changes count at once.
+    map_cache_s: float = Field(default=2.0, ge=0, le=3600)
+    #: The most bytes of documents made from map versions (app-map, GeoJSON, map documents)
+    #: one API process keeps.
+    version_cache_bytes: int = Field(default=256 * 2**20, ge=0)
     session_secret: str | None = Field(
         default=None,
         description="signs the admin dashboard's cookies; unset: a random secret in data_dir",

@@ -34,6 +34,8 @@ from app.api.routes import (
 )
 from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
+from app.services.keys import PrincipalCache
+from app.services.maps import MapPages, MapStates
 from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
 from app.storage.db import Database, ServerTimeouts
@@ -47,6 +49,11 @@ Every `/v1` endpoint needs `Authorization: Bearer <key>`. A *device* key uploads
 its own sessions and their jobs, and reads every map; an *admin* key may do everything, including
 managing jobs, maps and keys. Errors have one shape: `{"detail", "code", "field"}`.
 """
+
+#: Route answers one API process keeps (``POST /v1/maps/{id}/routes`` asked again, e.g. by
+#: phones following the same route, is answered from memory), and their bytes at most.
+ROUTE_ANSWERS_ENTRIES = 4096
+ROUTE_ANSWERS_BYTES = 32 * 2**20
 
 #: Uploads have their own limits (``max_upload_bytes``, ``max_session_bytes``: app.api.upload).
 UPLOAD_PATH = "/v1/sessions"
@@ -95,7 +102,15 @@ def create_app(
     app.state.settings = settings or get_settings()
     app.state.key_usage = KeyUsage()
     app.state.upload_rate = UploadRate(app.state.settings.uploads_per_minute)
-    app.state.version_cache = VersionCache()
+    # Per-process memory of the hot read path (docs/api.md, "Caching and consistency").
+    app.state.principals = PrincipalCache(app.state.settings.key_cache_s)
+    app.state.map_states = MapStates(app.state.settings.map_cache_s)
+    app.state.map_pages = MapPages(app.state.settings.map_cache_s)
+    app.state.version_cache = VersionCache(max_bytes=app.state.settings.version_cache_bytes)
+    # A route is a function of the version and the request: the answers to the latest questions.
+    app.state.route_answers = VersionCache(
+        max_entries=ROUTE_ANSWERS_ENTRIES, max_bytes=ROUTE_ANSWERS_BYTES
+    )
     app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(

@@ -33,6 +33,7 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
@@ -40,7 +41,9 @@ from sqlalchemy.orm import Session
 from app.api.errors import ApiError, not_found, unauthorized
 from app.api.upload import RawBody, read_body, read_image_body
 from app.config import Settings
-from app.storage import keys, maps, queue, sessions
+from app.services.keys import PrincipalCache
+from app.services.maps import MapState, MapStates
+from app.storage import keys, queue, sessions
 from app.storage.db import Database
 from app.storage.images import MAX_IMAGE_BYTES
 from app.storage.maps import MapInfo
@@ -129,23 +132,34 @@ bearer_scheme = HTTPBearer(
 BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 
 
-def current_principal(
+async def current_principal(
     request: Request, credentials: BearerDep, settings: SettingsDep, db: DbDep
 ) -> keys.Principal:
-    """Who is calling: 401 without a valid key. (Its own short transaction, so that no
-    connection is held while an upload's body streams in.)"""
+    """Who is calling: 401 without a valid key. A key this process checked within
+    ``INVISIBLE_MAP_KEY_CACHE_S`` is known from memory, on the event loop; otherwise it is read
+    on a thread, in its own short transaction (no connection is held while an upload's body
+    streams in)."""
     if credentials is None:
         raise unauthorized("missing API key: send Authorization: Bearer <key>")
-    with db.read() as db_session:
-        principal = keys.authenticate(
-            db_session, credentials.credentials, admin_key=settings.admin_key
+    principals: PrincipalCache = request.app.state.principals
+    principal = principals.cached(credentials.credentials)
+    if principal is None:
+        principal = await run_in_threadpool(
+            _authenticate, db, principals, credentials.credentials, settings.admin_key
         )
     if principal is None:
         raise unauthorized("unknown, revoked or expired API key", invalid_token=True)
     usage: KeyUsage = request.app.state.key_usage
     if principal.key_id is not None and usage.due(principal.key_id):
-        _touch(db, principal.key_id)
+        await run_in_threadpool(_touch, db, principal.key_id)
     return principal
+
+
+def _authenticate(
+    db: Database, principals: PrincipalCache, key: str, admin_key: str | None
+) -> keys.Principal | None:
+    with db.read() as db_session:
+        return principals.authenticate(db_session, key, admin_key=admin_key)
 
 
 def _touch(db: Database, key_id: int) -> None:
@@ -178,12 +192,25 @@ AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
 # (app.api.route_class says why that must not happen).
 
 
-def valid_map(map_id: int, db: DbDep) -> MapInfo:
-    """The map ``map_id`` (with its current version), or 404."""
+async def valid_map_state(map_id: int, request: Request, db: DbDep) -> MapState:
+    """The map ``map_id`` with its current version and newest job, or 404: from this process's
+    memory when it is fresh (``app.services.maps.MapStates``, on the event loop), else read on a
+    thread."""
     if not 1 <= map_id <= MAX_ID:
         raise not_found(f"map {map_id}")
-    with db.read() as db_session:
-        return maps.get_map(db_session, map_id)
+    states: MapStates = request.app.state.map_states
+    state = states.fresh(map_id)
+    if state is None:
+        state = await run_in_threadpool(states.load, db, map_id)
+    return state
+
+
+MapStateDep = Annotated[MapState, Depends(valid_map_state)]
+
+
+async def valid_map(state: MapStateDep) -> MapInfo:
+    """The map ``map_id`` (with its current version), or 404."""
+    return state.info
 
 
 MapDep = Annotated[MapInfo, Depends(valid_map)]
@@ -203,10 +230,15 @@ def valid_session(session_id: int, db: DbDep, principal: CurrentPrincipal) -> Se
 SessionDep = Annotated[SessionInfo, Depends(valid_session)]
 
 
-def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
-    """The job ``job_id`` if the caller may see it (admin, or the uploader of its session)."""
+async def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
+    """The job ``job_id`` if the caller may see it (admin, or the uploader of its session),
+    read on a thread (the request's one hop)."""
     if not 1 <= job_id <= MAX_ID:
         raise not_found(f"job {job_id}")
+    return await run_in_threadpool(_visible_job, db, job_id, principal)
+
+
+def _visible_job(db: Database, job_id: int, principal: keys.Principal) -> JobInfo:
     with db.read() as db_session:
         job = queue.get_job(db_session, job_id)
         if principal.is_admin:

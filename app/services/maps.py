@@ -7,6 +7,11 @@ from __future__ import annotations
 
 import gzip
 import json
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
 from typing import Any
 
 from sqlalchemy import select
@@ -17,12 +22,15 @@ from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
 from app.domain.path_graph import path_graph_from_json
 from app.services.errors import Conflict, InvalidInput, NotFound
-from app.services.version_cache import VersionCache
+from app.services.version_cache import VersionCache, size_in_bytes
 from app.storage import images, maps, queue, sessions
+from app.storage.changes import MAP_CHANGES
+from app.storage.db import Database
 from app.storage.images import MapImage, StoredImage
-from app.storage.maps import MapInfo, VersionInfo
+from app.storage.maps import MapInfo, TagPose, VersionInfo
 from app.storage.navigation import path_graph_document
-from app.storage.orm import MapRow
+from app.storage.orm import TERMINAL_STATES, MapRow
+from app.storage.queue import JobInfo
 from app.storage.sessions import BUILD_MAP, SESSION_IDS
 
 
@@ -42,6 +50,7 @@ def enqueue_rebuild(
     no map (never a job referring to a deleted map)."""
     lock_map(db_session, map_id)
     info = maps.get_map(db_session, map_id)
+    MAP_CHANGES.note(db_session, map_id)  # its newest job changes
     ids = list(session_ids or info.session_ids)
     params = dict(overrides)
     if len(ids) > 1:
@@ -229,12 +238,201 @@ def chosen_version(db_session: Session, info: MapInfo, number: int | None) -> Ve
     if info.current is not None:
         return info.current
     jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=1)
+    raise map_not_ready(info.id, jobs[0] if jobs else None)
+
+
+def current_version(state: MapState) -> VersionInfo:
+    """The current version of the map ``state`` saw (409 while there is none), no query."""
+    if state.info.current is None:
+        raise map_not_ready(state.info.id, state.latest_job)
+    return state.info.current
+
+
+def map_not_ready(map_id: int, latest_job: JobInfo | None) -> Conflict:
+    """The 409 of a map with no version yet, saying what its newest job is doing."""
     building = (
-        f": its build job {jobs[0].id} is {jobs[0].state}; follow /v1/jobs/{jobs[0].id}"
-        if jobs
+        f": its build job {latest_job.id} is {latest_job.state}; follow /v1/jobs/{latest_job.id}"
+        if latest_job is not None
         else ": rebuild it to make one"
     )
-    raise Conflict("map_not_ready", f"map {info.id} has no version yet{building}")
+    return Conflict("map_not_ready", f"map {map_id} has no version yet{building}")
+
+
+# --------------------------------------------------------------------------- per-process memory
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MapState:
+    """A map as one read saw it: the map with its current version and its newest job.
+    ``documents``: answers made from exactly this state (the API's map document, as bytes),
+    made at most once per state."""
+
+    info: MapInfo
+    latest_job: JobInfo | None
+    loaded_at_s: float
+    change_count: int
+    documents: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    @property
+    def settled(self) -> bool:
+        """Whether nothing is under way that a worker will change (no job, or it has finished):
+        only such a state is kept."""
+        return self.latest_job is None or self.latest_job.state in TERMINAL_STATES
+
+
+def tag_poses_of(cache: VersionCache, db_session: Session, version_id: int) -> list[TagPose]:
+    """The tag poses of a version (cached per process: a version never changes)."""
+    return cache.get(("tag_poses", version_id), lambda: maps.tag_poses(db_session, version_id))
+
+
+#: Maps whose state one API process keeps.
+MAP_STATES_ENTRIES = 4096
+#: Bytes of answers (map documents) kept with those states.
+MAP_STATES_BYTES = 64 * 2**20
+
+
+class MapStates:
+    """Per process: what each map's current version and newest job are, for ``ttl_s`` (0: not
+    kept). A state is kept only while the map's newest job has finished (a queued or running
+    build changes the map from another process at any time, so such maps are read on every
+    request); this process's own changes of a map (``app.storage.changes.MAP_CHANGES``) drop
+    its state at once; another process's are seen within ``ttl_s``. Unknown maps are not kept.
+    Bounded by ``max_entries`` states and ``max_bytes`` of the answers made from them."""
+
+    def __init__(
+        self,
+        ttl_s: float,
+        *,
+        max_entries: int = MAP_STATES_ENTRIES,
+        max_bytes: int = MAP_STATES_BYTES,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.ttl_s = ttl_s
+        self.max_entries = max_entries
+        self.max_bytes = max_bytes
+        self.clock = clock
+        self._states: OrderedDict[int, MapState] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+    @property
+    def size_bytes(self) -> int:
+        """Bytes of the answers kept with the states now."""
+        return self._bytes
+
+    def fresh(self, map_id: int) -> MapState | None:
+        """The kept state of ``map_id`` if it is still good, else None (read it: :meth:`load`)."""
+        state = self._states.get(map_id)
+        if state is None:
+            return None
+        if (
+            self.clock() - state.loaded_at_s >= self.ttl_s
+            or MAP_CHANGES.count(map_id) != state.change_count
+        ):
+            with self._lock:
+                if self._states.get(map_id) is state:
+                    self._drop(map_id)
+            return None
+        return state
+
+    def load(self, db: Database, map_id: int) -> MapState:
+        """Read the map (MapNotFound if there is none) and its newest job, and keep the state
+        if it is settled. (Blocking: call it on a thread.)"""
+        change_count = MAP_CHANGES.count(map_id)  # before the read: a change meanwhile wins
+        loaded_at_s = self.clock()
+        with db.read() as db_session:
+            info = maps.get_map(db_session, map_id)
+            jobs, _ = queue.list_jobs(db_session, map_id=map_id, limit=1)
+        state = MapState(
+            info=info,
+            latest_job=jobs[0] if jobs else None,
+            loaded_at_s=loaded_at_s,
+            change_count=change_count,
+        )
+        if self.ttl_s > 0 and state.settled:
+            with self._lock:
+                if map_id in self._states:
+                    self._drop(map_id)
+                self._states[map_id] = state
+                self._evict()
+        return state
+
+    def attach(self, state: MapState, name: str, document: object) -> None:
+        """Keep ``document``, an answer made from exactly ``state``, with it (under ``name``);
+        its bytes count against ``max_bytes`` while the state is kept."""
+        with self._lock:
+            if name in state.documents:
+                return
+            state.documents[name] = document
+            if self._states.get(state.info.id) is state:
+                self._bytes += size_in_bytes(document)
+                self._evict()
+
+    def _drop(self, map_id: int) -> None:
+        state = self._states.pop(map_id)
+        self._bytes -= sum(size_in_bytes(document) for document in state.documents.values())
+
+    def _evict(self) -> None:
+        while self._states and (
+            len(self._states) > self.max_entries or self._bytes > self.max_bytes
+        ):
+            self._drop(next(iter(self._states)))
+
+
+#: Pages of the maps list one API process keeps.
+MAP_PAGES_ENTRIES = 64
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _KeptPage:
+    content: bytes
+    loaded_at_s: float
+    change_total: int
+
+
+class MapPages:
+    """Per process: encoded pages of the maps list for ``ttl_s`` (0: not kept), keyed by the
+    query; any change of any map in this process drops them all at once (a new map, a rename, a
+    rebuild); another process's changes (a worker's new version) are seen within ``ttl_s``."""
+
+    def __init__(
+        self,
+        ttl_s: float,
+        *,
+        max_entries: int = MAP_PAGES_ENTRIES,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.ttl_s = ttl_s
+        self.max_entries = max_entries
+        self.clock = clock
+        self._pages: OrderedDict[Hashable, _KeptPage] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def fresh(self, query: Hashable) -> bytes | None:
+        page = self._pages.get(query)
+        if page is None:
+            return None
+        if self.clock() - page.loaded_at_s >= self.ttl_s or MAP_CHANGES.total != page.change_total:
+            return None
+        return page.content
+
+    def make(self, query: Hashable, build: Callable[[], bytes]) -> bytes:
+        """``build()``'s page, kept for ``query``. (Blocking: call it on a thread.)"""
+        change_total = MAP_CHANGES.total
+        loaded_at_s = self.clock()
+        content = build()
+        if self.ttl_s > 0:
+            with self._lock:
+                self._pages[query] = _KeptPage(
+                    content=content, loaded_at_s=loaded_at_s, change_total=change_total
+                )
+                self._pages.move_to_end(query)
+                while len(self._pages) > self.max_entries:
+                    self._pages.popitem(last=False)
+        return content
 
 
 def image_url(info: MapInfo) -> str | None:
@@ -273,6 +471,7 @@ def store_session_image(
     problem = images.jpeg_problem(data, max_bytes=max_bytes)
     if problem is not None:
         raise InvalidInput("invalid_image", problem, field="body")
+    MAP_CHANGES.note(db_session)  # every map of the session shows the picture's URL
     return images.put_session_image(db_session, session_id=session_id, jpeg=data)
 
 

@@ -47,7 +47,17 @@ def version_path_graph(cache: VersionCache, db_session: Session, version: Versio
             )
         return path_graph_from_json(document)
 
-    return cache.get(("path_graph", version.id), load)
+    return cache.get((PATH_GRAPH, version.id), load)
+
+
+#: A path graph's key in the VersionCache (with the version's id).
+PATH_GRAPH = "path_graph"
+
+
+def kept_path_graph(cache: VersionCache, version: VersionInfo) -> PathGraph | None:
+    """The path graph of ``version`` if this process has it already (no database), else None."""
+    graph: PathGraph | None = cache.peek((PATH_GRAPH, version.id))
+    return graph
 
 
 def planned_route(

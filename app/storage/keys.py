@@ -14,6 +14,7 @@ from datetime import datetime
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
+from app.storage.changes import KEY_CHANGES
 from app.storage.orm import AdminLogin, ApiKey, Role, utc_now
 from app.storage.rows import info_from_row
 
@@ -80,13 +81,31 @@ def create_key(
     return KeyInfo.from_row(row), key
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ActiveKey:
+    """A key that works now, with what a cache of it must check again: when it expires."""
+
+    principal: Principal
+    expires_at: datetime | None
+
+
 def authenticate(
     db_session: Session, key: str, *, admin_key: str | None = None, now: datetime | None = None
 ) -> Principal | None:
     """The principal a presented key stands for, or None if it is unknown, revoked or expired."""
+    active = active_key(db_session, key, admin_key=admin_key, now=now)
+    return None if active is None else active.principal
+
+
+def active_key(
+    db_session: Session, key: str, *, admin_key: str | None = None, now: datetime | None = None
+) -> ActiveKey | None:
+    """:func:`authenticate`, with the key's expiry (None for keys that never expire)."""
     now = now or utc_now()
     if admin_key is not None and hmac.compare_digest(_digest(key), _digest(admin_key)):
-        return Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN)
+        return ActiveKey(
+            principal=Principal(subject=ENVIRONMENT_ADMIN, role=Role.ADMIN), expires_at=None
+        )
     scheme, _, rest = key.partition("_")
     prefix, _, secret = rest.partition("_")
     if scheme != KEY_SCHEME or not prefix or not secret:
@@ -94,7 +113,13 @@ def authenticate(
     row = db_session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
     if row is None or not hmac.compare_digest(row.secret_sha256, _digest(key)):
         return None
-    return _principal_if_active(row, now)
+    principal = _principal_if_active(row, now)
+    return None if principal is None else ActiveKey(principal=principal, expires_at=row.expires_at)
+
+
+def key_digest(key: str) -> str:
+    """The SHA-256 of a presented key, as stored (hex)."""
+    return _digest(key)
 
 
 def active_principal(
@@ -133,10 +158,12 @@ def list_keys(db_session: Session) -> list[KeyInfo]:
 
 def revoke_key(db_session: Session, key_id: int, *, now: datetime | None = None) -> KeyInfo:
     """Revoke a key (idempotent: revoking a revoked key keeps its first revocation time) and end
-    the dashboard logins it opened."""
+    the dashboard logins it opened. This process's caches of keys forget it at the commit
+    (``app.storage.changes``)."""
     row = db_session.get(ApiKey, key_id)
     if row is None:
         raise KeyNotFound(key_id)
+    KEY_CHANGES.note(db_session, key_id)
     if row.revoked_at is None:
         row.revoked_at = now or utc_now()
     db_session.execute(delete(AdminLogin).where(AdminLogin.key_id == key_id))

@@ -15,12 +15,12 @@ import gzip
 import hashlib
 import json
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import Row, delete, func, select, true
 from sqlalchemy.orm import Session, defer
 
 from app.domain.evaluation import Evaluation
@@ -30,6 +30,7 @@ from app.domain.map_result import MapResult
 from app.domain.metrics import SHIFT_METRIC_VERSION
 from app.domain.session import display_name_of
 from app.storage import blobs
+from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
 from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
 from app.storage.rows import info_from_row
@@ -123,6 +124,7 @@ def create_map(
     db_session.flush()
     db_session.add(MapSession(map_id=row.id, session_id=session_id, added_at=now))
     db_session.flush()
+    MAP_CHANGES.note(db_session, row.id)
     return row.id
 
 
@@ -133,6 +135,7 @@ def set_display_name(db_session: Session, map_id: int, display_name: str) -> Map
         raise MapNotFound(map_id)
     row.display_name = display_name
     db_session.flush()
+    MAP_CHANGES.note(db_session, map_id)
     return _map_info(db_session, row)
 
 
@@ -175,6 +178,7 @@ def add_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
             "already_in_map", f"session {session_id} is already in map {map_id}"
         )
     _ensure_rows(db_session, map_id, ids)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.add(MapSession(map_id=map_id, session_id=session_id, added_at=utc_now()))
     db_session.flush()
     return [*ids, session_id]
@@ -194,6 +198,7 @@ def remove_session(db_session: Session, map_id: int, session_id: int) -> list[in
             f"delete the map instead",
         )
     _ensure_rows(db_session, map_id, ids)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.execute(
         delete(MapSession).where(MapSession.map_id == map_id, MapSession.session_id == session_id)
     )
@@ -426,6 +431,7 @@ def delete_map(db_session: Session, map_id: int) -> None:
     """Delete a map and its versions (the session and its raw upload stay)."""
     if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
+    MAP_CHANGES.note(db_session, map_id)
     db_session.execute(delete(MapRow).where(MapRow.id == map_id))
 
 
@@ -444,17 +450,30 @@ def list_maps(
 ) -> tuple[list[MapInfo], int]:
     """Maps, newest first, and how many there are; with ``tag_id``, only maps whose current
     version contains that tag."""
-    query = select(MapRow)
+    query = select(MapRow.id)
     if tag_id is not None:
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
     total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = list(db_session.scalars(query.order_by(MapRow.id.desc()).limit(limit).offset(offset)))
-    return _map_infos(db_session, rows), total
+    page = (
+        select(MapRow.id, MapRow.name, MapRow.session_id, MapRow.created_at, MapRow.display_name)
+        .where(MapRow.id.in_(query.scalar_subquery()) if tag_id is not None else true())
+        .order_by(MapRow.id.desc())
+        .limit(limit)
+        .offset(offset)
+    )
+    return _map_infos(db_session, db_session.execute(page).all()), total
 
 
-def _map_infos(db_session: Session, rows: list[MapRow]) -> list[MapInfo]:
-    """:func:`_map_info` of a page of maps in four queries, however long the page (not three
-    or four per map: a list of 50 maps made 150 round trips)."""
+#: The columns of a version that :class:`VersionInfo` holds (no blobs, no ORM objects).
+_VERSION_COLUMNS = tuple(getattr(MapVersion, f.name) for f in fields(VersionInfo))
+
+
+def _map_infos(
+    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None]]
+) -> list[MapInfo]:
+    """:func:`_map_info` of a page of maps (rows of their columns) in four queries, however
+    long the page (not three or four per map: a list of 50 maps made 150 round trips), reading
+    columns, not ORM objects."""
     map_ids = [row.id for row in rows]
     if not map_ids:
         return []
@@ -469,15 +488,18 @@ def _map_infos(db_session: Session, rows: list[MapRow]) -> list[MapInfo]:
         .subquery()
     )
     counts = {map_id: count for map_id, _, count in db_session.execute(select(per_map)).all()}
-    newest = db_session.scalars(
-        select(MapVersion)
-        .options(*_WITHOUT_BLOBS)
-        .join(
+    newest = db_session.execute(
+        select(*_VERSION_COLUMNS).join(
             per_map,
             (per_map.c.map_id == MapVersion.map_id) & (per_map.c.number == MapVersion.number),
         )
     )
-    current = {version.map_id: VersionInfo.from_row(version) for version in newest}
+    current = {
+        version.map_id: info_from_row(
+            VersionInfo, version, session_ids=list(version.session_ids or [])
+        )
+        for version in newest
+    }
     pictures = db_session.execute(
         select(SessionImage.session_id, SessionImage.sha256).where(
             SessionImage.session_id.in_([row.session_id for row in rows])

@@ -135,7 +135,7 @@ def test_an_unexpected_error_is_500_with_a_generic_body(database_url: str) -> No
     with running_api(database_url) as api:
         api.app.dependency_overrides[read_db_session] = broken
         client = TestClient(api.app, raise_server_exceptions=False)
-        response = client.get("/v1/maps", headers=ADMIN)
+        response = client.get("/v1/keys", headers=ADMIN)  # a route with a request transaction
 
     assert response.status_code == 500
     assert response.json() == {

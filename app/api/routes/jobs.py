@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
+from sqlalchemy.orm import Session
 
 from app.api.deps import (
     AdminPrincipal,
@@ -22,10 +23,13 @@ from app.api.deps import (
     valid_id,
 )
 from app.api.errors import error_responses
+from app.api.http import json_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.jobs import JobPublic, JobsPublic
 from app.storage import queue
+from app.storage.changes import MAP_CHANGES
 from app.storage.orm import JobState
+from app.storage.queue import JobInfo
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=SessionEndingRoute)
 
@@ -60,10 +64,11 @@ def list_jobs(
     summary="Get a job",
     description="State (queued, running, succeeded, failed, canceled), progress 0–1, stage, "
     "attempts, error, timings and log tail. A device key may read the jobs of its own uploads.",
+    response_model=JobPublic,
     responses=error_responses(401, 404, 422),
 )
-def get_job(job: JobDep, principal: CurrentPrincipal) -> JobPublic:
-    return JobPublic.from_domain(job, full_error=principal.is_admin)
+async def get_job(job: JobDep, principal: CurrentPrincipal) -> Response:
+    return json_response(JobPublic.from_domain(job, full_error=principal.is_admin))
 
 
 @router.post(
@@ -75,7 +80,9 @@ def get_job(job: JobDep, principal: CurrentPrincipal) -> JobPublic:
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def cancel_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
-    return JobPublic.from_domain(queue.request_cancel(db_session, valid_id(job_id, "job")))
+    job = queue.request_cancel(db_session, valid_id(job_id, "job"))
+    _note_map_change(db_session, job)
+    return JobPublic.from_domain(job)
 
 
 @router.post(
@@ -86,4 +93,12 @@ def cancel_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDe
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def retry_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
-    return JobPublic.from_domain(queue.retry(db_session, valid_id(job_id, "job")))
+    job = queue.retry(db_session, valid_id(job_id, "job"))
+    _note_map_change(db_session, job)
+    return JobPublic.from_domain(job)
+
+
+def _note_map_change(db_session: Session, job: JobInfo) -> None:
+    """A map shows its newest job: this process's memory of it is dropped at the commit."""
+    if job.map_id is not None:
+        MAP_CHANGES.note(db_session, job.map_id)

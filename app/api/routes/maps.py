@@ -23,18 +23,29 @@ from __future__ import annotations
 import gzip
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Header, Query, Request, Response
+from fastapi import APIRouter, Body, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy.orm import Session
 
 from app.api.deps import (
     AdminPrincipal,
+    DbDep,
     MapDep,
+    MapStateDep,
     ReadDbSessionDep,
     SettingsDep,
     WriteDbSessionDep,
     valid_id,
 )
 from app.api.errors import ApiError, error_responses
-from app.api.http import IfNoneMatch, accepts_gzip, if_none_match_hits, strong_etag
+from app.api.http import (
+    JSON_MEDIA_TYPE,
+    AcceptEncoding,
+    IfNoneMatch,
+    ReadyDocument,
+    if_none_match_hits,
+    strong_etag,
+)
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.maps import (
     AddSessionRequest,
@@ -53,21 +64,27 @@ from app.api.schemas.maps import (
 )
 from app.services.maps import (
     APP_MAP_EXPORT,
+    MapPages,
+    MapState,
     add_session_to_map,
     app_map_gzip,
     checked_overrides,
     checked_session_ids,
     chosen_version,
     current_overrides,
+    current_version,
     delete_map_and_jobs,
     enqueue_rebuild,
     merge_maps,
     picture_of_map,
     remove_session_from_map,
     rename_map,
+    tag_poses_of,
 )
-from app.storage import maps, queue
-from app.storage.maps import MapInfo
+from app.services.version_cache import VersionCache
+from app.storage import maps
+from app.storage.db import Database
+from app.storage.maps import MapInfo, VersionInfo
 from app.storage.sessions import AUTO_TUNE_TRIALS
 
 router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute)
@@ -92,54 +109,78 @@ NOT_READY_EXAMPLE = (
     "",
     summary="List maps",
     description="Newest first; with tag_id, only maps whose current version has that tag.",
+    response_model=MapsPublic,
     responses=error_responses(401, 422),
 )
-def list_maps(
-    db_session: ReadDbSessionDep,
+async def list_maps(
+    request: Request,
+    db: DbDep,
     limit: Limit = 50,
     offset: Offset = 0,
     tag_id: Annotated[
         int | None, Query(ge=0, le=2**53, description="only maps containing this tag")
     ] = None,
-) -> MapsPublic:
-    infos, total = maps.list_maps(db_session, limit=limit, offset=offset, tag_id=tag_id)
-    return MapsPublic(
+) -> Response:
+    pages: MapPages = request.app.state.map_pages
+    query = (limit, offset, tag_id)
+    content = pages.fresh(query)
+    if content is None:
+        content = await run_in_threadpool(
+            pages.make, query, lambda: _maps_page(db, limit=limit, offset=offset, tag_id=tag_id)
+        )
+    return Response(content=content, media_type=JSON_MEDIA_TYPE)
+
+
+def _maps_page(db: Database, *, limit: int, offset: int, tag_id: int | None) -> bytes:
+    with db.read() as db_session:
+        infos, total = maps.list_maps(db_session, limit=limit, offset=offset, tag_id=tag_id)
+    page = MapsPublic(
         data=[MapSummary.from_domain(info) for info in infos],
         count=total,
         limit=limit,
         offset=offset,
     )
+    return page.__pydantic_serializer__.to_json(page)
 
 
 @router.get(
-    "/{map_id}",  # noqa: FAST003 (map_id is read by MapDep)
+    "/{map_id}",  # noqa: FAST003 (map_id is read by MapStateDep)
     summary="Get a map",
     description="The current version (parameters, statistics, metrics with the shift metric, "
-    "tag poses) and the newest job. Strong ETag; If-None-Match answers 304.",
+    "tag poses) and the newest job. Strong ETag; If-None-Match answers 304; gzip-compressed for "
+    "clients that accept it.",
     response_model=MapPublic,
     responses={**NOT_MODIFIED, **error_responses(401, 404, 422)},
 )
-def get_map(
-    info: MapDep,
-    db_session: ReadDbSessionDep,
-    response: Response,
+async def get_map(
+    state: MapStateDep,
+    request: Request,
+    db: DbDep,
     if_none_match: IfNoneMatch = None,
-) -> MapPublic | Response:
-    jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=1)
-    latest_job = jobs[0] if jobs else None
-    current = info.current
-    etag = strong_etag(
-        info.id,
-        current.number if current else None,
-        current.content_sha256 if current else None,
-        latest_job.id if latest_job else None,
-        latest_job.state if latest_job else None,
+    accept_encoding: AcceptEncoding = None,
+) -> Response:
+    document: ReadyDocument | None = state.documents.get(MAP_DOCUMENT)
+    if document is None:
+        document = await run_in_threadpool(
+            _map_document, request.app.state.version_cache, db, state
+        )
+        request.app.state.map_states.attach(state, MAP_DOCUMENT, document)
+    return document.response(if_none_match, accept_encoding)
+
+
+#: The map document's key in a :class:`MapState`'s ``documents``.
+MAP_DOCUMENT = "map"
+
+
+def _map_document(cache: VersionCache, db: Database, state: MapState) -> ReadyDocument:
+    """``GET /v1/maps/{id}``'s answer for ``state``, made once per state."""
+    current = state.info.current
+    with db.read() as db_session:
+        tags = tag_poses_of(cache, db_session, current.id) if current else []
+    public = MapPublic.from_domain(state.info, tags=tags, latest_job=state.latest_job)
+    return ReadyDocument.of(
+        public.__pydantic_serializer__.to_json(public), media_type=JSON_MEDIA_TYPE
     )
-    if if_none_match_hits(if_none_match, etag):
-        return Response(status_code=304, headers={"ETag": etag})
-    tags = maps.tag_poses(db_session, current.id) if current else []
-    response.headers["ETag"] = etag
-    return MapPublic.from_domain(info, tags=tags, latest_job=latest_job)
 
 
 @router.get(
@@ -314,27 +355,50 @@ def _accepted(response: Response, info: MapInfo, job_id: int) -> RebuildAccepted
         **error_responses(401, 404, 409, 422, examples={409: NOT_READY_EXAMPLE}),
     },
 )
-def get_app_map(
-    info: MapDep,
-    db_session: ReadDbSessionDep,
+async def get_app_map(
+    state: MapStateDep,
     request: Request,
+    db: DbDep,
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
-    accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
+    accept_encoding: AcceptEncoding = None,
 ) -> Response:
-    chosen = chosen_version(db_session, info, version)
-    etag = strong_etag(
-        "app-map", APP_MAP_EXPORT, chosen.map_id, chosen.number, chosen.content_sha256
+    cache: VersionCache = request.app.state.version_cache
+    document: ReadyDocument | None = None
+    if version is None:
+        document = cache.peek((APP_MAP_DOCUMENT, APP_MAP_EXPORT, current_version(state).id))
+    if document is None:
+        document = await run_in_threadpool(_app_map_document, cache, db, state.info, version)
+    return document.response(if_none_match, accept_encoding)
+
+
+#: The app-map's key in the VersionCache (with the export's version and the version's id).
+APP_MAP_DOCUMENT = "app_map_document"
+
+
+def _app_map_document(
+    cache: VersionCache, db: Database, info: MapInfo, number: int | None
+) -> ReadyDocument:
+    with db.read() as db_session:
+        chosen = chosen_version(db_session, info, number)
+        return cache.get(
+            (APP_MAP_DOCUMENT, APP_MAP_EXPORT, chosen.id),
+            lambda: _ready_app_map(cache, db_session, chosen),
+        )
+
+
+def _ready_app_map(cache: VersionCache, db_session: Session, version: VersionInfo) -> ReadyDocument:
+    """The app-map of ``version``; its ETag names the version and the export's own version (a
+    rebuild that changes nothing still gets a new ETag, so a phone learns of the version)."""
+    zipped = app_map_gzip(cache, db_session, version)
+    return ReadyDocument.of(
+        gzip.decompress(zipped),
+        media_type=JSON_MEDIA_TYPE,
+        gzipped=zipped,
+        etag=strong_etag(
+            "app-map", APP_MAP_EXPORT, version.map_id, version.number, version.content_sha256
+        ),
     )
-    headers = {"ETag": etag, "Vary": "Accept-Encoding"}
-    if if_none_match_hits(if_none_match, etag):
-        return Response(status_code=304, headers=headers)
-    content = app_map_gzip(request.app.state.version_cache, db_session, chosen)
-    if accepts_gzip(accept_encoding):
-        headers["Content-Encoding"] = "gzip"
-    else:
-        content = gzip.decompress(content)
-    return Response(content=content, media_type="application/json", headers=headers)
 
 
 @router.patch(

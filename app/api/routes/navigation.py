@@ -1,31 +1,43 @@
 """``/v1/maps/{id}/pois``, ``/routes`` and ``/geojson``: the path graph of a map's current version.
 
 Map versions never change, so each API process keeps the path graphs it has read in a small LRU
-(``app.api.version_cache``); a route query then costs a Dijkstra search, not a database read and a
-JSON parse. A map with no version yet is a 409 ``map_not_ready``; a
+(``app.services.version_cache``) and the GeoJSON as ready bytes; a route query then costs a
+Dijkstra search on the event loop, not a database read and a JSON parse (a thread reads the
+graph only the first time). A map with no version yet is a 409 ``map_not_ready``; a
 version built before path graphs existed is a 409 ``no_path_graph`` (rebuild the map).
 """
 
 from __future__ import annotations
 
-import gzip
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
 
-from app.api.deps import MapDep, ReadDbSessionDep
+from app.api.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
 from app.api.errors import error_responses
-from app.api.http import IfNoneMatch, accepts_gzip, if_none_match_hits, strong_etag
+from app.api.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
+from app.domain.path_graph import PathGraph
 from app.domain.routing import (
     search_pois,
 )
-from app.services.maps import chosen_version
-from app.services.navigation import current_path_graph, geojson_bytes, planned_route
+from app.services.maps import current_version
+from app.services.navigation import (
+    current_path_graph,
+    geojson_content,
+    kept_path_graph,
+    planned_route,
+    version_path_graph,
+)
+from app.services.version_cache import VersionCache
+from app.storage.db import Database
+from app.storage.maps import VersionInfo
 
-#: GeoJSON smaller than this is sent as it is (gzip would save too little to pay its time).
-GZIP_MIN_BYTES = 4096
+#: The GeoJSON's key in the VersionCache (with the version's id).
+GEOJSON_DOCUMENT = "geojson_document"
+GEOJSON_MEDIA_TYPE = "application/geo+json"
 
 router = APIRouter(prefix="/maps", tags=["navigation"], route_class=SessionEndingRoute)
 
@@ -60,7 +72,7 @@ def list_pois(
 
 
 @router.post(
-    "/{map_id}/routes",  # noqa: FAST003 (map_id is read by MapDep)
+    "/{map_id}/routes",  # noqa: FAST003 (map_id is read by MapStateDep)
     summary="Plan a route",
     description="The shortest walk on the map's current version from `from` to `to` (each one of "
     "a tag, a point of interest, a path-graph node or a position `[x, y, z]` in the map frame), "
@@ -71,6 +83,7 @@ def list_pois(
     "chooses units (m, ft, steps) and clock-face directions. An unknown tag, point of interest "
     "or node is a 404; a goal that cannot be reached "
     "(at all, or without what is avoided) a 409 saying why; an ambiguous name a 422.",
+    response_model=RoutePublic,
     responses=error_responses(
         401,
         404,
@@ -86,26 +99,42 @@ def list_pois(
         },
     ),
 )
-def plan(
-    info: MapDep,
+async def plan(
+    state: MapStateDep,
     body: RouteRequest,
-    db_session: ReadDbSessionDep,
     request: Request,
-) -> RoutePublic:
-    version, graph = current_path_graph(request.app.state.version_cache, db_session, info)
-    route = planned_route(
-        graph,
-        body.from_.to_domain(),
-        body.to.to_domain(),
-        avoid=frozenset(body.avoid),
-        heading_rad=body.heading_rad(),
-        style=body.guidance_style(),
-    )
-    return RoutePublic.from_domain(route, map_id=info.id, map_version=version.number)
+    db: DbDep,
+) -> Response:
+    version = current_version(state)
+    answers: VersionCache = request.app.state.route_answers
+    question = (version.id, body.__pydantic_serializer__.to_json(body))
+    answer: bytes | None = answers.peek(question)
+    if answer is None:
+        cache: VersionCache = request.app.state.version_cache
+        graph = kept_path_graph(cache, version)
+        if graph is None:
+            graph = await run_in_threadpool(_read_path_graph, cache, db, version)
+        route = planned_route(
+            graph,
+            body.from_.to_domain(),
+            body.to.to_domain(),
+            avoid=frozenset(body.avoid),
+            heading_rad=body.heading_rad(),
+            style=body.guidance_style(),
+        )
+        public = RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
+        answer = public.__pydantic_serializer__.to_json(public)
+        answers.put(question, answer)
+    return Response(content=answer, media_type=JSON_MEDIA_TYPE)
+
+
+def _read_path_graph(cache: VersionCache, db: Database, version: VersionInfo) -> PathGraph:
+    with db.read() as db_session:
+        return version_path_graph(cache, db_session, version)
 
 
 @router.get(
-    "/{map_id}/geojson",  # noqa: FAST003 (map_id is read by MapDep)
+    "/{map_id}/geojson",  # noqa: FAST003 (map_id is read by MapStateDep)
     summary="The path graph as GeoJSON",
     description="A FeatureCollection of the current version's path graph: points with "
     "`properties.kind` node, junction, tag or poi; lines (edges) with `properties.kind` walk, "
@@ -136,22 +165,28 @@ def plan(
         **error_responses(401, 404, 409, 422, examples={409: NOT_READY}),
     },
 )
-def geojson(
-    info: MapDep,
-    db_session: ReadDbSessionDep,
+async def geojson(
+    state: MapStateDep,
     request: Request,
+    db: DbDep,
     if_none_match: IfNoneMatch = None,
-    accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
+    accept_encoding: AcceptEncoding = None,
 ) -> Response:
-    version = chosen_version(db_session, info, None)
-    headers = {
-        "ETag": strong_etag("geojson", info.id, version.number, version.content_sha256),
-        "Vary": "Accept-Encoding",
-    }
-    if if_none_match_hits(if_none_match, headers["ETag"]):
-        return Response(status_code=304, headers=headers)
-    content = geojson_bytes(request.app.state.version_cache, db_session, version)
-    if accepts_gzip(accept_encoding) and len(content) > GZIP_MIN_BYTES:
-        content = gzip.compress(content, compresslevel=1, mtime=0)
-        headers["Content-Encoding"] = "gzip"
-    return Response(content=content, media_type="application/geo+json", headers=headers)
+    version = current_version(state)
+    cache: VersionCache = request.app.state.version_cache
+    document: ReadyDocument | None = cache.peek((GEOJSON_DOCUMENT, version.id))
+    if document is None:
+        document = await run_in_threadpool(_geojson_document, cache, db, version)
+    return document.response(if_none_match, accept_encoding)
+
+
+def _geojson_document(cache: VersionCache, db: Database, version: VersionInfo) -> ReadyDocument:
+    with db.read() as db_session:
+        return cache.get(
+            (GEOJSON_DOCUMENT, version.id),
+            lambda: ReadyDocument.of(
+                geojson_content(version_path_graph(cache, db_session, version)).encode(),
+                media_type=GEOJSON_MEDIA_TYPE,
+                etag=strong_etag("geojson", version.map_id, version.number, version.content_sha256),
+            ),
+        )

@@ -3,15 +3,19 @@ both without a key, for load balancers and orchestrators) and ``/v1/info`` (any 
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.exc import SQLAlchemyError
 
-from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, SettingsDep
+from app.api.deps import CurrentPrincipal, DbDep, SettingsDep
 from app.api.errors import ApiError, error_responses
+from app.api.http import json_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.system import Health, Info, Ready, WorkerProcesses, WorkerPublic
 from app.services.system import ALIVE_HEARTBEATS, WorkerPool, no_worker_alive, package_version
 from app.storage import migrate, queue
+from app.storage.db import Database
+from app.storage.keys import Principal
 from app.storage.orm import JobState
 
 router = APIRouter(tags=["system"], route_class=SessionEndingRoute)
@@ -56,18 +60,24 @@ def readyz(request: Request, db: DbDep) -> Ready:
     summary="Server information",
     description="Version, database, queue depth, jobs by state, and the workers alive with "
     "what each is running (any valid key).",
+    response_model=Info,
     responses=error_responses(401),
 )
-def info(
+async def info(
     request: Request,
     principal: CurrentPrincipal,
-    db_session: ReadDbSessionDep,
     db: DbDep,
     settings: SettingsDep,
-) -> Info:
-    counts = queue.count_by_state(db_session)
-    workers = queue.alive_workers(db_session, within_s=ALIVE_HEARTBEATS * settings.heartbeat_s)
+) -> Response:
     pool: WorkerPool | None = request.app.state.worker_pool
+    answer = await run_in_threadpool(_info, db, settings.heartbeat_s, pool, principal)
+    return json_response(answer)
+
+
+def _info(db: Database, heartbeat_s: float, pool: WorkerPool | None, principal: Principal) -> Info:
+    with db.read() as db_session:
+        counts = queue.count_by_state(db_session)
+        workers = queue.alive_workers(db_session, within_s=ALIVE_HEARTBEATS * heartbeat_s)
     no_worker = no_worker_alive(pool)
     return Info(
         version=package_version(),
