@@ -50,11 +50,6 @@ its own sessions and their jobs, and reads every map; an *admin* key may do ever
 managing jobs, maps and keys. Errors have one shape: `{"detail", "code", "field"}`.
 """
 
-#: Route answers one API process keeps (``POST /v1/maps/{id}/routes`` asked again, e.g. by
-#: phones following the same route, is answered from memory), and their bytes at most.
-ROUTE_ANSWERS_ENTRIES = 4096
-ROUTE_ANSWERS_BYTES = 32 * 2**20
-
 #: Uploads have their own limits (``max_upload_bytes``, ``max_session_bytes``: app.api.upload).
 UPLOAD_PATH = "/v1/sessions"
 
@@ -107,10 +102,6 @@ def create_app(
     app.state.map_states = MapStates(app.state.settings.map_cache_s)
     app.state.map_pages = MapPages(app.state.settings.map_cache_s)
     app.state.version_cache = VersionCache(max_bytes=app.state.settings.version_cache_bytes)
-    # A route is a function of the version and the request: the answers to the latest questions.
-    app.state.route_answers = VersionCache(
-        max_entries=ROUTE_ANSWERS_ENTRIES, max_bytes=ROUTE_ANSWERS_BYTES
-    )
     app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(

@@ -67,35 +67,6 @@ def route(api: Api, map_id: int, body: dict[str, Any]) -> Any:
 # --------------------------------------------------------------------------- pois, routes
 
 
-def test_a_route_asked_again_is_answered_from_memory(
-    nav: tuple[Api, int], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    api, map_id = nav
-    import app.api.routes.navigation as navigation_routes
-
-    planned: list[Any] = []
-    real = navigation_routes.planned_route
-
-    def counting(*args: Any, **kwargs: Any) -> Any:
-        planned.append(args[1:3])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(navigation_routes, "planned_route", counting)
-    body = {"from": {"tag": 300}, "to": {"tag": 311}}
-    first = route(api, map_id, body)
-    again = route(api, map_id, {"to": {"tag": 311}, "from": {"tag": 300}})  # same question
-    assert first.status_code == again.status_code == 200
-    assert again.content == first.content
-    assert len(planned) == 1
-    facing = route(api, map_id, {**body, "heading_deg": 90})  # another question
-    assert facing.status_code == 200
-    assert len(planned) == 2
-    refused = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 99999}})
-    assert refused.status_code == 404
-    assert route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 99999}}).status_code == 404
-    assert len(planned) == 4  # refusals are not kept
-
-
 def test_pois_are_searchable_by_name(nav):
     api, map_id = nav
     everything = api.client.get(f"/v1/maps/{map_id}/pois", headers=ADMIN).json()

@@ -106,25 +106,20 @@ async def plan(
     db: DbDep,
 ) -> Response:
     version = current_version(state)
-    answers: VersionCache = request.app.state.route_answers
-    question = (version.id, body.__pydantic_serializer__.to_json(body))
-    answer: bytes | None = answers.peek(question)
-    if answer is None:
-        cache: VersionCache = request.app.state.version_cache
-        graph = kept_path_graph(cache, version)
-        if graph is None:
-            graph = await run_in_threadpool(_read_path_graph, cache, db, version)
-        route = planned_route(
-            graph,
-            body.from_.to_domain(),
-            body.to.to_domain(),
-            avoid=frozenset(body.avoid),
-            heading_rad=body.heading_rad(),
-            style=body.guidance_style(),
-        )
-        public = RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
-        answer = public.__pydantic_serializer__.to_json(public)
-        answers.put(question, answer)
+    cache: VersionCache = request.app.state.version_cache
+    graph = kept_path_graph(cache, version)
+    if graph is None:
+        graph = await run_in_threadpool(_read_path_graph, cache, db, version)
+    route = planned_route(
+        graph,
+        body.from_.to_domain(),
+        body.to.to_domain(),
+        avoid=frozenset(body.avoid),
+        heading_rad=body.heading_rad(),
+        style=body.guidance_style(),
+    )
+    public = RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
+    answer = public.__pydantic_serializer__.to_json(public)
     return Response(content=answer, media_type=JSON_MEDIA_TYPE)
 
 
