@@ -106,12 +106,17 @@ class SessionStatistics:
 class StoredUpload:
     """The upload's bytes as they will be kept.
 
-    json_bytes: the JSON document exactly as the client sent it (any Content-Encoding undone).
-    json_gzip: the same bytes gzip-compressed, one gzip member (what is stored).
+    json_gzip: the JSON document exactly as the client sent it (any Content-Encoding undone),
+        gzip-compressed, one gzip member (what is stored).
+    sha256: hex SHA-256 of the JSON bytes (not of the gzip).
+    size_bytes: length of the JSON bytes.
+
+    The JSON bytes themselves need not be held: the API inflates them a chunk at a time.
     """
 
-    json_bytes: bytes
     json_gzip: bytes
+    sha256: str
+    size_bytes: int
 
     @classmethod
     def of(cls, json_bytes: bytes, *, json_gzip: bytes | None = None) -> StoredUpload:
@@ -119,11 +124,11 @@ class StoredUpload:
         compressed here."""
         if json_gzip is None:
             json_gzip = gzip.compress(json_bytes, compresslevel=GZIP_LEVEL, mtime=0)
-        return cls(json_bytes=json_bytes, json_gzip=json_gzip)
-
-    @property
-    def sha256(self) -> str:
-        return hashlib.sha256(self.json_bytes).hexdigest()
+        return cls(
+            json_gzip=json_gzip,
+            sha256=hashlib.sha256(json_bytes).hexdigest(),
+            size_bytes=len(json_bytes),
+        )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -195,7 +200,7 @@ def create_session(
         uploaded_by=uploaded_by,
         idempotency_key=idempotency_key,
         raw_sha256=sha256,
-        raw_size_bytes=len(upload.json_bytes),
+        raw_size_bytes=upload.size_bytes,
         stored_size_bytes=len(upload.json_gzip),
         pose_count=statistics.pose_count,
         detection_count=statistics.detection_count,
