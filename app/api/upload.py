@@ -41,9 +41,10 @@ INPUT_PIECE_BYTES = 1 << 16
 
 @dataclass(frozen=True, slots=True)
 class RawBody:
-    """The body as sent, and whether it said ``Content-Encoding: gzip``."""
+    """The body as sent (a bytearray when read from a request: it is not copied into bytes),
+    and whether it said ``Content-Encoding: gzip``."""
 
-    data: bytes
+    data: bytes | bytearray
     gzip: bool
 
 
@@ -102,14 +103,13 @@ async def read_body(request: Request, *, max_upload_bytes: int) -> RawBody:
             raise ApiError(400, "bad_request", "Content-Length is not a number")
         if int(declared) > max_upload_bytes:
             raise _too_large(f"the body ({int(declared)} bytes) is", max_upload_bytes)
-    chunks: list[bytes] = []
-    size = 0
+    # one buffer, grown in place (no list of chunks joined into a second copy)
+    data = bytearray()
     async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_upload_bytes:
+        if len(data) + len(chunk) > max_upload_bytes:
             raise _too_large("the body is", max_upload_bytes)
-        chunks.append(chunk)
-    return RawBody(data=b"".join(chunks), gzip=gzipped)
+        data += chunk
+    return RawBody(data=data, gzip=gzipped)
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,7 +177,7 @@ class gunzip_chunks:  # noqa: N801 (used as a function)
     time, never past ``max_bytes`` of output in all; ``members`` counts the members read.
     Raises ApiError 413 past the limit and 400 for data that is not complete, valid gzip."""
 
-    def __init__(self, data: bytes, *, max_bytes: int) -> None:
+    def __init__(self, data: bytes | bytearray, *, max_bytes: int) -> None:
         self._data = data
         self._max_bytes = max_bytes
         self.members = 0

@@ -485,7 +485,7 @@ class _DetectionColumns:
     def __init__(self, pose_index: PoseIndex | None) -> None:
         self._pose_index = pose_index
         self._rows: list[dict[str, Any]] = []
-        self._blocks: list[TagDetections] = []
+        self._blocks: list[dict[str, npt.NDArray[Any]]] = []
         self.count = 0
         self.error: SessionFormatError | None = None
         self.first_frame: Any = None
@@ -509,27 +509,28 @@ class _DetectionColumns:
     def _end_block(self) -> None:
         if self._rows and self._pose_index is not None:
             pose_index = [self._pose_index[r["pose_id"]] for r in self._rows]
-            self._blocks.append(detections_from_rows(self._rows, pose_index))
+            block = detections_from_rows(self._rows, pose_index)
+            self._blocks.append({name: getattr(block, name) for name in _DETECTION_FIELDS})
         self._rows = []
 
     def finish(self) -> TagDetections:
         if self.error is not None:
             raise self.error
         self._end_block()
-        if len(self._blocks) == 1:
-            return self._blocks[0]
         if not self._blocks:
             return _empty_detections()
+        # field by field, each block's part let go once joined: never two copies of all
         return TagDetections(
             **{
-                name.name: np.concatenate([getattr(block, name.name) for block in self._blocks])
-                for name in dataclasses.fields(TagDetections)
+                name: np.concatenate([block.pop(name) for block in self._blocks])
+                for name in _DETECTION_FIELDS
             }
         )
 
 
 #: Detections per block of :class:`_DetectionColumns`.
-_DETECTION_BLOCK = 1024
+_DETECTION_BLOCK = 256
+_DETECTION_FIELDS = tuple(field.name for field in dataclasses.fields(TagDetections))
 
 
 def detections_from_rows(

@@ -114,12 +114,14 @@ class StoredUpload:
     The JSON bytes themselves need not be held: the API inflates them a chunk at a time.
     """
 
-    json_gzip: bytes
+    json_gzip: bytes | bytearray
     sha256: str
     size_bytes: int
 
     @classmethod
-    def of(cls, json_bytes: bytes, *, json_gzip: bytes | None = None) -> StoredUpload:
+    def of(
+        cls, json_bytes: bytes | bytearray, *, json_gzip: bytes | bytearray | None = None
+    ) -> StoredUpload:
         """``json_gzip`` may be the client's own gzip of ``json_bytes`` (one member), else it is
         compressed here."""
         if json_gzip is None:
