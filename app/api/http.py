@@ -3,17 +3,21 @@
 etag = strong_etag("v3", content_sha256)          # '"v3-9f86d081…"'
 if_none_match_hits(request_header, etag)          # → answer 304
 accepts_gzip("gzip, deflate, br")                 # True
+raw_upload_response(db, session_id, accept_encoding)   # the upload, streamed in chunks
 """
 
 from __future__ import annotations
 
 import hashlib
+import zlib
+from collections.abc import Iterable, Iterator
 from typing import Annotated
 
 from fastapi import Header, Response
-from sqlalchemy.orm import Session
+from fastapi.responses import StreamingResponse
 
 from app.storage import sessions as stored_sessions
+from app.storage.db import Database
 
 
 def strong_etag(*parts: object) -> str:
@@ -65,18 +69,52 @@ def accepts_gzip(accept_encoding: str | None) -> bool:
     return False
 
 
-def raw_upload_response(
-    db_session: Session, session_id: int, accept_encoding: str | None
-) -> Response:
+#: Bytes of the stored upload read from the database at once when it is downloaded.
+RAW_CHUNK_BYTES = 1 << 20
+_GZIP_WBITS = 16 + zlib.MAX_WBITS
+
+
+def raw_upload_response(db: Database, session_id: int, accept_encoding: str | None) -> Response:
     """The raw upload of ``session_id`` as a JSON attachment, gzip-encoded if the client accepts
-    it. Raises SessionNotFound."""
+    it, streamed from the database :data:`RAW_CHUNK_BYTES` at a time (each read in a short
+    read transaction of its own; the upload is written once and never changed), so that no
+    download holds the whole file. Raises SessionNotFound (before anything is sent)."""
+    with db.read() as db_session:
+        size = stored_sessions.raw_upload_gzip_size(db_session, session_id)
     headers = {
         "Content-Disposition": f'attachment; filename="session-{session_id}.json"',
         "Vary": "Accept-Encoding",
     }
+    stored = _stored_chunks(db, session_id, size)
     if accepts_gzip(accept_encoding):
         headers["Content-Encoding"] = "gzip"
-        content = stored_sessions.raw_upload_gzip(db_session, session_id)
-    else:
-        content = stored_sessions.raw_upload(db_session, session_id)
-    return Response(content=content, media_type="application/json", headers=headers)
+        headers["Content-Length"] = str(size)
+        return StreamingResponse(stored, media_type="application/json", headers=headers)
+    return StreamingResponse(
+        gunzipped(stored, RAW_CHUNK_BYTES), media_type="application/json", headers=headers
+    )
+
+
+def _stored_chunks(db: Database, session_id: int, size: int) -> Iterator[bytes]:
+    for offset in range(0, size, RAW_CHUNK_BYTES):
+        with db.read() as db_session:
+            yield stored_sessions.raw_upload_gzip_slice(
+                db_session, session_id, offset, RAW_CHUNK_BYTES
+            )
+
+
+def gunzipped(chunks: Iterable[bytes], max_chunk_bytes: int) -> Iterator[bytes]:
+    """The inflated bytes of gzip ``chunks`` (one or more members), at most ``max_chunk_bytes``
+    at a time."""
+    inflater = zlib.decompressobj(_GZIP_WBITS)
+    for chunk in chunks:
+        pending = chunk
+        while pending:
+            out = inflater.decompress(pending, max_chunk_bytes)
+            if out:
+                yield out
+            if inflater.eof:  # another member may follow
+                pending = inflater.unused_data
+                inflater = zlib.decompressobj(_GZIP_WBITS)
+            else:
+                pending = inflater.unconsumed_tail

@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import gzip
 import hashlib
+import sqlite3
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import ColumnElement, and_, func, select
+from sqlalchemy import ColumnElement, LargeBinary, and_, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -363,6 +364,41 @@ def raw_upload_gzip(db_session: Session, session_id: int) -> bytes:
     if row is None:
         raise SessionNotFound(session_id)
     return row.raw_gzip
+
+
+def raw_upload_gzip_size(db_session: Session, session_id: int) -> int:
+    """Length of the stored upload (:func:`raw_upload_gzip`), bytes, without reading it."""
+    size = db_session.scalar(
+        select(func.length(SessionUpload.raw_gzip)).where(SessionUpload.session_id == session_id)
+    )
+    if size is None:
+        raise SessionNotFound(session_id)
+    return int(size)
+
+
+def raw_upload_gzip_slice(db_session: Session, session_id: int, offset: int, size: int) -> bytes:
+    """``size`` bytes of the stored upload from ``offset`` (fewer at its end), read without
+    reading the rest: SQLite's incremental blob I/O (its ``substr`` would load the whole value),
+    PostgreSQL's ``substr`` (which fetches only the TOAST chunks it needs)."""
+    if db_session.get_bind().dialect.name == "sqlite":
+        connection = db_session.connection().connection.driver_connection
+        try:
+            # session_upload.session_id is an INTEGER PRIMARY KEY: the row's rowid
+            with connection.blobopen(  # type: ignore[union-attr]
+                "session_upload", "raw_gzip", session_id, readonly=True
+            ) as blob:
+                blob.seek(offset)
+                return bytes(blob.read(size))
+        except sqlite3.OperationalError as err:  # no such row
+            raise SessionNotFound(session_id) from err
+    piece = db_session.scalar(
+        select(func.substr(SessionUpload.raw_gzip, offset + 1, size, type_=LargeBinary)).where(
+            SessionUpload.session_id == session_id
+        )
+    )
+    if piece is None:
+        raise SessionNotFound(session_id)
+    return bytes(piece)
 
 
 def _infos(db_session: Session, rows: list[SessionRow]) -> list[SessionInfo]:

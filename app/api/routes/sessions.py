@@ -301,7 +301,8 @@ def get_session(info: SessionDep) -> SessionPublic:
     summary="Download the raw upload",
     description="The JSON exactly as uploaded, byte for byte (after undoing the upload's "
     "Content-Encoding). Sent gzip-compressed (`Content-Encoding: gzip`) to clients that accept "
-    "it; any HTTP client decodes that to the same bytes.",
+    "it; any HTTP client decodes that to the same bytes. Streamed from the database in 1 MiB "
+    "pieces.",
     response_class=Response,
     responses={
         200: {
@@ -313,10 +314,10 @@ def get_session(info: SessionDep) -> SessionPublic:
 )
 def get_raw_session(
     info: SessionDep,
-    db_session: ReadDbSessionDep,
+    db: DbDep,
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
-    return raw_upload_response(db_session, info.id, accept_encoding)
+    return raw_upload_response(db, info.id, accept_encoding)
 
 
 @router.put(
