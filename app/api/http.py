@@ -9,13 +9,13 @@ raw_upload_response(db, session_id, accept_encoding)   # the upload, streamed in
 from __future__ import annotations
 
 import hashlib
-import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Header, Response
 from fastapi.responses import StreamingResponse
 
+from app.domain.json_stream import gunzipped
 from app.storage import sessions as stored_sessions
 from app.storage.db import Database
 
@@ -71,7 +71,6 @@ def accepts_gzip(accept_encoding: str | None) -> bool:
 
 #: Bytes of the stored upload read from the database at once when it is downloaded.
 RAW_CHUNK_BYTES = 1 << 20
-_GZIP_WBITS = 16 + zlib.MAX_WBITS
 
 
 def raw_upload_response(db: Database, session_id: int, accept_encoding: str | None) -> Response:
@@ -101,20 +100,3 @@ def _stored_chunks(db: Database, session_id: int, size: int) -> Iterator[bytes]:
             yield stored_sessions.raw_upload_gzip_slice(
                 db_session, session_id, offset, RAW_CHUNK_BYTES
             )
-
-
-def gunzipped(chunks: Iterable[bytes], max_chunk_bytes: int) -> Iterator[bytes]:
-    """The inflated bytes of gzip ``chunks`` (one or more members), at most ``max_chunk_bytes``
-    at a time."""
-    inflater = zlib.decompressobj(_GZIP_WBITS)
-    for chunk in chunks:
-        pending = chunk
-        while pending:
-            out = inflater.decompress(pending, max_chunk_bytes)
-            if out:
-                yield out
-            if inflater.eof:  # another member may follow
-                pending = inflater.unused_data
-                inflater = zlib.decompressobj(_GZIP_WBITS)
-            else:
-                pending = inflater.unconsumed_tail

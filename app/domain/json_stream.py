@@ -21,6 +21,7 @@ from __future__ import annotations
 import codecs
 import json
 import re
+import zlib
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -31,6 +32,7 @@ WINDOW_CHARS = 1 << 20
 #: A decoding error this close to the end of the window may be a value cut by the window.
 _CUT_MARGIN_CHARS = 16
 _WHITESPACE = re.compile(r"[ \t\n\r]*")
+_GZIP_WBITS = 16 + zlib.MAX_WBITS
 _DECODER = json.JSONDecoder()
 
 
@@ -197,3 +199,20 @@ class JsonStream:
             self._pos = 0
         else:
             self._text += text
+
+
+def gunzipped(chunks: Iterable[bytes], max_chunk_bytes: int) -> Iterator[bytes]:
+    """The inflated bytes of gzip ``chunks`` (one or more members), at most ``max_chunk_bytes``
+    at a time (a stored upload read a piece at a time, for a download or a parse)."""
+    inflater = zlib.decompressobj(_GZIP_WBITS)
+    for chunk in chunks:
+        pending = chunk
+        while pending:
+            out = inflater.decompress(pending, max_chunk_bytes)
+            if out:
+                yield out
+            if inflater.eof:  # another member may follow
+                pending = inflater.unused_data
+                inflater = zlib.decompressobj(_GZIP_WBITS)
+            else:
+                pending = inflater.unconsumed_tail

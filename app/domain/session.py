@@ -253,6 +253,8 @@ def parse_session_stream(
     return _parse_current(sections, correct_poi_pose_id, [])
 
 
+#: Rows of pose columns made at once when streaming (grown by doubling past it).
+_STREAM_CAPACITY = 1 << 17
 #: The top-level keys the parser reads (others are passed over when streaming).
 _KEYS_READ = frozenset({"map_id", "pose_data", "tag_data", "camera_intrinsics", *LOCATION_KEYS})
 
@@ -260,7 +262,8 @@ _KEYS_READ = frozenset({"map_id", "pose_data", "tag_data", "camera_intrinsics", 
 def _stream_poses(stream: JsonStream, max_poses: int, max_poses_name: str) -> Any:
     """``pose_data`` read from ``stream``: :class:`_PoseColumns`, or the entries as a list when
     entry 0 is no object (rows of the earlier format, or a fault the dict parser reports)."""
-    columns = _PoseColumns(capacity=max_poses)
+    # np.empty pages cost memory only once written; past _STREAM_CAPACITY the columns grow
+    columns = _PoseColumns(capacity=min(max_poses, _STREAM_CAPACITY))
     entries: list[Any] | None = None
     for i, entry in enumerate(stream.array_items()):
         if i == max_poses:
