@@ -1,26 +1,30 @@
 """What one big session costs the server (docs/operations.md, Reliability): the API process's
-memory growth while it accepts the upload, and how long each build stage takes, the ``store``
-stage being the build's one write transaction (on SQLite it holds the write lock that long), and
-how soon a cancel stops the build's running optimization.
+memory growth while it accepts the upload (and while it refuses one with too many poses), then,
+once a worker has built the map, the size and time of the app-map's first GET and of the
+dashboard's map page and the memory they grow the API by; how long each build stage takes, the
+``store`` stage being the build's one write transaction (on SQLite it holds the write lock that
+long), and how soon a cancel stops the build's running optimization.
 
     .venv/bin/python bench/big_session.py                    # 100,000 poses (the most accepted)
-    .venv/bin/python bench/big_session.py --poses 20000
+    .venv/bin/python bench/big_session.py --poses 20000 --refused-poses 0
     .venv/bin/python bench/big_session.py --postgres-url postgresql+psycopg://postgres@127.0.0.1/x
 
 The session is simulated (``app.domain.simulate``) and sent gzipped, as the app sends it. Memory
 is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
-the upload.
+each request.
 """
 
 from __future__ import annotations
 
 import argparse
 import gzip
+import re
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -45,29 +49,98 @@ def status_kib(pid: int, field: str) -> int:
     raise LookupError(field)
 
 
-def api_memory_growth(raw: bytes, folder: Path) -> None:
-    body = gzip.compress(raw)
+def peak_mib(pid: int) -> float:
+    return status_kib(pid, "VmHWM") / 1024
+
+
+def timed_request(
+    server: ServerProcess, method: str, path: str, what: str, **kwargs: Any
+) -> httpx.Response:
+    """One request to the API, printed with its status, size, time and the API's memory growth."""
+    peak_before = peak_mib(server.pid)
+    started_s = time.monotonic()
+    answer = httpx.request(method, server.url + path, timeout=600, **kwargs)
+    took_s = time.monotonic() - started_s
+    peak_after = peak_mib(server.pid)
+    print(
+        f"{what}: {answer.status_code}, {len(answer.content) / 2**20:.2f} MiB in {took_s:.1f} s; "
+        f"API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
+        f"(+{peak_after - peak_before:.0f} MiB)"
+    )
+    return answer
+
+
+def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> None:
+    """The upload of ``raw`` (and of ``refused``, in a fresh server), then the map built by a
+    worker and its app-map and dashboard page fetched."""
     log = folder / "serve.log"
     env = {"INVISIBLE_MAP_DATA_DIR": str(folder)}
-    with ServerProcess(
-        f"sqlite:///{folder / 'api.sqlite3'}", workers=0, env=env, log_path=log
-    ) as server:
+    url = f"sqlite:///{folder / 'api.sqlite3'}"
+    if refused is not None:
+        with ServerProcess(
+            f"sqlite:///{folder / 'refused.sqlite3'}", workers=0, env=env, log_path=log
+        ) as server:
+            auth = {"Authorization": f"Bearer {server.admin_key}"}
+            httpx.get(server.url + "/v1/info", headers=auth)  # warm: the first request's imports
+            upload(server, refused, auth, "refused")
+    with ServerProcess(url, workers=0, env=env, log_path=log) as server:
         auth = {"Authorization": f"Bearer {server.admin_key}"}
-        httpx.get(server.url + "/v1/info", headers=auth)  # warm: the first request's imports
-        peak_before = status_kib(server.pid, "VmHWM")
+        httpx.get(server.url + "/v1/info", headers=auth)
+        created = upload(server, raw, auth, "accepted").json()
+        db = Database(url)
         started_s = time.monotonic()
-        answer = httpx.post(
-            server.url + "/v1/sessions",
-            content=body,
-            headers={**auth, "Content-Type": "application/json", "Content-Encoding": "gzip"},
-            timeout=600,
+        Worker(db, Settings(database_url=url, lease_s=600.0, heartbeat_s=5.0)).run_once()
+        print(f"build (worker, path graph included): {time.monotonic() - started_s:.1f} s")
+        db.dispose()
+        app_map = f"/v1/maps/{created['map_id']}/app-map"
+        for encoding in ("gzip", "identity"):
+            answer = timed_request(
+                server,
+                "GET",
+                app_map,
+                f"first GET of the app-map ({encoding})",
+                headers={**auth, "Accept-Encoding": encoding},
+            )
+        document = answer.json()
+        print(
+            f"app-map: {len(document['odometry_vertices'])} odometry vertices; "
+            f"notes: {document['notes']}"
         )
-        took_s = time.monotonic() - started_s
-        peak_after = status_kib(server.pid, "VmHWM")
-    print(
-        f"upload of {len(body) / 2**20:.1f} MiB gzip ({len(raw) / 2**20:.1f} MiB JSON): "
-        f"{answer.status_code} in {took_s:.1f} s; API peak memory {peak_before / 1024:.0f} → "
-        f"{peak_after / 1024:.0f} MiB (+{(peak_after - peak_before) / 1024:.0f} MiB)"
+        timed_request(server, "GET", app_map, "second GET of the app-map", headers=auth)
+        with httpx.Client(base_url=server.url, timeout=600) as browser:
+            form = browser.get("/admin/login").text
+            token = re.search(r'name="form_token" value="([^"]+)"', form)
+            assert token is not None
+            browser.post(
+                "/admin/login",
+                data={"form_token": token.group(1), "key": server.admin_key, "next": "/admin"},
+            )
+            for what, path in (
+                ("dashboard map page", f"/admin/maps/{created['map_id']}"),
+                ("dashboard session page", f"/admin/sessions/{created['session_id']}"),
+                ("dashboard raw download", f"/admin/sessions/{created['session_id']}/raw"),
+            ):
+                peak_before = peak_mib(server.pid)
+                started_s = time.monotonic()
+                page = browser.get(path, headers={"Accept-Encoding": "identity"})
+                took_s = time.monotonic() - started_s
+                peak_after = peak_mib(server.pid)
+                print(
+                    f"{what}: {page.status_code}, {len(page.content) / 2**20:.2f} MiB in "
+                    f"{took_s:.1f} s; API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
+                    f"(+{peak_after - peak_before:.0f} MiB)"
+                )
+
+
+def upload(server: ServerProcess, raw: bytes, auth: dict[str, str], what: str) -> httpx.Response:
+    body = gzip.compress(raw)
+    return timed_request(
+        server,
+        "POST",
+        "/v1/sessions",
+        f"{what} upload of {len(body) / 2**20:.1f} MiB gzip ({len(raw) / 2**20:.1f} MiB JSON)",
+        content=body,
+        headers={**auth, "Content-Type": "application/json", "Content-Encoding": "gzip"},
     )
 
 
@@ -122,12 +195,20 @@ def cancel_latency(raw: bytes, url: str) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=100_000, help="poses of the session")
+    parser.add_argument(
+        "--refused-poses",
+        type=int,
+        default=120_000,
+        help="poses of a session the API refuses (more than INVISIBLE_MAP_MAX_POSES); 0: none",
+    )
     parser.add_argument("--postgres-url", help="also build on this (empty, migrated) database")
     args = parser.parse_args()
     raw = simulated_bytes(args.poses)
     print(f"a simulated session of {args.poses} poses")
     with tempfile.TemporaryDirectory() as folder:
-        api_memory_growth(raw, Path(folder))
+        refused = simulated_bytes(args.refused_poses) if args.refused_poses else None
+        api_memory_growth(raw, Path(folder), refused=refused)
+        del refused
         stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
         cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
     if args.postgres_url:
