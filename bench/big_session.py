@@ -27,6 +27,9 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
+# ``python bench/big_session.py`` puts bench/ first on sys.path, where bench/http.py would shadow
+# the standard library's http (which httpx imports)
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
 sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402

@@ -28,12 +28,14 @@ import numpy.typing as npt
 from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
 from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.frames import (
+    ORTHONORMAL_TOLERANCE,
     PHONE_T_CAMERA_CV,
     FloatArray,
 )
 from app.domain.json_stream import WINDOW_CHARS, JsonStream
 from app.domain.json_values import gunzip_if_compressed, json_type_name
 from app.domain.upload_fields import (
+    MAX_TRANSLATION_M,
     integer_field,
     matrix16_field,
     number_field,
@@ -356,6 +358,7 @@ class _PoseColumns:
         self.timestamp_s = np.empty(capacity, dtype=np.float64)
         self.world_T_phone = np.empty((capacity, 4, 4), dtype=np.float64)
         self.count = 0
+        self._checked = 0  # poses before this one are checked for rigidity
         self.error: SessionFormatError | None = None
         self.first_entry: Any = None
 
@@ -373,10 +376,37 @@ class _PoseColumns:
             require_object(entry, where)
             self.pose_id[i] = integer_field(entry, "id", where)
             self.timestamp_s[i] = number_field(entry, "timestamp", where)
-            matrix = matrix16_field(entry, "pose", where).reshape(4, 4).T  # column-major
-            self.world_T_phone[i] = rigid_pose(matrix, f"{where}.pose")
+            # column-major; checked for rigidity a block at a time (_check_rigid)
+            self.world_T_phone[i] = matrix16_field(entry, "pose", where).reshape(4, 4).T
         except SessionFormatError as err:
-            self.error = err
+            self._check_rigid(i)  # a fault in an earlier pose comes first
+            if self.error is None:
+                self.error = err
+            return
+        if i + 1 - self._checked >= _RIGIDITY_BLOCK:
+            self._check_rigid(i + 1)
+
+    def _check_rigid(self, end: int) -> None:
+        """Check the poses from the last checked up to ``end`` for rigidity, as
+        :func:`rigid_pose` does each, and orthonormalize them. The test runs on the whole block
+        with a margin; a pose it flags gets :func:`rigid_pose` itself, so the first fault is
+        reported with its own words. Sets ``error`` (and raises nothing)."""
+        start = self._checked
+        if end <= start or self.error is not None:
+            return
+        block = self.world_T_phone[start:end]
+        with np.errstate(all="ignore"):
+            flagged = np.flatnonzero(_maybe_not_rigid(block))
+        for k in flagged:
+            i = start + int(k)
+            try:
+                rigid_pose(block[k], f"pose_data[{i}].pose")
+            except SessionFormatError as err:
+                self.error = err
+                self._checked = i
+                return
+        self.world_T_phone[start:end] = _orthonormalized(block)
+        self._checked = end
 
     def _grow(self) -> None:
         capacity = 2 * self.pose_id.shape[0]
@@ -386,6 +416,7 @@ class _PoseColumns:
 
     def finish(self) -> tuple[IntArray, FloatArray, FloatArray]:
         """The arrays (N rows); SessionFormatError for the first fault."""
+        self._check_rigid(self.count)
         if self.error is not None:
             raise self.error
         n = self.count
@@ -406,6 +437,43 @@ class _PoseColumns:
                 f"time goes backwards: {timestamp_s[i]} s after {timestamp_s[i - 1]} s",
             )
         return pose_id, timestamp_s, self.world_T_phone[:n]
+
+
+#: Poses checked for rigidity at once by :class:`_PoseColumns`.
+_RIGIDITY_BLOCK = 4096
+#: The share of a tolerance at which the block test flags a pose for the exact test.
+_MARGIN = 0.99
+
+
+def _maybe_not_rigid(world_T: FloatArray) -> npt.NDArray[np.bool_]:
+    """(n,) for (n, 4, 4) matrices: True where :func:`rigid_pose` may refuse the matrix (every
+    one it refuses is flagged; a few within a hair of a tolerance are flagged as well)."""
+    last_row_defect = np.abs(world_T[:, 3] - (0.0, 0.0, 0.0, 1.0)) - (0.0, 0.0, 0.0, 1e-5)
+    R = world_T[:, :3, :3]
+    largest = np.max(np.abs(R), axis=(1, 2))
+    gram_defect = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
+    flagged = (
+        np.any(last_row_defect > _MARGIN * 1e-3, axis=1)
+        | ~(largest <= 1.0 + _MARGIN * ORTHONORMAL_TOLERANCE)
+        | ~(gram_defect <= _MARGIN * ORTHONORMAL_TOLERANCE)
+        | ~(np.linalg.det(R) > 0)
+        | ~(np.max(np.abs(world_T[:, :3, 3]), axis=1) <= _MARGIN * MAX_TRANSLATION_M)
+    )
+    return np.asarray(flagged, dtype=np.bool_)
+
+
+def _orthonormalized(world_T: FloatArray) -> FloatArray:
+    """(n, 4, 4): each matrix's rotation projected onto SO(3) and its last row (0, 0, 0, 1), as
+    :func:`app.domain.frames.orthonormalized` makes one."""
+    out = world_T.copy()
+    U, _, Vt = np.linalg.svd(world_T[:, :3, :3])
+    sign = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros((len(out), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = sign
+    out[:, :3, :3] = U @ D @ Vt
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 class PoseIndex:

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from app.domain.errors import SessionFormatError
 from app.domain.json_stream import JsonStream
 from app.domain.session import Session, decode_json_bytes, parse_session, parse_session_stream
+from app.domain.upload_fields import rigid_pose
 from tests.unit.test_session import (
     DATA_DIR,
     VALID_PATHS,
@@ -236,3 +237,51 @@ def test_the_limit_is_checked_before_faults_in_the_poses() -> None:
     assert outcome(streamed, json.dumps(document).encode(), max_poses=12) == outcome(
         parse_session, document
     )
+
+
+# --------------------------------------------------------------------------- rigidity in blocks
+
+
+def one_pose_upload(matrix: np.ndarray) -> dict[str, Any]:
+    return {
+        "map_id": "x",
+        "pose_data": [{"id": 0, "timestamp": 0.0, "pose": matrix.flatten(order="F").tolist()}],
+    }
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.floats(min_value=-4, max_value=4),
+    st.sampled_from([0.0, 1e-6, 1e-3, 0.004, 0.005, 0.0049999, 0.0050001, 0.01, 0.3]),
+    st.sampled_from(["rotation", "last row", "translation", "reflection"]),
+)
+def test_poses_checked_in_blocks_are_refused_or_made_rigid_as_one_by_one(
+    angle_rad: float, error: float, where: str
+) -> None:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    matrix = np.array([[c, 0, s, 1.0], [0, 1, 0, 2.0], [-s, 0, c, 3.0], [0, 0, 0, 1.0]])
+    if where == "rotation":
+        matrix[:3, :3] *= 1 + error
+    elif where == "last row":
+        matrix[3, 0] += error
+    elif where == "translation":
+        matrix[0, 3] = 1e5 * (1 + error) - 1
+    else:
+        matrix[:3, 2] *= -1
+    expected = outcome(rigid_pose, matrix, "pose_data[0].pose")
+    got = outcome(parse_session, one_pose_upload(matrix))
+    if isinstance(expected, tuple):
+        assert got == expected
+    else:
+        assert isinstance(got, Session), got
+        np.testing.assert_allclose(got.world_T_phone[0], expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad_row", [3, 4095, 4096, 9000])
+def test_the_first_faulty_pose_is_reported_whichever_block_it_is_in(bad_row: int) -> None:
+    document = make_upload(9_500)
+    document["pose_data"][bad_row]["pose"][0] = 3.0  # not a rotation
+    del document["pose_data"][bad_row + 7]["id"]  # a later fault of another kind
+    expected = (f"pose_data[{bad_row}].pose", "rotation not orthonormal (entry 3 exceeds 1)")
+    assert outcome(parse_session, document) == expected
+    assert outcome(streamed, json.dumps(document).encode(), size=4096) == expected
