@@ -217,12 +217,17 @@ def parse_session_stream(
 
     A ``pose_data`` longer than ``max_poses`` is refused (SessionFormatError ``pose_data``,
     naming ``max_poses_name``) as soon as entry ``max_poses`` + 1 is reached, before the rest is
-    read. Faults are reported as the dict parser reports them, in the same order (``map_id``,
+    read; so is a ``tag_data`` of more than ``max_poses`` detections. Faults are reported as the
+    dict parser reports them, in the same order (``map_id``,
     then ``pose_data``, ``tag_data``, points of interest), except that this limit comes first.
     Rows in the app's earlier format, or sections in an order the app does not write
     (``tag_data`` before ``pose_data``), are decoded whole and parsed as before.
     ``window_chars``: the text held ahead of the reading position (:class:`JsonStream`)."""
     stream = JsonStream(chunks, source=source, window_chars=window_chars)
+    if stream.peek() == "[":  # no session: passed over an element at a time, then refused
+        stream.skip_value()
+        stream.end()
+        return parse_session([], correct_poi_pose_id=correct_poi_pose_id)
     if stream.peek() != "{":
         document = stream.value()
         stream.end()
@@ -234,7 +239,9 @@ def parse_session_stream(
         if key == "pose_data" and stream.peek() == "[":
             sections[key] = _stream_poses(stream, max_poses, max_poses_name)
         elif key == "tag_data" and stream.peek() == "[" and "pose_data" in sections:
-            sections[key] = _stream_detections(stream, sections["pose_data"])
+            sections[key] = _stream_detections(
+                stream, sections["pose_data"], max_poses, max_poses_name
+            )
         elif key in _KEYS_READ:
             sections[key] = stream.value()
         else:
@@ -283,9 +290,12 @@ def _stream_poses(stream: JsonStream, max_poses: int, max_poses_name: str) -> An
     return columns if entries is None else entries
 
 
-def _stream_detections(stream: JsonStream, poses: Any) -> Any:
+def _stream_detections(
+    stream: JsonStream, poses: Any, max_detections: int, max_poses_name: str
+) -> Any:
     """``tag_data`` read from ``stream`` after ``pose_data``: :class:`_DetectionColumns` when the
-    poses were streamed, else the frames as a list."""
+    poses were streamed, else the frames as a list. More than ``max_detections`` detections (the
+    pose limit: the app records at most a few per pose) are refused as soon as they are reached."""
     if not isinstance(poses, _PoseColumns):
         return stream.value()
     try:
@@ -293,7 +303,15 @@ def _stream_detections(stream: JsonStream, poses: Any) -> Any:
     except SessionFormatError:
         pose_index = None  # the poses' fault is reported; the frames are only passed over
     columns = _DetectionColumns(pose_index)
+    detections = 0
     for f, frame in enumerate(stream.array_items()):
+        detections += len(frame) if isinstance(frame, list) else 1
+        if detections > max_detections:
+            raise SessionFormatError(
+                "tag_data",
+                f"more than {max_detections} detections; a session may have at most as many "
+                f"detections as poses ({max_detections}, {max_poses_name})",
+            )
         columns.add_frame(f, frame)
     return columns
 

@@ -285,3 +285,27 @@ def test_the_first_faulty_pose_is_reported_whichever_block_it_is_in(bad_row: int
     expected = (f"pose_data[{bad_row}].pose", "rotation not orthonormal (entry 3 exceeds 1)")
     assert outcome(parse_session, document) == expected
     assert outcome(streamed, json.dumps(document).encode(), size=4096) == expected
+
+
+def test_more_detections_than_the_pose_limit_are_refused_while_parsing() -> None:
+    frames = [[make_detection(tag_id=3, pose_id=k % 5)] * 3 for k in range(4)]  # 12 detections
+    raw = json.dumps(make_upload(5, frames)).encode()
+    with pytest.raises(SessionFormatError) as info:
+        parse_session_stream(
+            pieces(raw, 64), max_poses=10, max_poses_name="INVISIBLE_MAP_MAX_POSES"
+        )
+    assert info.value.field == "tag_data"
+    assert "more than 10 detections" in info.value.reason
+    assert "INVISIBLE_MAP_MAX_POSES" in info.value.reason
+    assert streamed(raw, max_poses=12).num_poses == 5
+
+
+def test_a_top_level_array_is_passed_over_and_refused_as_no_object() -> None:
+    raw = json.dumps([small_valid_upload()] * 50).encode()
+    expected = outcome(parse_session, json.loads(raw))
+    assert isinstance(expected, tuple)
+    assert "expected a JSON object" in expected[1]
+    assert outcome(streamed, raw) == expected
+    assert outcome(streamed, raw[:-1]) == outcome(
+        lambda: parse_session(decode_json_bytes(raw[:-1]))
+    )
