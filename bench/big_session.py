@@ -74,29 +74,31 @@ def timed_request(
 
 
 def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> None:
-    """The upload of ``raw`` (and of ``refused``, in a fresh server), then the map built by a
-    worker and its app-map and dashboard page fetched."""
+    """The upload of ``raw`` (and of ``refused``), then the map built by a worker, its app-map
+    and the dashboard's pages fetched; each measured request in a server process of its own
+    (the peak resident set only grows: a second request would show only what it adds to the
+    first one's peak)."""
     log = folder / "serve.log"
     env = {"INVISIBLE_MAP_DATA_DIR": str(folder)}
     url = f"sqlite:///{folder / 'api.sqlite3'}"
+
+    def fresh_server(database_url: str = url) -> ServerProcess:
+        return ServerProcess(database_url, workers=0, env=env, log_path=log)
+
     if refused is not None:
-        with ServerProcess(
-            f"sqlite:///{folder / 'refused.sqlite3'}", workers=0, env=env, log_path=log
-        ) as server:
-            auth = {"Authorization": f"Bearer {server.admin_key}"}
-            httpx.get(server.url + "/v1/info", headers=auth)  # warm: the first request's imports
-            upload(server, refused, auth, "refused")
-    with ServerProcess(url, workers=0, env=env, log_path=log) as server:
-        auth = {"Authorization": f"Bearer {server.admin_key}"}
-        httpx.get(server.url + "/v1/info", headers=auth)
-        created = upload(server, raw, auth, "accepted").json()
-        db = Database(url)
-        started_s = time.monotonic()
-        Worker(db, Settings(database_url=url, lease_s=600.0, heartbeat_s=5.0)).run_once()
-        print(f"build (worker, path graph included): {time.monotonic() - started_s:.1f} s")
-        db.dispose()
-        app_map = f"/v1/maps/{created['map_id']}/app-map"
-        for encoding in ("gzip", "identity"):
+        with fresh_server(f"sqlite:///{folder / 'refused.sqlite3'}") as server:
+            upload(server, refused, warmed(server), "refused")
+    with fresh_server() as server:
+        created = upload(server, raw, warmed(server), "accepted").json()
+    db = Database(url)
+    started_s = time.monotonic()
+    Worker(db, Settings(database_url=url, lease_s=600.0, heartbeat_s=5.0)).run_once()
+    print(f"build (worker, path graph included): {time.monotonic() - started_s:.1f} s")
+    db.dispose()
+    app_map = f"/v1/maps/{created['map_id']}/app-map"
+    for encoding in ("gzip", "identity"):
+        with fresh_server() as server:
+            auth = warmed(server)
             answer = timed_request(
                 server,
                 "GET",
@@ -104,13 +106,19 @@ def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> Non
                 f"first GET of the app-map ({encoding})",
                 headers={**auth, "Accept-Encoding": encoding},
             )
-        document = answer.json()
-        print(
-            f"app-map: {len(document['odometry_vertices'])} odometry vertices; "
-            f"notes: {document['notes']}"
-        )
-        timed_request(server, "GET", app_map, "second GET of the app-map", headers=auth)
-        with httpx.Client(base_url=server.url, timeout=600) as browser:
+            timed_request(server, "GET", app_map, "  its second GET", headers=auth)
+    document = answer.json()
+    print(
+        f"app-map: {len(document['odometry_vertices'])} odometry vertices; "
+        f"notes: {document['notes']}"
+    )
+    for what, path in (
+        ("dashboard map page", f"/admin/maps/{created['map_id']}"),
+        ("dashboard session page", f"/admin/sessions/{created['session_id']}"),
+        ("dashboard raw download", f"/admin/sessions/{created['session_id']}/raw"),
+    ):
+        with fresh_server() as server, httpx.Client(base_url=server.url, timeout=600) as browser:
+            warmed(server)
             form = browser.get("/admin/login").text
             token = re.search(r'name="form_token" value="([^"]+)"', form)
             assert token is not None
@@ -118,21 +126,24 @@ def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> Non
                 "/admin/login",
                 data={"form_token": token.group(1), "key": server.admin_key, "next": "/admin"},
             )
-            for what, path in (
-                ("dashboard map page", f"/admin/maps/{created['map_id']}"),
-                ("dashboard session page", f"/admin/sessions/{created['session_id']}"),
-                ("dashboard raw download", f"/admin/sessions/{created['session_id']}/raw"),
-            ):
-                peak_before = peak_mib(server.pid)
-                started_s = time.monotonic()
-                page = browser.get(path, headers={"Accept-Encoding": "identity"})
-                took_s = time.monotonic() - started_s
-                peak_after = peak_mib(server.pid)
-                print(
-                    f"{what}: {page.status_code}, {len(page.content) / 2**20:.2f} MiB in "
-                    f"{took_s:.1f} s; API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
-                    f"(+{peak_after - peak_before:.0f} MiB)"
-                )
+            browser.get("/admin")  # warm: the templates
+            peak_before = peak_mib(server.pid)
+            started_s = time.monotonic()
+            page = browser.get(path, headers={"Accept-Encoding": "identity"})
+            took_s = time.monotonic() - started_s
+            peak_after = peak_mib(server.pid)
+            print(
+                f"{what}: {page.status_code}, {len(page.content) / 2**20:.2f} MiB in "
+                f"{took_s:.1f} s; API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
+                f"(+{peak_after - peak_before:.0f} MiB)"
+            )
+
+
+def warmed(server: ServerProcess) -> dict[str, str]:
+    """The admin's headers, after a first request (its imports are no part of a figure)."""
+    auth = {"Authorization": f"Bearer {server.admin_key}"}
+    httpx.get(server.url + "/v1/info", headers=auth)
+    return auth
 
 
 def upload(server: ServerProcess, raw: bytes, auth: dict[str, str], what: str) -> httpx.Response:
