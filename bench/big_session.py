@@ -8,6 +8,7 @@ long), and how soon a cancel stops the build's running optimization.
     .venv/bin/python bench/big_session.py                    # 100,000 poses (the most accepted)
     .venv/bin/python bench/big_session.py --poses 20000 --refused-poses 0
     .venv/bin/python bench/big_session.py --postgres-url postgresql+psycopg://postgres@127.0.0.1/x
+    .venv/bin/python bench/big_session.py --refused-poses 0 --api-postgres-url postgresql+psycopg://…
 
 The session is simulated (``app.domain.simulate``) and sent gzipped, as the app sends it. Memory
 is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
@@ -216,6 +217,10 @@ def main() -> int:
         help="poses of a session the API refuses (more than INVISIBLE_MAP_MAX_POSES); 0: none",
     )
     parser.add_argument("--postgres-url", help="also build on this (empty, migrated) database")
+    parser.add_argument(
+        "--api-postgres-url",
+        help="also upload the session through an API on this (empty) database: its memory growth",
+    )
     args = parser.parse_args()
     raw = simulated_bytes(args.poses)
     print(f"a simulated session of {args.poses} poses")
@@ -225,6 +230,13 @@ def main() -> int:
         del refused
         stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
         cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
+    if args.api_postgres_url:
+        upgrade_to_head(Database(args.api_postgres_url))
+        with tempfile.TemporaryDirectory() as folder:
+            env = {"INVISIBLE_MAP_DATA_DIR": folder}
+            log = Path(folder) / "serve.log"
+            with ServerProcess(args.api_postgres_url, workers=0, env=env, log_path=log) as server:
+                upload(server, raw, warmed(server), "accepted (PostgreSQL)")
     if args.postgres_url:
         stage_times(raw, args.postgres_url)
     return 0
