@@ -124,7 +124,7 @@ class DecodedUpload:
     def json_chunks(self) -> Iterator[bytes]:
         """The JSON bytes, in chunks of at most :data:`CHUNK_BYTES`."""
         if is_gzip_body(self.body):
-            return iter(gunzip_chunks(self.body.data, max_bytes=self.max_session_bytes))
+            return iter(InflatedChunks(self.body.data, max_bytes=self.max_session_bytes))
         view = memoryview(self.body.data)
         return (bytes(view[k : k + CHUNK_BYTES]) for k in range(0, len(view), CHUNK_BYTES))
 
@@ -143,7 +143,7 @@ def decode_body(raw: RawBody, *, max_session_bytes: int) -> DecodedUpload:
         if len(raw.data) > max_session_bytes:
             raise _too_large("the session is", max_session_bytes)
         return DecodedUpload(raw, StoredUpload.of(raw.data), max_session_bytes)
-    chunks = gunzip_chunks(raw.data, max_bytes=max_session_bytes)
+    chunks = InflatedChunks(raw.data, max_bytes=max_session_bytes)
     digest = hashlib.sha256()
     size_bytes = 0
     head = b""
@@ -157,7 +157,7 @@ def decode_body(raw: RawBody, *, max_session_bytes: int) -> DecodedUpload:
     json_gzip = (
         raw.data
         if chunks.members == 1
-        else _gzip_of(gunzip_chunks(raw.data, max_bytes=max_session_bytes))
+        else _gzip_of(InflatedChunks(raw.data, max_bytes=max_session_bytes))
     )
     stored = StoredUpload(json_gzip=json_gzip, sha256=digest.hexdigest(), size_bytes=size_bytes)
     return DecodedUpload(raw, stored, max_session_bytes)
@@ -172,7 +172,7 @@ def _gzip_of(chunks: Iterable[bytes]) -> bytes:
     return output.getvalue()
 
 
-class gunzip_chunks:  # noqa: N801 (used as a function)
+class InflatedChunks:
     """Inflate gzip ``data`` (one or more members) a chunk of at most :data:`CHUNK_BYTES` at a
     time, never past ``max_bytes`` of output in all; ``members`` counts the members read.
     Raises ApiError 413 past the limit and 400 for data that is not complete, valid gzip."""

@@ -10,14 +10,14 @@ import zlib
 import pytest
 
 from app.api.errors import ApiError
-from app.api.upload import CHUNK_BYTES, RawBody, decode_body, gunzip_chunks
+from app.api.upload import CHUNK_BYTES, InflatedChunks, RawBody, decode_body
 
 JSON = b'{"map_id": "x", "pose_data": [' + b'{"id": 1, "pose": [0.5]},' * 200_000 + b"{}]}"
 
 
 def test_chunks_are_bounded_and_join_to_the_json() -> None:
     packed = gzip.compress(JSON)
-    chunks = list(gunzip_chunks(packed, max_bytes=len(JSON)))
+    chunks = list(InflatedChunks(packed, max_bytes=len(JSON)))
     assert max(len(chunk) for chunk in chunks) <= CHUNK_BYTES < len(JSON)
     assert b"".join(chunks) == JSON
 
