@@ -15,7 +15,13 @@ Shape of the figure (positions in m, rounded to mm)::
         "tags": [{"id", "x", "y", "z", "detections", "ellipse_m": [w, h] | None}],
         "ellipses": {"x", "z"},                                     # outlines, None-separated
         "pois": [{"name", "x", "y", "z"}],
-        "route": {"x", "z"} | None}]}
+        "route": {"x", "z"} | None}],
+     "downsampled": {"poses": N, "shown": n} | None}
+
+A trajectory of more than :data:`MAX_TRAJECTORY_POINTS` poses is drawn through every k-th pose
+(and the last, and each session's first and last), so that a page never ships every pose of a
+long walk (a 100,000-pose walk drawn whole is megabytes of JSON a browser must plot);
+``downsampled`` says so, and the page says it under each plot.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from app.domain.floors import assign_floors, find_floor_levels
 from app.domain.frames import FloatArray
 from app.domain.map_result import MapResult
 from app.domain.path_graph import WALK, PathGraph
+from app.domain.path_graph.app_format import thinned_rows
 from app.domain.routing import Route
 from app.domain.session import Session
 from app.domain.uncertainty import horizontal_position_ellipse
@@ -37,6 +44,18 @@ from app.domain.uncertainty import horizontal_position_ellipse
 #: Position ellipses drawn at this many standard deviations.
 ELLIPSE_SIGMAS = 2.0
 ELLIPSE_POINTS = 24
+#: Most poses of one trajectory (raw or optimized) a figure draws.
+MAX_TRAJECTORY_POINTS = 5_000
+
+
+def trajectory_rows(n: int, keep: Iterable[int] = ()) -> list[int]:
+    """The rows of an ``n``-pose trajectory that a figure draws: all of them up to
+    :data:`MAX_TRAJECTORY_POINTS`, else every k-th and the last, with the rows in ``keep``
+    (where a session starts or ends) added."""
+    rows = thinned_rows(n, MAX_TRAJECTORY_POINTS)
+    if len(rows) == n:
+        return rows
+    return sorted({*rows, *(int(k) for k in keep if 0 <= int(k) < n)})
 
 
 def _mm(value: float) -> float | None:
@@ -99,11 +118,20 @@ def map_figure(
             return np.zeros(len(heights), dtype=np.int64)
         return assign_floors(heights, levels_m)
 
-    optimized_floor = floor_of(heights_m)
+    n = result.world_T_phone.shape[0]
+    starts = [int(s) for s in session_starts]
+    shown = np.asarray(trajectory_rows(n, keep=[*starts, *(s - 1 for s in starts)]), dtype=np.int64)
+    # the session starts as places in the drawn rows (all rows drawn: the rows themselves)
+    shown_starts = [int(np.searchsorted(shown, s)) for s in starts]
+    optimized_xz = result.world_T_phone[shown][:, [0, 2], 3]
+    optimized_floor = floor_of(heights_m[shown])
     raw_xz = raw_floor = None
+    raw_rows = 0
     if raw_session is not None:
-        raw_xz = raw_session.world_T_phone[:, [0, 2], 3]
-        raw_floor = floor_of(raw_session.world_T_phone[:, 1, 3])
+        raw_rows = raw_session.world_T_phone.shape[0]
+        raw_shown = trajectory_rows(raw_rows)
+        raw_xz = raw_session.world_T_phone[raw_shown][:, [0, 2], 3]
+        raw_floor = floor_of(raw_session.world_T_phone[raw_shown, 1, 3])
     tag_floor = floor_of(result.world_T_tag[:, 1, 3])
     poi_floor = floor_of(result.world_T_poi[:, 1, 3])
 
@@ -119,11 +147,9 @@ def map_figure(
                 "raw": None
                 if raw_xz is None or raw_floor is None
                 else _on_floor(raw_xz, raw_floor, floor),
-                "optimized": _on_floor(
-                    result.world_T_phone[:, [0, 2], 3], optimized_floor, floor, session_starts
-                ),
+                "optimized": _on_floor(optimized_xz, optimized_floor, floor, shown_starts),
                 "sessions": _session_lines(
-                    result, optimized_floor, floor, session_starts, session_names
+                    optimized_xz, optimized_floor, floor, shown_starts, session_names
                 ),
                 **_graph(path_graph, floor),
                 "tags": tags,
@@ -141,11 +167,17 @@ def map_figure(
                 "route": None,
             }
         )
-    return {"tag_count": len(result.tag_ids), "floors": floors}
+    poses = max(n, raw_rows)
+    drawn = max(len(shown), len(raw_xz) if raw_xz is not None else 0)
+    return {
+        "tag_count": len(result.tag_ids),
+        "floors": floors,
+        "downsampled": {"poses": poses, "shown": drawn} if drawn < poses else None,
+    }
 
 
 def _session_lines(
-    result: MapResult,
+    xz: FloatArray,
     optimized_floor: np.ndarray,
     floor: int,
     session_starts: Sequence[int],
@@ -155,9 +187,8 @@ def _session_lines(
     starts = sorted(int(s) for s in session_starts)
     if len(starts) < 2:
         return None
-    ends = [*starts[1:], result.world_T_phone.shape[0]]
+    ends = [*starts[1:], xz.shape[0]]
     names = list(session_names) or [f"Session {k + 1}" for k in range(len(starts))]
-    xz = result.world_T_phone[:, [0, 2], 3]
     return [
         {"name": name, "line": _on_floor(xz[a:b], optimized_floor[a:b], floor)}
         for name, a, b in zip(names, starts, ends, strict=True)

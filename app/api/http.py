@@ -6,20 +6,24 @@ accepts_gzip("gzip, deflate, br")                 # True
 json_response(model)                              # a pydantic model, encoded without revalidation
 document = ReadyDocument.of(content, media_type="application/json")   # made once, kept
 document.response(if_none_match, accept_encoding) # 200 (gzip if accepted) or 304
+raw_upload_response(db, session_id, accept_encoding)   # the upload, streamed in chunks
 """
 
 from __future__ import annotations
 
 import gzip
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Header, Response
+from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
-from sqlalchemy.orm import Session
 
+from app.domain.json_stream import gunzipped
 from app.storage import sessions as stored_sessions
+from app.storage.db import Database
 
 
 def strong_etag(*parts: object) -> str:
@@ -71,21 +75,37 @@ def accepts_gzip(accept_encoding: str | None) -> bool:
     return False
 
 
-def raw_upload_response(
-    db_session: Session, session_id: int, accept_encoding: str | None
-) -> Response:
+#: Bytes of the stored upload read from the database at once when it is downloaded.
+RAW_CHUNK_BYTES = 1 << 20
+
+
+def raw_upload_response(db: Database, session_id: int, accept_encoding: str | None) -> Response:
     """The raw upload of ``session_id`` as a JSON attachment, gzip-encoded if the client accepts
-    it. Raises SessionNotFound."""
+    it, streamed from the database :data:`RAW_CHUNK_BYTES` at a time (each read in a short
+    read transaction of its own; the upload is written once and never changed), so that no
+    download holds the whole file. Raises SessionNotFound (before anything is sent)."""
+    with db.read() as db_session:
+        size = stored_sessions.raw_upload_gzip_size(db_session, session_id)
     headers = {
         "Content-Disposition": f'attachment; filename="session-{session_id}.json"',
         "Vary": "Accept-Encoding",
     }
+    stored = _stored_chunks(db, session_id, size)
     if accepts_gzip(accept_encoding):
         headers["Content-Encoding"] = "gzip"
-        content = stored_sessions.raw_upload_gzip(db_session, session_id)
-    else:
-        content = stored_sessions.raw_upload(db_session, session_id)
-    return Response(content=content, media_type="application/json", headers=headers)
+        headers["Content-Length"] = str(size)
+        return StreamingResponse(stored, media_type="application/json", headers=headers)
+    return StreamingResponse(
+        gunzipped(stored, RAW_CHUNK_BYTES), media_type="application/json", headers=headers
+    )
+
+
+def _stored_chunks(db: Database, session_id: int, size: int) -> Iterator[bytes]:
+    for offset in range(0, size, RAW_CHUNK_BYTES):
+        with db.read() as db_session:
+            yield stored_sessions.raw_upload_gzip_slice(
+                db_session, session_id, offset, RAW_CHUNK_BYTES
+            )
 
 
 #: The ``Accept-Encoding`` request header, as a route parameter (not in the API's schema).

@@ -2,24 +2,30 @@
 
     raw = await read_body(request, max_upload_bytes=…)         # 415 / 413 before parsing
     upload = decode_body(raw, max_session_bytes=…)             # 400 bad gzip, 413 too large
+    for chunk in upload.json_chunks(): …                       # the JSON, ≤ 1 MiB at a time
 
 The body is read from the stream, never more than ``max_upload_bytes`` (a ``Content-Length`` over
 the limit is refused before reading). ``Content-Encoding: gzip`` is inflated incrementally with
 ``zlib.decompressobj`` and stopped as soon as the output passes ``max_session_bytes``, so a bomb
-costs at most that much memory and the time to inflate it. A body that is gzip without saying so
-(a phone that gzipped the file itself) is inflated the same way.
+costs at most the time to inflate it. A body that is gzip without saying so (a phone that gzipped
+the file itself) is inflated the same way. The inflated JSON is never held whole: it is inflated
+once to check and hash it, and again, a chunk at a time, for the parser (``json_chunks``).
 """
 
 from __future__ import annotations
 
+import gzip
+import hashlib
+import io
 import zlib
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 from fastapi import Request
 
 from app.api.errors import ApiError
 from app.domain.json_values import GZIP_MAGIC
-from app.storage.sessions import StoredUpload
+from app.storage.sessions import GZIP_LEVEL, StoredUpload
 
 JSON_MEDIA_TYPE = "application/json"
 JPEG_MEDIA_TYPE = "image/jpeg"
@@ -27,13 +33,18 @@ GZIP_ENCODINGS = frozenset({"gzip", "x-gzip"})
 IDENTITY_ENCODINGS = frozenset({"", "identity"})
 #: zlib's window bits for the gzip container.
 GZIP_WBITS = 16 + zlib.MAX_WBITS
+#: Largest piece of inflated JSON handed on at once, bytes.
+CHUNK_BYTES = 1 << 20
+#: Piece of gzip given to the inflater at once, bytes (so that it never copies the whole body).
+INPUT_PIECE_BYTES = 1 << 16
 
 
 @dataclass(frozen=True, slots=True)
 class RawBody:
-    """The body as sent, and whether it said ``Content-Encoding: gzip``."""
+    """The body as sent (a bytearray when read from a request: it is not copied into bytes),
+    and whether it said ``Content-Encoding: gzip``."""
 
-    data: bytes
+    data: bytes | bytearray
     gzip: bool
 
 
@@ -92,52 +103,116 @@ async def read_body(request: Request, *, max_upload_bytes: int) -> RawBody:
             raise ApiError(400, "bad_request", "Content-Length is not a number")
         if int(declared) > max_upload_bytes:
             raise _too_large(f"the body ({int(declared)} bytes) is", max_upload_bytes)
-    chunks: list[bytes] = []
-    size = 0
+    # one buffer, grown in place (no list of chunks joined into a second copy)
+    data = bytearray()
     async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_upload_bytes:
+        if len(data) + len(chunk) > max_upload_bytes:
             raise _too_large("the body is", max_upload_bytes)
-        chunks.append(chunk)
-    return RawBody(data=b"".join(chunks), gzip=gzipped)
+        data += chunk
+    return RawBody(data=data, gzip=gzipped)
 
 
-def decode_body(raw: RawBody, *, max_session_bytes: int) -> StoredUpload:
-    """The JSON bytes of the upload (gunzipped, at most ``max_session_bytes``) and their stored
-    gzip form. A single-member gzip as sent is kept as is; anything else is compressed here."""
-    if not (raw.gzip or raw.data[:2] == GZIP_MAGIC):
+@dataclass(frozen=True, slots=True)
+class DecodedUpload:
+    """An upload whose body was checked (gzip valid, within the limits) and hashed, without
+    keeping its JSON bytes: ``json_chunks()`` inflates them again a chunk at a time."""
+
+    body: RawBody
+    stored: StoredUpload
+    max_session_bytes: int
+
+    def json_chunks(self) -> Iterator[bytes]:
+        """The JSON bytes, in chunks of at most :data:`CHUNK_BYTES`."""
+        if is_gzip_body(self.body):
+            return iter(InflatedChunks(self.body.data, max_bytes=self.max_session_bytes))
+        view = memoryview(self.body.data)
+        return (bytes(view[k : k + CHUNK_BYTES]) for k in range(0, len(view), CHUNK_BYTES))
+
+
+def is_gzip_body(raw: RawBody) -> bool:
+    """Whether the body is gzip: it says so, or it starts as gzip does (a phone that gzipped
+    the file itself)."""
+    return raw.gzip or raw.data[:2] == GZIP_MAGIC
+
+
+def decode_body(raw: RawBody, *, max_session_bytes: int) -> DecodedUpload:
+    """Check the upload's bytes (400 bad gzip, 413 too large), hash them and make their stored
+    gzip form, inflating a chunk at a time. A single-member gzip as sent is kept as is; anything
+    else is compressed here."""
+    if not is_gzip_body(raw):
         if len(raw.data) > max_session_bytes:
             raise _too_large("the session is", max_session_bytes)
-        return StoredUpload.of(raw.data)
-    json_bytes, members = gunzip_limited(raw.data, max_bytes=max_session_bytes)
-    if json_bytes[:2] == GZIP_MAGIC:
+        return DecodedUpload(raw, StoredUpload.of(raw.data), max_session_bytes)
+    chunks = InflatedChunks(raw.data, max_bytes=max_session_bytes)
+    digest = hashlib.sha256()
+    size_bytes = 0
+    head = b""
+    for chunk in chunks:
+        if len(head) < 2:
+            head += chunk[: 2 - len(head)]
+        digest.update(chunk)
+        size_bytes += len(chunk)
+    if head == GZIP_MAGIC:
         raise ApiError(400, "invalid_gzip", "the body is gzip-compressed twice")
-    return StoredUpload.of(json_bytes, json_gzip=raw.data if members == 1 else None)
+    json_gzip = (
+        raw.data
+        if chunks.members == 1
+        else _gzip_of(InflatedChunks(raw.data, max_bytes=max_session_bytes))
+    )
+    stored = StoredUpload(json_gzip=json_gzip, sha256=digest.hexdigest(), size_bytes=size_bytes)
+    return DecodedUpload(raw, stored, max_session_bytes)
 
 
-def gunzip_limited(data: bytes, *, max_bytes: int) -> tuple[bytes, int]:
-    """Inflate gzip ``data`` (one or more members) without ever holding more than ``max_bytes``
-    + 1 bytes of output; returns the output and the number of members.
+def _gzip_of(chunks: Iterable[bytes]) -> bytes:
+    """One gzip member of the concatenated ``chunks``, compressed a chunk at a time."""
+    output = io.BytesIO()
+    with gzip.GzipFile(fileobj=output, mode="wb", compresslevel=GZIP_LEVEL, mtime=0) as packed:
+        for chunk in chunks:
+            packed.write(chunk)
+    return output.getvalue()
+
+
+class InflatedChunks:
+    """Inflate gzip ``data`` (one or more members) a chunk of at most :data:`CHUNK_BYTES` at a
+    time, never past ``max_bytes`` of output in all; ``members`` counts the members read.
     Raises ApiError 413 past the limit and 400 for data that is not complete, valid gzip."""
-    output = bytearray()
-    members = 0
-    rest = data
-    while True:
-        inflater = zlib.decompressobj(GZIP_WBITS)
-        members += 1
-        try:
-            while rest and not inflater.eof:
-                output += inflater.decompress(rest, max_bytes - len(output) + 1)
-                if len(output) > max_bytes:
-                    raise _too_large("the session after gunzip is", max_bytes)
-                rest = inflater.unconsumed_tail
-        except zlib.error as err:
-            raise ApiError(400, "invalid_gzip", f"the body is not valid gzip: {err}") from err
-        if not inflater.eof:
-            raise ApiError(400, "invalid_gzip", "the body is not valid gzip: it ends too soon")
-        rest = inflater.unused_data
-        if not rest:
-            return bytes(output), members
+
+    def __init__(self, data: bytes | bytearray, *, max_bytes: int) -> None:
+        self._data = data
+        self._max_bytes = max_bytes
+        self.members = 0
+
+    def __iter__(self) -> Iterator[bytes]:
+        view = memoryview(self._data)
+        offset = 0  # of the next input not given to an inflater
+        output_bytes = 0
+        while True:
+            inflater = zlib.decompressobj(GZIP_WBITS)
+            self.members += 1
+            try:
+                while not inflater.eof:
+                    pending: bytes | memoryview
+                    if inflater.unconsumed_tail:
+                        pending = inflater.unconsumed_tail
+                    elif offset < len(view):
+                        pending = view[offset : offset + INPUT_PIECE_BYTES]
+                        offset += len(pending)
+                    else:
+                        raise ApiError(
+                            400, "invalid_gzip", "the body is not valid gzip: it ends too soon"
+                        )
+                    limit = min(CHUNK_BYTES, self._max_bytes - output_bytes + 1)
+                    chunk = inflater.decompress(pending, limit)
+                    output_bytes += len(chunk)
+                    if output_bytes > self._max_bytes:
+                        raise _too_large("the session after gunzip is", self._max_bytes)
+                    if chunk:
+                        yield chunk
+            except zlib.error as err:
+                raise ApiError(400, "invalid_gzip", f"the body is not valid gzip: {err}") from err
+            offset -= len(inflater.unused_data)  # the next member starts there
+            if offset >= len(view):
+                return
 
 
 def _too_large(what: str, limit_bytes: int) -> ApiError:

@@ -29,6 +29,7 @@ from app.domain.keyframes import keyframe_spans
 from app.domain.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
 from app.domain.params import SlamParams
 from app.domain.path_graph import PathGraph, app_links, chain_links, unique_waypoint_names
+from app.domain.path_graph.app_format import MAX_APP_POSES, thinned_rows, thinning_note
 
 MAP_FORMAT = "invisible-map/map"
 MAP_FORMAT_VERSION = 1
@@ -175,7 +176,9 @@ def map_from_json(document: Any) -> MapResult:
         raise MapFormatError(f"map document is missing or has a malformed {err}") from err
 
 
-def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None) -> dict[str, Any]:
+def map_to_app_format(
+    result: MapResult, *, path_graph: PathGraph | None = None, max_poses: int = MAX_APP_POSES
+) -> dict[str, Any]:
     """The app's download format (docs/architecture.md §7), made so the app can neither fail to
     decode it nor crash planning a route on it (``app.domain.app_model`` models the app's rules).
 
@@ -187,6 +190,9 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
     order), their position, an identity rotation, ``adjChi2`` and ``vizTags`` 0; a pose that is no
     node is linked to both ends of its nearest edge, and poses of a part that is not connected to
     the largest are left out. Without ``path_graph``: the chain of poses.
+    Of a walk of more than ``max_poses`` poses only every k-th is listed (graph nodes that are
+    poses all the same: :func:`app.domain.path_graph.app_format.thinned_rows`), so that the file
+    holds the navigation graph, not every pose, and stays far under the app's 10 MiB cap.
     Waypoints with one name are made unique ("Desk", "Desk (2)").
 
     ``notes`` (an extra key, which the app ignores) says what was changed for the app: a walk
@@ -196,14 +202,16 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
     adjacent_chi2 = _adjacent_odometry_chi2(n, result.residuals)
     visible_tags = np.bincount(result.residuals.tag_pose_index, minlength=n).astype(float)
     pose_ids = result.pose_id.tolist()
+    pose_rows = thinned_rows(n, max_poses)
     if path_graph is None:
-        links = chain_links(pose_ids)
+        links = chain_links(pose_ids, pose_rows=pose_rows)
     else:
         links = app_links(
             path_graph.graph,
             floor_levels_m=path_graph.floor_levels_m,
             pose_id=result.pose_id,
             positions_m=result.world_T_phone[:, :3, 3],
+            pose_rows=pose_rows,
         )
     waypoint_names, renamed = unique_waypoint_names(list(result.poi_names))
     return {
@@ -236,7 +244,7 @@ def map_to_app_format(result: MapResult, *, path_graph: PathGraph | None = None)
             {"id": name, **_translation_rotation(result.world_T_poi[k])}
             for k, name in enumerate(waypoint_names)
         ],
-        "notes": [*links.notes, *renamed],
+        "notes": [*links.notes, *thinning_note(n, len(pose_rows)), *renamed],
     }
 
 

@@ -17,7 +17,7 @@ import json
 import math
 import re
 from collections import Counter
-from collections.abc import Container, Mapping, Sequence
+from collections.abc import Container, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,11 +28,14 @@ import numpy.typing as npt
 from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
 from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.frames import (
+    ORTHONORMAL_TOLERANCE,
     PHONE_T_CAMERA_CV,
     FloatArray,
 )
+from app.domain.json_stream import WINDOW_CHARS, JsonStream
 from app.domain.json_values import gunzip_if_compressed, json_type_name
 from app.domain.upload_fields import (
+    MAX_TRANSLATION_M,
     integer_field,
     matrix16_field,
     number_field,
@@ -198,6 +201,121 @@ def parse_session(document: Any, *, correct_poi_pose_id: bool = True) -> Session
     return _parse_current(document, correct_poi_pose_id, warnings)
 
 
+def parse_session_stream(
+    chunks: Iterable[bytes],
+    *,
+    max_poses: int,
+    max_poses_name: str = "max_poses",
+    source: str = "upload",
+    correct_poi_pose_id: bool = True,
+    window_chars: int = WINDOW_CHARS,
+) -> Session:
+    """Parse the app's upload from its JSON bytes as they come (``chunks``: UTF-8 in pieces of
+    any size), the same as ``parse_session(decode_json_bytes(...))`` but without holding the
+    document or its object graph: ``pose_data`` entries are checked and written into arrays one
+    at a time, ``tag_data`` frames likewise, keys the parser does not read are passed over.
+
+    A ``pose_data`` longer than ``max_poses`` is refused (SessionFormatError ``pose_data``,
+    naming ``max_poses_name``) as soon as entry ``max_poses`` + 1 is reached, before the rest is
+    read; so is a ``tag_data`` of more than ``max_poses`` detections. Faults are reported as the
+    dict parser reports them, in the same order (``map_id``,
+    then ``pose_data``, ``tag_data``, points of interest), except that this limit comes first.
+    Rows in the app's earlier format, or sections in an order the app does not write
+    (``tag_data`` before ``pose_data``), are decoded whole and parsed as before.
+    ``window_chars``: the text held ahead of the reading position (:class:`JsonStream`)."""
+    stream = JsonStream(chunks, source=source, window_chars=window_chars)
+    if stream.peek() == "[":  # no session: passed over an element at a time, then refused
+        stream.skip_value()
+        stream.end()
+        return parse_session([], correct_poi_pose_id=correct_poi_pose_id)
+    if stream.peek() != "{":
+        document = stream.value()
+        stream.end()
+        return parse_session(document, correct_poi_pose_id=correct_poi_pose_id)
+    sections: dict[str, Any] = {}
+    for key in stream.object_keys():
+        if key == "pose_data" and isinstance(sections.get("tag_data"), _DetectionColumns):
+            raise SessionFormatError("pose_data", "given twice, the second after tag_data")
+        if key == "pose_data" and stream.peek() == "[":
+            sections[key] = _stream_poses(stream, max_poses, max_poses_name)
+        elif key == "tag_data" and stream.peek() == "[" and "pose_data" in sections:
+            sections[key] = _stream_detections(
+                stream, sections["pose_data"], max_poses, max_poses_name
+            )
+        elif key in _KEYS_READ:
+            sections[key] = stream.value()
+        else:
+            stream.skip_value()
+    stream.end()
+    as_dicts = {
+        key: ([value.first_entry] if value.count else [])
+        if isinstance(value, _PoseColumns)
+        else value
+        for key, value in sections.items()
+    }
+    if isinstance(tags := sections.get("tag_data"), _DetectionColumns):
+        as_dicts["tag_data"] = [tags.first_frame] if tags.count else []
+    if is_earlier_format(as_dicts):
+        # the streamed sections hold an entry that is no row: converting stops at it, as it
+        # would have stopped at the same entry of the whole list
+        return parse_session(as_dicts, correct_poi_pose_id=correct_poi_pose_id)
+    return _parse_current(sections, correct_poi_pose_id, [])
+
+
+#: Rows of pose columns made at once when streaming (grown by doubling past it).
+_STREAM_CAPACITY = 1 << 17
+#: The top-level keys the parser reads (others are passed over when streaming).
+_KEYS_READ = frozenset({"map_id", "pose_data", "tag_data", "camera_intrinsics", *LOCATION_KEYS})
+
+
+def _stream_poses(stream: JsonStream, max_poses: int, max_poses_name: str) -> Any:
+    """``pose_data`` read from ``stream``: :class:`_PoseColumns`, or the entries as a list when
+    entry 0 is no object (rows of the earlier format, or a fault the dict parser reports)."""
+    # np.empty pages cost memory only once written; past _STREAM_CAPACITY the columns grow
+    columns = _PoseColumns(capacity=min(max_poses, _STREAM_CAPACITY))
+    entries: list[Any] | None = None
+    for i, entry in enumerate(stream.array_items()):
+        if i == max_poses:
+            raise SessionFormatError(
+                "pose_data",
+                f"more than {max_poses} poses; a session may have at most {max_poses} "
+                f"({max_poses_name})",
+            )
+        if i == 0 and not isinstance(entry, Mapping):
+            entries = []
+        if entries is not None:
+            entries.append(entry)
+        else:
+            columns.add(entry)
+    return columns if entries is None else entries
+
+
+def _stream_detections(
+    stream: JsonStream, poses: Any, max_detections: int, max_poses_name: str
+) -> Any:
+    """``tag_data`` read from ``stream`` after ``pose_data``: :class:`_DetectionColumns` when the
+    poses were streamed, else the frames as a list. More than ``max_detections`` detections (the
+    pose limit: the app records at most a few per pose) are refused as soon as they are reached."""
+    if not isinstance(poses, _PoseColumns):
+        return stream.value()
+    try:
+        pose_index: PoseIndex | None = PoseIndex(poses.finish()[0])
+    except SessionFormatError:
+        pose_index = None  # the poses' fault is reported; the frames are only passed over
+    columns = _DetectionColumns(pose_index)
+    detections = 0
+    for f, frame in enumerate(stream.array_items()):
+        detections += len(frame) if isinstance(frame, list) else 1
+        if detections > max_detections:
+            raise SessionFormatError(
+                "tag_data",
+                f"more than {max_detections} detections; a session may have at most as many "
+                f"detections as poses ({max_detections}, {max_poses_name})",
+            )
+        columns.add_frame(f, frame)
+    return columns
+
+
 def _parse_current(
     document: Mapping[str, Any], correct_poi_pose_id: bool, warnings: list[str]
 ) -> Session:
@@ -208,7 +326,7 @@ def _parse_current(
         raise SessionFormatError("map_id", f"expected a string, got {json_type_name(map_id)}")
 
     pose_id, timestamp_s, world_T_phone = _parse_poses(document.get("pose_data"))
-    index_of_pose_id = {int(pid): i for i, pid in enumerate(pose_id)}
+    index_of_pose_id = PoseIndex(pose_id)
     detections = _parse_tag_data(document.get("tag_data", []), index_of_pose_id)
 
     location_key = next((k for k in LOCATION_KEYS if k in document), LOCATION_KEYS[0])
@@ -233,41 +351,185 @@ def _parse_current(
 
 
 def _parse_poses(pose_data: Any) -> tuple[IntArray, FloatArray, FloatArray]:
+    if isinstance(pose_data, _PoseColumns):  # read from a stream already
+        return pose_data.finish()
     if pose_data is None:
         raise SessionFormatError("pose_data", "missing")
     require_list(pose_data, "pose_data")
-    if len(pose_data) == 0:
-        raise SessionFormatError("pose_data", "empty session: no poses")
-    n = len(pose_data)
-    pose_id = np.empty(n, dtype=np.int64)
-    timestamp_s = np.empty(n, dtype=np.float64)
-    world_T_phone = np.empty((n, 4, 4), dtype=np.float64)
-    for i, entry in enumerate(pose_data):
+    columns = _PoseColumns(capacity=len(pose_data))
+    for entry in pose_data:
+        columns.add(entry)
+        if columns.error is not None:
+            raise columns.error
+    return columns.finish()
+
+
+class _PoseColumns:
+    """``pose_data`` entries checked and written into arrays one at a time, so that the
+    entries themselves need not be kept. The first fault is kept in ``error`` (later entries are
+    only counted); ``first_entry`` is entry 0 as it was (for :func:`is_earlier_format`)."""
+
+    def __init__(self, *, capacity: int) -> None:
+        # np.empty of a large capacity costs only the pages written
+        capacity = max(capacity, 1)
+        self.pose_id = np.empty(capacity, dtype=np.int64)
+        self.timestamp_s = np.empty(capacity, dtype=np.float64)
+        self.world_T_phone = np.empty((capacity, 4, 4), dtype=np.float64)
+        self.count = 0
+        self._checked = 0  # poses before this one are checked for rigidity
+        self.error: SessionFormatError | None = None
+        self.first_entry: Any = None
+
+    def add(self, entry: Any) -> None:
+        i = self.count
+        self.count += 1
+        if i == 0:
+            self.first_entry = entry
+        if self.error is not None:
+            return
+        if i == self.pose_id.shape[0]:
+            self._grow()
         where = f"pose_data[{i}]"
-        require_object(entry, where)
-        pose_id[i] = integer_field(entry, "id", where)
-        timestamp_s[i] = number_field(entry, "timestamp", where)
-        matrix = matrix16_field(entry, "pose", where).reshape(4, 4).T  # column-major
-        world_T_phone[i] = rigid_pose(matrix, f"{where}.pose")
-    decreasing = np.flatnonzero(np.diff(pose_id) <= 0)
-    if decreasing.size:
-        i = int(decreasing[0]) + 1
-        raise SessionFormatError(
-            f"pose_data[{i}].id", f"ids must increase: {pose_id[i]} follows {pose_id[i - 1]}"
-        )
-    backwards = np.flatnonzero(np.diff(timestamp_s) < 0)
-    if backwards.size:
-        i = int(backwards[0]) + 1
-        raise SessionFormatError(
-            f"pose_data[{i}].timestamp",
-            f"time goes backwards: {timestamp_s[i]} s after {timestamp_s[i - 1]} s",
-        )
-    return pose_id, timestamp_s, world_T_phone
+        try:
+            require_object(entry, where)
+            self.pose_id[i] = integer_field(entry, "id", where)
+            self.timestamp_s[i] = number_field(entry, "timestamp", where)
+            # column-major; checked for rigidity a block at a time (_check_rigid)
+            self.world_T_phone[i] = matrix16_field(entry, "pose", where).reshape(4, 4).T
+        except SessionFormatError as err:
+            self._check_rigid(i)  # a fault in an earlier pose comes first
+            if self.error is None:
+                self.error = err
+            return
+        if i + 1 - self._checked >= _RIGIDITY_BLOCK:
+            self._check_rigid(i + 1)
+
+    def _check_rigid(self, end: int) -> None:
+        """Check the poses from the last checked up to ``end`` for rigidity, as
+        :func:`rigid_pose` does each, and orthonormalize them. The test runs on the whole block
+        with a margin; a pose it flags gets :func:`rigid_pose` itself, so the first fault is
+        reported with its own words. Sets ``error`` (and raises nothing)."""
+        start = self._checked
+        if end <= start or self.error is not None:
+            return
+        block = self.world_T_phone[start:end]
+        with np.errstate(all="ignore"):
+            flagged = np.flatnonzero(_maybe_not_rigid(block))
+        for k in flagged:
+            i = start + int(k)
+            try:
+                rigid_pose(block[k], f"pose_data[{i}].pose")
+            except SessionFormatError as err:
+                self.error = err
+                self._checked = i
+                return
+        self.world_T_phone[start:end] = _orthonormalized(block)
+        self._checked = end
+
+    def _grow(self) -> None:
+        capacity = 2 * self.pose_id.shape[0]
+        self.pose_id = np.resize(self.pose_id, capacity)
+        self.timestamp_s = np.resize(self.timestamp_s, capacity)
+        self.world_T_phone = np.resize(self.world_T_phone, (capacity, 4, 4))
+
+    def finish(self) -> tuple[IntArray, FloatArray, FloatArray]:
+        """The arrays (N rows); SessionFormatError for the first fault."""
+        self._check_rigid(self.count)
+        if self.error is not None:
+            raise self.error
+        n = self.count
+        if n == 0:
+            raise SessionFormatError("pose_data", "empty session: no poses")
+        pose_id, timestamp_s = self.pose_id[:n], self.timestamp_s[:n]
+        decreasing = np.flatnonzero(np.diff(pose_id) <= 0)
+        if decreasing.size:
+            i = int(decreasing[0]) + 1
+            raise SessionFormatError(
+                f"pose_data[{i}].id", f"ids must increase: {pose_id[i]} follows {pose_id[i - 1]}"
+            )
+        backwards = np.flatnonzero(np.diff(timestamp_s) < 0)
+        if backwards.size:
+            i = int(backwards[0]) + 1
+            raise SessionFormatError(
+                f"pose_data[{i}].timestamp",
+                f"time goes backwards: {timestamp_s[i]} s after {timestamp_s[i - 1]} s",
+            )
+        return pose_id, timestamp_s, self.world_T_phone[:n]
 
 
-def _parse_tag_data(tag_data: Any, index_of_pose_id: Mapping[int, int]) -> TagDetections:
-    rows = parse_detection_rows(tag_data, known_pose_ids=index_of_pose_id)
-    return detections_from_rows(rows, [index_of_pose_id[r["pose_id"]] for r in rows])
+#: Poses checked for rigidity at once by :class:`_PoseColumns`.
+_RIGIDITY_BLOCK = 4096
+#: The share of a tolerance at which the block test flags a pose for the exact test.
+_MARGIN = 0.99
+
+
+def _maybe_not_rigid(world_T: FloatArray) -> npt.NDArray[np.bool_]:
+    """(n,) for (n, 4, 4) matrices: True where :func:`rigid_pose` may refuse the matrix (every
+    one it refuses is flagged; a few within a hair of a tolerance are flagged as well)."""
+    last_row_defect = np.abs(world_T[:, 3] - (0.0, 0.0, 0.0, 1.0)) - (0.0, 0.0, 0.0, 1e-5)
+    R = world_T[:, :3, :3]
+    largest = np.max(np.abs(R), axis=(1, 2))
+    gram_defect = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
+    flagged = (
+        np.any(last_row_defect > _MARGIN * 1e-3, axis=1)
+        | ~(largest <= 1.0 + _MARGIN * ORTHONORMAL_TOLERANCE)
+        | ~(gram_defect <= _MARGIN * ORTHONORMAL_TOLERANCE)
+        | ~(np.linalg.det(R) > 0)
+        | ~(np.max(np.abs(world_T[:, :3, 3]), axis=1) <= _MARGIN * MAX_TRANSLATION_M)
+    )
+    return np.asarray(flagged, dtype=np.bool_)
+
+
+def _orthonormalized(world_T: FloatArray) -> FloatArray:
+    """(n, 4, 4): each matrix's rotation projected onto SO(3) and its last row (0, 0, 0, 1), as
+    :func:`app.domain.frames.orthonormalized` makes one."""
+    out = world_T.copy()
+    U, _, Vt = np.linalg.svd(world_T[:, :3, :3])
+    sign = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros((len(out), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = sign
+    out[:, :3, :3] = U @ D @ Vt
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+class PoseIndex:
+    """The row of each pose id (ids increasing, as the parser checks): ``pose_id in index``,
+    ``index[pose_id]``; a search in the id array instead of a dict of every pose."""
+
+    def __init__(self, pose_id: IntArray) -> None:
+        self._pose_id = pose_id
+
+    def row(self, pose_id: object) -> int | None:
+        """The row of ``pose_id``, or None."""
+        if isinstance(pose_id, bool) or not isinstance(pose_id, int):
+            return None
+        if not int(self._pose_id[0]) <= pose_id <= int(self._pose_id[-1]):
+            return None
+        row = int(np.searchsorted(self._pose_id, pose_id))
+        return row if int(self._pose_id[row]) == pose_id else None
+
+    def __contains__(self, pose_id: object) -> bool:
+        return self.row(pose_id) is not None
+
+    def __getitem__(self, pose_id: int) -> int:
+        row = self.row(pose_id)
+        if row is None:
+            raise KeyError(pose_id)
+        return row
+
+
+def _parse_tag_data(tag_data: Any, index_of_pose_id: PoseIndex) -> TagDetections:
+    if isinstance(tag_data, _DetectionColumns):  # read from a stream already
+        return tag_data.finish()
+    require_list(tag_data, "tag_data")
+    columns = _DetectionColumns(index_of_pose_id)
+    for f, frame in enumerate(tag_data):
+        columns.add_frame(f, frame)
+        if columns.error is not None:
+            raise columns.error
+    return columns.finish()
 
 
 def parse_detection_rows(
@@ -279,23 +541,85 @@ def parse_detection_rows(
     require_list(tag_data, "tag_data")
     rows: list[dict[str, Any]] = []
     for f, frame in enumerate(tag_data):
-        where_frame = f"tag_data[{f}]"
-        if isinstance(frame, Mapping):  # a bare detection where a frame was expected
-            frame = [frame]
-        require_list(frame, where_frame)
-        for d, detection in enumerate(frame):
-            where = f"{where_frame}[{d}]"
-            require_object(detection, where)
-            row = parse_detection_fields(
-                detection,
-                where,
-                frame_index=f,
-                frame_size=len(frame),
-                known_pose_ids=known_pose_ids,
-            )
-            row["where"] = where
-            rows.append(row)
+        rows += _frame_rows(f, frame, known_pose_ids)
     return rows
+
+
+def _frame_rows(f: int, frame: Any, known_pose_ids: Container[int] | None) -> list[dict[str, Any]]:
+    where_frame = f"tag_data[{f}]"
+    if isinstance(frame, Mapping):  # a bare detection where a frame was expected
+        frame = [frame]
+    require_list(frame, where_frame)
+    rows = []
+    for d, detection in enumerate(frame):
+        where = f"{where_frame}[{d}]"
+        require_object(detection, where)
+        row = parse_detection_fields(
+            detection,
+            where,
+            frame_index=f,
+            frame_size=len(frame),
+            known_pose_ids=known_pose_ids,
+        )
+        row["where"] = where
+        rows.append(row)
+    return rows
+
+
+class _DetectionColumns:
+    """``tag_data`` frames checked one at a time and kept as arrays in blocks of
+    :data:`_DETECTION_BLOCK` detections, not as one dict per detection. The first fault is kept
+    in ``error`` (later frames are passed over); ``first_frame`` is frame 0 as it was."""
+
+    def __init__(self, pose_index: PoseIndex | None) -> None:
+        self._pose_index = pose_index
+        self._rows: list[dict[str, Any]] = []
+        self._blocks: list[dict[str, npt.NDArray[Any]]] = []
+        self.count = 0
+        self.error: SessionFormatError | None = None
+        self.first_frame: Any = None
+
+    def add_frame(self, f: int, frame: Any) -> None:
+        self.count += 1
+        if f == 0:
+            self.first_frame = frame
+        if self.error is not None:
+            return
+        if self._pose_index is None:  # the poses are faulty: their error comes first
+            return
+        try:
+            self._rows += _frame_rows(f, frame, self._pose_index)
+        except SessionFormatError as err:
+            self.error = err
+            return
+        if len(self._rows) >= _DETECTION_BLOCK:
+            self._end_block()
+
+    def _end_block(self) -> None:
+        if self._rows and self._pose_index is not None:
+            pose_index = [self._pose_index[r["pose_id"]] for r in self._rows]
+            block = detections_from_rows(self._rows, pose_index)
+            self._blocks.append({name: getattr(block, name) for name in _DETECTION_FIELDS})
+        self._rows = []
+
+    def finish(self) -> TagDetections:
+        if self.error is not None:
+            raise self.error
+        self._end_block()
+        if not self._blocks:
+            return _empty_detections()
+        # field by field, each block's part let go once joined: never two copies of all
+        return TagDetections(
+            **{
+                name: np.concatenate([block.pop(name) for block in self._blocks])
+                for name in _DETECTION_FIELDS
+            }
+        )
+
+
+#: Detections per block of :class:`_DetectionColumns`.
+_DETECTION_BLOCK = 256
+_DETECTION_FIELDS = tuple(field.name for field in dataclasses.fields(TagDetections))
 
 
 def detections_from_rows(
@@ -377,7 +701,7 @@ def parse_detection_fields(
 def _parse_locations(
     location_data: Any,
     key: str,
-    index_of_pose_id: Mapping[int, int],
+    index_of_pose_id: PoseIndex,
     correct_poi_pose_id: bool,
 ) -> list[PointOfInterest]:
     if location_data is None:

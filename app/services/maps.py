@@ -185,8 +185,8 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
 #: The version of what :func:`app_map_content` makes of a stored version. It is part of the
 #: app-map's ETag: raise it whenever the export changes, so that a phone holding a file made by
 #: the older export downloads the new one instead of a 304. 2: links at both ends, one connected
-#: part, unique waypoint names, ``notes``.
-APP_MAP_EXPORT = 2
+#: part, unique waypoint names, ``notes``. 3: at most 5,000 poses besides the graph's nodes.
+APP_MAP_EXPORT = 3
 #: Longest display name, characters (the column's size).
 MAX_DISPLAY_NAME_LENGTH = 200
 #: Media type of the pictures the app sends.

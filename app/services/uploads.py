@@ -2,8 +2,8 @@
 at the door (``POST /v1/sessions``), so that a session accepted with 202 can always be stored
 and rendered, and a bad one is a 422 naming the field instead of a 500 or a build that fails.
 
-    check_pose_count(document, max_poses)   # before parsing (INVISIBLE_MAP_MAX_POSES)
-    check_storable(parsed)                  # after it
+    parsed = parse_upload(json_chunks, max_poses=…)   # INVISIBLE_MAP_MAX_POSES while parsing
+    check_storable(parsed)                            # (called by parse_upload)
     # each: SessionFormatError (422 invalid_session, naming the field)
 
 - text (``map_id``, the points of interest's names) must be encodable as UTF-8 (no lone surrogate
@@ -16,24 +16,54 @@ and rendered, and a bad one is a 422 naming the field instead of a 500 or a buil
 from __future__ import annotations
 
 import math
+import sys
+from collections.abc import Iterable
+
+from sqlalchemy.orm import Session
 
 from app.domain.errors import SessionFormatError
+from app.domain.json_stream import gunzipped
 from app.domain.session import Session as ParsedSession
+from app.domain.session import parse_session_stream
+from app.storage import sessions
+from app.storage.sessions import MAX_MAP_NAME_LENGTH
 
+#: Bytes of a stored upload read from the database at once when it is parsed again.
+STORED_CHUNK_BYTES = 1 << 20
 #: The largest tag id the database stores (``map_tag.tag_id`` is a 32-bit integer).
 MAX_TAG_ID = 2**31 - 1
 
 
-def check_pose_count(document: object, max_poses: int) -> None:
-    """SessionFormatError (``pose_data``) if the decoded upload has more than ``max_poses``
-    poses (``INVISIBLE_MAP_MAX_POSES``): checked before the session is parsed, so that a small
-    gzip body that inflates to millions of poses costs no parse, no build, no stored map."""
-    poses = document.get("pose_data") if isinstance(document, dict) else None
-    if isinstance(poses, list) and len(poses) > max_poses:
+def parse_upload(json_chunks: Iterable[bytes], *, max_poses: int) -> ParsedSession:
+    """The session in the upload's JSON bytes (in chunks), parsed as they come: a session with
+    more than ``max_poses`` poses (``INVISIBLE_MAP_MAX_POSES``) is refused when pose
+    ``max_poses`` + 1 is reached, so that a small gzip body that inflates to millions of poses
+    costs no decoding of the rest, no build, no stored map; then :func:`check_storable`.
+    SessionFormatError (naming the field) for any fault."""
+    parsed = parse_session_stream(
+        json_chunks, max_poses=max_poses, max_poses_name="INVISIBLE_MAP_MAX_POSES"
+    )
+    if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
         raise SessionFormatError(
-            "pose_data",
-            f"{len(poses)} poses; a session may have at most {max_poses} (INVISIBLE_MAP_MAX_POSES)",
+            "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
         )
+    check_storable(parsed)
+    return parsed
+
+
+def stored_session(db_session: Session, session_id: int) -> ParsedSession:
+    """A stored session parsed again (the dashboard's raw trajectory, detections per tag), read
+    from the database a piece at a time and parsed as it is inflated, never held whole.
+    Raises SessionNotFound."""
+    size = sessions.raw_upload_gzip_size(db_session, session_id)
+    packed = (
+        sessions.raw_upload_gzip_slice(db_session, session_id, offset, STORED_CHUNK_BYTES)
+        for offset in range(0, size, STORED_CHUNK_BYTES)
+    )
+    # accepted once, so within any limit there was then: no limit now
+    return parse_session_stream(
+        gunzipped(packed, STORED_CHUNK_BYTES), max_poses=sys.maxsize, source=f"session {session_id}"
+    )
 
 
 def check_text(field: str, value: str) -> None:

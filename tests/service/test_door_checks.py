@@ -19,6 +19,7 @@ from api_support import ADMIN, JSON, ONETAG, Api, onetag, running_api
 from app.api import access_log
 from app.api.routes import sessions as sessions_route
 from app.api.security import API_CSP, COMMON_HEADERS
+from app.domain.json_stream import JsonStream
 from app.storage import keys
 from app.storage.db import Database
 from app.storage.orm import MapRow, SessionRow
@@ -178,18 +179,24 @@ def test_keys_in_a_request_target_are_redacted_in_the_access_log(
     assert access_log.redact(target) == redacted
 
 
-def test_a_session_with_more_poses_than_allowed_is_refused_before_parsing(
+def test_a_session_with_more_poses_than_allowed_is_refused_while_parsing(
     database_url: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    parsed: list[bytes] = []
-    real_parse = sessions_route.parse_session
-    monkeypatch.setattr(
-        sessions_route, "parse_session", lambda doc: parsed.append(b"") or real_parse(doc)
-    )
+    items_decoded: list[object] = []
+    real_array_items = JsonStream.array_items
+
+    def counted_array_items(stream: JsonStream) -> Iterator[Any]:
+        for item in real_array_items(stream):
+            items_decoded.append(item)
+            yield item
+
+    monkeypatch.setattr(JsonStream, "array_items", counted_array_items)
     with running_api(database_url, max_poses=10) as api:
         response = api.upload(ONETAG)
         assert response.status_code == 422, response.text
         assert response.json()["field"] == "pose_data"
         assert "at most 10 (INVISIBLE_MAP_MAX_POSES)" in response.json()["detail"]
-        assert parsed == []  # refused before the parse
+        # refused at pose 11 (pose_data comes first in the app's upload), the rest never decoded
+        assert len(items_decoded) == 11
+        assert len(json.loads(ONETAG.read_bytes())["pose_data"]) == 25
         assert api.count(SessionRow) == 0

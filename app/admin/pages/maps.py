@@ -27,7 +27,6 @@ from app.api.schemas.maps import MapSessionsPublic
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import PathGraph
 from app.domain.session import Session as ParsedSession
-from app.domain.session import decode_json_bytes, parse_session
 from app.services.errors import ServiceError
 from app.services.maps import (
     add_session_to_map,
@@ -41,8 +40,9 @@ from app.services.maps import (
     rename_map,
 )
 from app.services.navigation import geojson_bytes, version_path_graph
+from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
-from app.storage import maps, queue, sessions
+from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
 
 router = admin_router()
@@ -74,7 +74,7 @@ def map_list(
 
 def raw_session(db_session: Session, session_id: int) -> ParsedSession:
     """The parsed raw upload of a session (for its raw trajectory)."""
-    return parse_session(decode_json_bytes(sessions.raw_upload(db_session, session_id)))
+    return stored_session(db_session, session_id)
 
 
 def path_graph_or_none(

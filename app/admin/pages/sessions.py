@@ -13,9 +13,9 @@ from app.admin.auth import DashboardUserDep
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadDbSessionDep, valid_id
+from app.api.deps import DbDep, ReadDbSessionDep, valid_id
 from app.api.http import raw_upload_response
-from app.domain.session import decode_json_bytes, parse_session
+from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
 from app.storage import queue, sessions
 
@@ -56,7 +56,7 @@ def detections_per_tag(
     count is kept in the process's cache)."""
 
     def count() -> list[tuple[int, int]]:
-        parsed = parse_session(decode_json_bytes(sessions.raw_upload(db_session, session_id)))
+        parsed = stored_session(db_session, session_id)
         counts = Counter(int(tag_id) for tag_id in parsed.detections.tag_id)
         return sorted(counts.items())
 
@@ -84,8 +84,8 @@ def session_detail(
 @router.get("/sessions/{session_id}/raw")
 def session_raw(
     _user: DashboardUserDep,
-    db_session: ReadDbSessionDep,
+    db: DbDep,
     session_id: int,
     accept_encoding: Annotated[str | None, Header()] = None,
 ) -> Response:
-    return raw_upload_response(db_session, valid_id(session_id, "session"), accept_encoding)
+    return raw_upload_response(db, valid_id(session_id, "session"), accept_encoding)

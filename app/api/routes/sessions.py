@@ -13,6 +13,7 @@ storing nothing; the same key with different bytes is a 409 ``idempotency_confli
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Response
@@ -33,11 +34,9 @@ from app.api.http import raw_upload_response
 from app.api.route_class import SessionEndingRoute
 from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
 from app.api.upload import decode_body
-from app.domain.errors import SessionFormatError
 from app.domain.session import Session as ParsedSession
-from app.domain.session import decode_json_bytes, parse_session
 from app.services.maps import image_url, merge_maps, store_session_image
-from app.services.uploads import check_pose_count, check_storable
+from app.services.uploads import parse_upload
 from app.storage import keys, maps, sessions
 from app.storage.db import Database
 from app.storage.keys import Principal
@@ -208,9 +207,9 @@ def upload_session(
             field="auto_tune_trials",
         )
     upload = decode_body(body, max_session_bytes=settings.max_session_bytes)
-    result = _replayed(db, principal, idempotency_key, upload.sha256)
+    result = _replayed(db, principal, idempotency_key, upload.stored.sha256)
     if result is None:
-        parsed = _parse(upload.json_bytes, max_poses=settings.max_poses)
+        parsed = _parse(upload.json_chunks(), max_poses=settings.max_poses)
         # The write transaction starts only now: parsing never holds SQLite's write lock.
         with db.transaction() as db_session:
             # the key may have been revoked while the body arrived: check it again, in the
@@ -222,7 +221,7 @@ def upload_session(
             result = sessions.create_session(
                 db_session,
                 parsed=parsed,
-                upload=upload,
+                upload=upload.stored,
                 uploaded_by=principal.subject,
                 idempotency_key=idempotency_key,
                 max_attempts=settings.max_attempts,
@@ -259,17 +258,9 @@ def _replayed(
         return None if earlier is None else sessions.replay_upload(db_session, earlier, sha256)
 
 
-def _parse(json_bytes: bytes, *, max_poses: int) -> ParsedSession:
+def _parse(json_chunks: Iterable[bytes], *, max_poses: int) -> ParsedSession:
     """The validated session; SessionFormatError (422, naming the field) otherwise."""
-    document = decode_json_bytes(json_bytes)
-    check_pose_count(document, max_poses)
-    parsed = parse_session(document)
-    if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
-        raise SessionFormatError(
-            "map_id", f"longer than {MAX_MAP_NAME_LENGTH} characters ({len(parsed.map_id)})"
-        )
-    check_storable(parsed)
-    return parsed
+    return parse_upload(json_chunks, max_poses=max_poses)
 
 
 @router.get(
@@ -310,7 +301,8 @@ def get_session(info: SessionDep) -> SessionPublic:
     summary="Download the raw upload",
     description="The JSON exactly as uploaded, byte for byte (after undoing the upload's "
     "Content-Encoding). Sent gzip-compressed (`Content-Encoding: gzip`) to clients that accept "
-    "it; any HTTP client decodes that to the same bytes.",
+    "it; any HTTP client decodes that to the same bytes. Streamed from the database in 1 MiB "
+    "pieces.",
     response_class=Response,
     responses={
         200: {
@@ -322,10 +314,10 @@ def get_session(info: SessionDep) -> SessionPublic:
 )
 def get_raw_session(
     info: SessionDep,
-    db_session: ReadDbSessionDep,
+    db: DbDep,
     accept_encoding: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
-    return raw_upload_response(db_session, info.id, accept_encoding)
+    return raw_upload_response(db, info.id, accept_encoding)
 
 
 @router.put(

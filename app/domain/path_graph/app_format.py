@@ -21,7 +21,11 @@ whose nodes are no poses at all):
   links to both ends of the nearest edge of the kept part (of its floor where there is one), and
   they link back to it. A route therefore starts next to the phone and never jumps between
   floors except along the graph's stairs and elevator edges;
-- a graph with no edge (a walk too short to make one) is linked as the chain of its poses.
+- a graph with no edge (a walk too short to make one) is linked as the chain of its poses;
+- **a long walk is thinned**: of more than :data:`MAX_APP_POSES` poses, only every k-th (and the
+  last) is listed (:func:`thinned_rows`, ``pose_rows``), graph nodes that are poses all the same,
+  so that the file stays far under the app's 10 MiB cap (a vertex is about 280 bytes: a
+  100,000-pose walk listed whole would be 27 MiB).
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from app.domain.path_graph.geometry import project_to_segments, tuple3
 
 #: Poses per block when finding the nearest edge of poses that are not nodes.
 _CHUNK = 256
+#: Most poses the app's file lists (graph nodes that are poses aside): about 1.4 MiB of vertices.
+MAX_APP_POSES = 5_000
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -59,11 +65,37 @@ class AppLinks:
     notes: list[str] = field(default_factory=list)
 
 
-def chain_links(pose_id: Sequence[int]) -> AppLinks:
-    """The poses as one chain, each linked to the previous and the next (both ends listed)."""
+def chain_links(pose_id: Sequence[int], *, pose_rows: Sequence[int] | None = None) -> AppLinks:
+    """The poses as one chain, each linked to the previous and the next (both ends listed);
+    with ``pose_rows``, the chain of those rows only (the others are left out: None)."""
     ids = [int(p) for p in pose_id]
-    n = len(ids)
-    return AppLinks(neighbors=[[ids[j] for j in (i - 1, i + 1) if 0 <= j < n] for i in range(n)])
+    rows = list(range(len(ids))) if pose_rows is None else [int(r) for r in pose_rows]
+    neighbors: list[list[int] | None] = [None] * len(ids)
+    for k, row in enumerate(rows):
+        neighbors[row] = [ids[rows[j]] for j in (k - 1, k + 1) if 0 <= j < len(rows)]
+    return AppLinks(neighbors=neighbors)
+
+
+def thinned_rows(n: int, max_rows: int = MAX_APP_POSES) -> list[int]:
+    """Rows 0, k, 2k, … and the last of ``n`` poses, k the smallest stride that leaves at most
+    ``max_rows`` (all rows when there are no more than that)."""
+    if n <= max_rows:
+        return list(range(n))
+    stride = -(-(n - 1) // max(max_rows - 2, 1))  # ceil: the last row comes on top
+    rows = list(range(0, n, stride))
+    if rows[-1] != n - 1:
+        rows.append(n - 1)
+    return rows
+
+
+def thinning_note(n: int, listed: int) -> list[str]:
+    """What the map file says when a walk's poses were thinned for the app (empty if not)."""
+    if listed >= n:
+        return []
+    return [
+        f"the walk's {n} poses are thinned to {listed} for the app (at most {MAX_APP_POSES} "
+        "poses besides the path graph's nodes), so the file stays small"
+    ]
 
 
 def app_links(
@@ -72,18 +104,21 @@ def app_links(
     floor_levels_m: Sequence[float],
     pose_id: npt.ArrayLike,
     positions_m: npt.ArrayLike,
+    pose_rows: Sequence[int] | None = None,
 ) -> AppLinks:
     """The links of the app's file from a path graph (see the module docstring).
 
     graph: node attributes ``position_m`` (x, y, z, map frame, m) and optionally ``pose_index``
     (row of the pose it is, or None); edge attribute ``floor`` (optional, for attaching poses).
     pose_id: (N,) the app's pose ids, increasing; positions_m: (N, 3) the poses, map frame, m.
+    pose_rows: the rows of the poses to list (default: all); a pose that is a graph node is
+    listed whatever this says, the others are left out (None).
     """
     ids = np.asarray(pose_id, dtype=np.int64).reshape(-1)
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
     n = ids.shape[0]
     if graph.number_of_edges() == 0:
-        return chain_links(ids.tolist())
+        return chain_links(ids.tolist(), pose_rows=pose_rows)
 
     # parts with an edge; a node with none (a lone pose) is attached like any other pose
     parts = sorted(
@@ -113,7 +148,8 @@ def app_links(
         links[app_id[v]].add(app_id[u])
 
     # poses that are no node of the kept part: attach to the nearest edge, or leave out
-    loose = [row for row in range(n) if row not in node_of_row]
+    listed = range(n) if pose_rows is None else pose_rows
+    loose = [int(row) for row in listed if int(row) not in node_of_row]
     left_out: list[int] = []
     if loose:
         edges = list(graph.edges)
