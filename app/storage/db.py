@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import Engine, create_engine, event, make_url, text
+from sqlalchemy import Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy import exc as sqlalchemy_exc
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -26,6 +26,8 @@ if TYPE_CHECKING:
     from app.config import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+#: Execution option of the connections :meth:`Database.autocommit` gives: no BEGIN on SQLite.
+AUTOCOMMIT = "invisible_map_autocommit"
 #: ``Session.info`` key of the sessions :meth:`Database.transaction` made (they may write).
 WRITES = "invisible_map_writes"
 
@@ -107,6 +109,22 @@ class Database:
         with self._sessions.begin() as db_session:
             db_session.info[WRITES] = True
             yield db_session
+
+    @contextmanager
+    def autocommit(self) -> Iterator[Connection]:
+        """A connection on which every statement is its own transaction, committed as it ends
+        (no ``BEGIN`` or ``COMMIT`` round trips): for the hot path's single statements, such as a
+        compare-and-set ``UPDATE … WHERE revision = ?``, which need no transaction around them.
+        On SQLite a writing statement takes the write lock as it starts (waiting up to the busy
+        timeout), as ``BEGIN IMMEDIATE`` would."""
+        if self.is_sqlite:
+            # The connections already run pysqlite in autocommit mode (isolation_level None);
+            # the "begin" listener leaves out its BEGIN for this option, so nothing opens one.
+            options: dict[str, Any] = {AUTOCOMMIT: True}
+        else:
+            options = {"isolation_level": "AUTOCOMMIT"}
+        with self.engine.connect().execution_options(**options) as connection:
+            yield connection
 
     @contextmanager
     def read(self) -> Iterator[Session]:
@@ -241,7 +259,8 @@ def _sqlite_engine(url: str, *, echo: bool, begin: str) -> Engine:
         cursor.close()
 
     @event.listens_for(engine, "begin")
-    def _on_begin(connection: Any) -> None:
-        connection.exec_driver_sql(begin)
+    def _on_begin(connection: Connection) -> None:
+        if not connection.get_execution_options().get(AUTOCOMMIT):
+            connection.exec_driver_sql(begin)
 
     return engine
