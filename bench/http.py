@@ -604,7 +604,11 @@ def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendRe
             server = ServerProcess(
                 url,
                 workers=WORKERS,
-                env={"INVISIBLE_MAP_DATA_DIR": str(folder)},
+                # the fill uploads 50 sessions with one device key in well under a minute
+                env={
+                    "INVISIBLE_MAP_DATA_DIR": str(folder),
+                    "INVISIBLE_MAP_UPLOADS_PER_MINUTE": "0",
+                },
                 log_path=folder / "server.log",
             )
             server.args += list(args.serve_arg)
