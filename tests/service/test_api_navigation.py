@@ -7,6 +7,7 @@ import json
 import math
 import threading
 from collections.abc import Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import networkx as nx
@@ -508,3 +509,28 @@ def test_the_narrow_state_statements_compare_and_set(nav):
     with api.db.read() as db_session:  # committed without a transaction around it
         stored = navigation.get_localization(db_session, sid)
     assert (stored.revision, stored.update_count, stored.state) == (1, 1, new_state)
+
+
+def test_an_unbounded_covariance_is_null_in_the_answer_and_the_state(nav, monkeypatch):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    real_update = localization_route.update
+
+    def unbounded(*args: Any) -> Any:
+        state, result = real_update(*args)
+        document = result.to_json()
+        document["covariance"] = [[math.inf] * 6 for _ in range(6)]
+        document["position_sigma_m"] = math.nan
+        return state, SimpleNamespace(status=result.status, to_json=lambda: document)
+
+    monkeypatch.setattr(localization_route, "update", unbounded)
+    response = api.client.post(
+        f"/v1/localizations/{sid}/updates", json=desnat_updates()[0], headers=ADMIN
+    )
+    assert response.status_code == 200, response.text
+    assert response.json()["covariance"] == [[None] * 6 for _ in range(6)]
+    assert response.json()["position_sigma_m"] is None
+    with api.db.read() as db_session:
+        stored = navigation.get_localization(db_session, sid).state["last_result"]
+    assert stored["covariance"] == [[None] * 6 for _ in range(6)]
+    assert stored["position_sigma_m"] is None

@@ -22,7 +22,6 @@ import threading
 from collections import OrderedDict
 from typing import Annotated, Any
 
-import numpy as np
 import orjson
 from anyio import to_thread
 from fastapi import APIRouter, Body, Request, Response
@@ -186,7 +185,9 @@ def apply_update(
             new_state, result = update(state, parse_update(document), map_tags)
         except LocalizationUpdateError as err:
             raise ApiError(422, "invalid_update", str(err), field=err.field or None) from err
-        result_json = _finite(result.to_json())
+        # (non-finite numbers, an unbounded covariance, become null: orjson and pydantic's JSON
+        # both write them so)
+        result_json = result.to_json()
         state_json = orjson.dumps(
             {"localizer": new_state.to_json(), "last_result": result_json},
             option=orjson.OPT_SERIALIZE_NUMPY,
@@ -252,14 +253,3 @@ def hot_states(request: Request) -> HotStates:
             states = HotStates()
             app_state.hot_localizer_states = states
     return states
-
-
-def _finite(value: Any) -> Any:
-    """``value`` with non-finite floats (an unbounded covariance) as None, so it is valid JSON."""
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    return value
