@@ -188,3 +188,23 @@ def test_the_default_follows_the_cores_and_the_setting_wins(
     assert default_api_processes() == 1
     monkeypatch.setenv("INVISIBLE_MAP_API_PROCESSES", "5")
     assert Settings().api_processes == 5
+
+
+@pytest.mark.slow
+def test_api_processes_stop_when_serve_is_killed(tmp_path: Path) -> None:
+    server = ServerProcess(
+        f"sqlite:///{tmp_path / 'db.sqlite3'}",
+        workers=0,
+        api_processes=2,
+        env={"INVISIBLE_MAP_DATA_DIR": str(tmp_path / "var")},
+        log_path=tmp_path / "serve.log",
+    )
+    with server:
+        pids = started_pids(server)
+        assert len(pids) == 2
+        os.kill(server.pid, 9)  # serve alone, not its process group
+        wait_for(
+            lambda: not any(alive(pid) for pid in pids.values()),
+            timeout_s=30,
+            what="the API processes to stop without their serve",
+        )
