@@ -14,6 +14,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import text
 
 from app.api.routes import localization as localization_route
 from app.config import Settings
@@ -534,3 +535,19 @@ def test_an_unbounded_covariance_is_null_in_the_answer_and_the_state(nav, monkey
         stored = navigation.get_localization(db_session, sid).state["last_result"]
     assert stored["covariance"] == [[None] * 6 for _ in range(6)]
     assert stored["position_sigma_m"] is None
+
+
+def test_localization_writes_do_not_wait_for_the_disk(nav):
+    # PostgreSQL: Database.autocommit(durable=False) commits without waiting for the WAL's
+    # flush; every other connection still does. (SQLite never waits here: synchronous=NORMAL.)
+    api, _map_id = nav
+    if api.db.is_sqlite:
+        with api.db.autocommit(durable=False) as connection:
+            assert connection.exec_driver_sql("PRAGMA synchronous").scalar() == 1  # NORMAL
+        return
+    with api.db.autocommit(durable=False) as connection:
+        assert connection.exec_driver_sql("SHOW synchronous_commit").scalar() == "off"
+    with api.db.autocommit() as connection:
+        assert connection.exec_driver_sql("SHOW synchronous_commit").scalar() == "on"
+    with api.db.transaction() as db_session:
+        assert db_session.execute(text("SHOW synchronous_commit")).scalar() == "on"

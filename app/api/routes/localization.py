@@ -169,7 +169,9 @@ def apply_update(
     db: Database = request.app.state.db
     hot = hot_states(request)
     known = hot.get(localization_id)
-    with db.autocommit() as connection:
+    # (durable=False: a crash of PostgreSQL itself may lose the last fraction of a second of
+    # updates; the phone's next update then follows the state before them)
+    with db.autocommit(durable=False) as connection:
         row = navigation.read_state(
             connection, localization_id, unless_revision=None if known is None else known[0]
         )
