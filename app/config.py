@@ -3,6 +3,8 @@
 Variables (defaults in brackets): ``DATABASE_URL`` [a SQLite file in the data directory],
 ``INVISIBLE_MAP_DATA_DIR`` [./var], ``INVISIBLE_MAP_ADMIN_KEY`` [unset: accepted as an admin key
 when set], ``INVISIBLE_MAP_WORKERS`` [1: worker processes ``serve`` starts],
+``INVISIBLE_MAP_API_PROCESSES`` [unset: the machine's cores, at most 8: API processes ``serve``
+runs; see ``api_processes``],
 ``INVISIBLE_MAP_API_THREADS`` [400: threads for the API's requests; see ``api_threads``],
 ``INVISIBLE_MAP_KEEP_ALIVE_S`` [75: how long ``serve`` keeps an idle connection open; see
 ``keep_alive_s``],
@@ -30,6 +32,7 @@ that directory agrees; it signs the admin dashboard's login cookies],
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from ipaddress import ip_network
 from pathlib import Path
@@ -40,6 +43,22 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 SQLITE_FILE_NAME = "invisible-map.sqlite3"
 MIN_ADMIN_KEY_LENGTH = 16
 MIN_SESSION_SECRET_LENGTH = 32
+#: The most API processes ``serve`` runs.
+MAX_API_PROCESSES = 64
+#: The most API processes ``serve`` runs by default, whatever the cores.
+DEFAULT_API_PROCESSES_CAP = 8
+
+
+def default_api_processes() -> int:
+    """``serve``'s API processes when neither ``--api-processes`` nor
+    ``INVISIBLE_MAP_API_PROCESSES`` says: one per core this process may run on (its CPU
+    affinity, so a container's limit counts), at least 1 and at most
+    :data:`DEFAULT_API_PROCESSES_CAP`."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, DEFAULT_API_PROCESSES_CAP))
 
 
 class Settings(BaseSettings):
@@ -55,6 +74,9 @@ class Settings(BaseSettings):
     data_dir: Path = Path("var")
     admin_key: str | None = None
     workers: int = Field(default=1, ge=0, le=64)
+    #: API processes ``serve`` runs on its one listening socket (``serve --api-processes N``);
+    #: None: :func:`default_api_processes`, what the machine's cores suggest.
+    api_processes: int | None = Field(default=None, ge=1, le=MAX_API_PROCESSES)
     #: Threads for the API's ``def`` routes and dependencies (anyio's limiter; its default is
     #: 40): how many requests may be inside a route at once (the rest wait their turn). A
     #: request holds a database connection only while one of its threads runs

@@ -28,10 +28,11 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
+from datetime import timedelta
 from typing import Annotated
 
+from anyio import to_thread
 from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -47,6 +48,7 @@ from app.storage import keys, queue, sessions
 from app.storage.db import Database
 from app.storage.images import MAX_IMAGE_BYTES
 from app.storage.maps import MapInfo
+from app.storage.orm import utc_now
 from app.storage.queue import JobInfo
 from app.storage.sessions import SessionInfo
 
@@ -265,40 +267,32 @@ def valid_id(value: int, what: str) -> int:
 
 
 class UploadRate:
-    """At most ``per_minute`` uploads stored per device key in any 60 s (per API process; refused
-    uploads and replays do not count); admin keys are not limited. One phone cannot fill the
-    queue for everyone."""
+    """At most ``per_minute`` uploads stored per device key in any 60 s; admin keys are not
+    limited. One phone cannot fill the queue for everyone.
+
+    Counted from the ``session`` table (the key's sessions stored in the last 60 s), so the limit
+    holds across API processes and restarts; refused uploads and replays store no session and do
+    not count. The check comes before the body is read, so uploads of one key already in flight
+    when it reaches its limit may still be stored (at most one per request in flight)."""
 
     def __init__(self, per_minute: int) -> None:
         self.per_minute = per_minute
-        self._times: dict[str, deque[float]] = {}
-        self._lock = threading.Lock()
 
-    def retry_after_s(self, subject: str) -> int | None:
+    def retry_after_s(self, db: Database, subject: str) -> int | None:
         """None if ``subject`` may upload now, else the seconds until it may."""
         if self.per_minute <= 0:
             return None
-        now_s = time.monotonic()
-        with self._lock:
-            times = self._times.get(subject)
-            if times is None:
-                return None
-            while times and times[0] <= now_s - UPLOAD_WINDOW_S:
-                times.popleft()
-            if len(times) < self.per_minute:
-                return None
-            return max(1, math.ceil(times[0] + UPLOAD_WINDOW_S - now_s))
-
-    def accepted(self, subject: str) -> None:
-        """Count an upload of ``subject`` that was stored (refused ones do not count)."""
-        if self.per_minute <= 0:
-            return
-        with self._lock:
-            self._times.setdefault(subject, deque()).append(time.monotonic())
-            if len(self._times) > 10_000:  # forget keys that went quiet
-                horizon_s = time.monotonic() - UPLOAD_WINDOW_S
-                for quiet in [n for n, kept in self._times.items() if kept[-1] <= horizon_s]:
-                    del self._times[quiet]
+        now = utc_now()
+        with db.read() as db_session:
+            oldest_counted = sessions.nth_latest_upload_at(
+                db_session,
+                subject,
+                n=self.per_minute,
+                since=now - timedelta(seconds=UPLOAD_WINDOW_S),
+            )
+        if oldest_counted is None:
+            return None
+        return max(1, math.ceil((oldest_counted - now).total_seconds() + UPLOAD_WINDOW_S))
 
 
 def upload_rate(request: Request) -> UploadRate:
@@ -311,12 +305,13 @@ async def upload_body(
     settings: SettingsDep,
     principal: CurrentPrincipal,
     rate: Annotated[UploadRate, Depends(upload_rate)],
+    db: DbDep,
 ) -> RawBody:
     """The raw upload (415 for another media type or encoding, 413 over the raw limit); 429 with
     ``Retry-After`` before reading it when the device key uploaded its
     ``INVISIBLE_MAP_UPLOADS_PER_MINUTE`` already."""
     if not principal.is_admin:
-        wait_s = rate.retry_after_s(principal.subject)
+        wait_s = await to_thread.run_sync(rate.retry_after_s, db, principal.subject)
         if wait_s is not None:
             raise ApiError(
                 429,
@@ -329,7 +324,6 @@ async def upload_body(
 
 
 UploadBodyDep = Annotated[RawBody, Depends(upload_body)]
-UploadRateDep = Annotated[UploadRate, Depends(upload_rate)]
 
 
 async def image_body(request: Request) -> bytes:

@@ -1,6 +1,7 @@
 """The server's subcommands of ``invisible-map``.
 
-    invisible-map serve [--host H] [--port P] [--workers N] [--demo] [--no-migrate]
+    invisible-map serve [--host H] [--port P] [--workers N] [--api-processes N] [--demo]
+                        [--no-migrate]
     invisible-map worker [--processes N]
     invisible-map migrate
     invisible-map keys create --role device|admin [--name NAME] [--expires-in-days D]
@@ -37,10 +38,9 @@ from app.cli.common import (
 from workers.allocator import jemalloc_path
 
 if TYPE_CHECKING:
-    import uvicorn
-
     from app.client import Client
     from app.config import Settings
+    from workers.supervisor import WorkerSupervisor
 
 
 #: The longest ``keys create --expires-in-days`` (100 years).
@@ -49,6 +49,8 @@ MAX_KEY_DAYS = 36500
 DEMO_POLL_S = 0.5
 #: The largest id a row can have (a signed 64-bit integer).
 MAX_ID = 2**63 - 1
+#: The listening socket's queue of connections not yet accepted (uvicorn's default).
+API_BACKLOG = 2048
 
 
 def add_server_commands(commands: Any) -> None:
@@ -56,12 +58,19 @@ def add_server_commands(commands: Any) -> None:
     serve = commands.add_parser(
         "serve",
         help="run the API, with its worker processes (embedded mode)",
-        description="Run the REST API. Migrates the database first and starts --workers worker "
-        "processes (default INVISIBLE_MAP_WORKERS, 1); --workers 0 runs the API alone.",
+        description="Run the REST API. Migrates the database first, starts --workers worker "
+        "processes (default INVISIBLE_MAP_WORKERS, 1; --workers 0 runs the API alone) and "
+        "--api-processes API processes on one port (default: one per core, at most 8).",
     )
     serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (127.0.0.1)")
     serve.add_argument("--port", type=int, default=8000, help="port (8000)")
     serve.add_argument("--workers", type=int, help="worker processes to start with the API")
+    serve.add_argument(
+        "--api-processes",
+        type=int,
+        help="API processes sharing the port (default INVISIBLE_MAP_API_PROCESSES, else one per "
+        "core, at most 8)",
+    )
     serve.add_argument(
         "--demo", action="store_true", help="upload the demo sessions in data/ if not there yet"
     )
@@ -103,11 +112,7 @@ def add_server_commands(commands: Any) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from app.api import access_log
-    from app.api.connection_guard import guarded_protocol
-    from app.main import create_app
+    from app.config import MAX_API_PROCESSES, default_api_processes
     from workers.supervisor import WorkerSupervisor
 
     if not 0 < args.port < 65536:
@@ -117,7 +122,14 @@ def _serve(args: argparse.Namespace) -> int:
         if not 0 <= args.workers <= 64:
             raise CommandError(f"--workers must be 0–64, got {args.workers}")
         overrides["workers"] = args.workers
+    if args.api_processes is not None:
+        if not 1 <= args.api_processes <= MAX_API_PROCESSES:
+            raise CommandError(
+                f"--api-processes must be 1–{MAX_API_PROCESSES}, got {args.api_processes}"
+            )
+        overrides["api_processes"] = args.api_processes
     settings = load_settings(**overrides)
+    api_processes = settings.api_processes or default_api_processes()
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     listener = listening_socket(args.host, args.port)  # a busy port stops it before any output
     generated_key = settings.admin_key is None
@@ -142,6 +154,7 @@ def _serve(args: argparse.Namespace) -> int:
     if generated_key:
         print(f"admin key for this run: {settings.admin_key}")
         print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
+    print(f"API processes: {api_processes}")
     print(f"worker processes: {supervisor.configured}", flush=True)
     if args.demo:
         assert settings.admin_key is not None
@@ -150,17 +163,11 @@ def _serve(args: argparse.Namespace) -> int:
             args=(url, settings.admin_key, settings.workers),
             daemon=True,
         ).start()
-    config = uvicorn.Config(
-        create_app(settings, worker_pool=supervisor if settings.workers else None),
-        host=args.host,
-        port=args.port,
-        log_level="info",
-        timeout_keep_alive=settings.keep_alive_s,
-        http=guarded_protocol(settings),  # header/body timeouts, connections per address
-        **proxy_options(settings),
-    )
-    access_log.install()  # after uvicorn configured its loggers: no key in the access log
-    server = uvicorn.Server(config)
+    if api_processes > 1:
+        return _serve_api_processes(settings, listener, supervisor, api_processes)
+    from app.cli.api_processes import serve_with_threads, uvicorn_server
+
+    server = uvicorn_server(settings, worker_pool=supervisor if settings.workers else None)
     # After its graceful shutdown uvicorn raises the SIGTERM that stopped it again, for the
     # previous handler: with the default one the process would die right there, before stopping
     # its workers (and exit by the signal). This handler makes that a no-op, and makes a SIGTERM
@@ -171,7 +178,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         # uvicorn's Server.run, with the thread pool sized first (it belongs to the event loop).
         with asyncio.Runner(loop_factory=server.config.get_loop_factory()) as runner:
-            runner.run(_serve_with_threads(server, settings.api_threads, listener))
+            runner.run(serve_with_threads(server, settings.api_threads, listener))
     except SystemExit:  # uvicorn's sys.exit(3) when it cannot start (the port is taken, …)
         if server.started:
             raise
@@ -184,24 +191,40 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def proxy_options(settings: Settings) -> dict[str, Any]:
-    """uvicorn's options for forwarded headers: believed only from
-    ``INVISIBLE_MAP_TRUSTED_PROXIES`` (uvicorn's own default believes any from 127.0.0.1, so
-    anything on the machine, or a proxy passing a client's header on, could choose the client
-    address the server sees)."""
-    if not settings.trusted_proxies:
-        return {"proxy_headers": False}
-    return {"proxy_headers": True, "forwarded_allow_ips": settings.trusted_proxies}
+def _serve_api_processes(
+    settings: Settings, listener: socket.socket, supervisor: WorkerSupervisor, processes: int
+) -> int:
+    """Run ``processes`` API processes on ``listener`` until SIGTERM or SIGINT, replacing any
+    that dies (``app.cli.api_processes``); then stop them, then the worker processes."""
+    from app.cli.api_processes import ApiProcessSupervisor, WorkerPoolStatus
+    from workers.main import configure_logging
 
-
-async def _serve_with_threads(
-    server: uvicorn.Server, threads: int, listener: socket.socket
-) -> None:
-    """Serve on ``listener`` with ``threads`` threads for the routes (``Settings.api_threads``)."""
-    from anyio import to_thread
-
-    to_thread.current_default_thread_limiter().total_tokens = threads
-    await server.serve(sockets=[listener])
+    configure_logging()  # the supervisors' lines (a death, a restart) in serve's log
+    listener.listen(API_BACKLOG)  # connections wait in the queue while no process accepts
+    status = WorkerPoolStatus() if settings.workers else None
+    if status is not None:
+        status.publish(supervisor)
+    api = ApiProcessSupervisor(settings, listener, processes=processes, worker_status=status)
+    stop = threading.Event()
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    if in_main_thread:
+        previous = {
+            signum: signal.signal(signum, lambda *_: stop.set())
+            for signum in (signal.SIGTERM, signal.SIGINT)
+        }
+    try:
+        api.start()
+        api.run_until(stop, tick=None if status is None else lambda: status.publish(supervisor))
+    finally:
+        api.stop(timeout_s=30.0)
+        supervisor.stop(timeout_s=30.0)
+        listener.close()
+        if in_main_thread:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    if api.failure is not None:
+        raise CommandError(api.failure)
+    return 0
 
 
 def listening_socket(host: str, port: int) -> socket.socket:

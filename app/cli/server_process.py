@@ -96,7 +96,8 @@ def _environment(database_url: str, extra: dict[str, str] | None) -> dict[str, s
 
 class ServerProcess(_Process):
     """``invisible-map serve`` on ``port`` (default: a free one); waits until ``/readyz``
-    answers 200."""
+    answers 200. ``api_processes``: ``--api-processes`` (1 unless given: tests and benchmarks
+    choose; None leaves serve's default)."""
 
     def __init__(
         self,
@@ -108,10 +109,13 @@ class ServerProcess(_Process):
         log_path: Path | None = None,
         migrate: bool = True,
         port: int | None = None,
+        api_processes: int | None = 1,
     ) -> None:
         self.port = port or free_port()
         self.admin_key = admin_key or "im_test_admin_" + secrets.token_urlsafe(16)
         args = ["serve", "--port", str(self.port), "--workers", str(workers)]
+        if api_processes is not None:  # None: serve's default (INVISIBLE_MAP_API_PROCESSES, cores)
+            args += ["--api-processes", str(api_processes)]
         if not migrate:
             args.append("--no-migrate")
         environment = _environment(database_url, env)

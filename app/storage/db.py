@@ -12,13 +12,14 @@ from __future__ import annotations
 import enum
 import os
 import sqlite3
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import Engine, create_engine, event, make_url, text
+from sqlalchemy import Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy import exc as sqlalchemy_exc
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -26,6 +27,8 @@ if TYPE_CHECKING:
     from app.config import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+#: Execution option of the connections :meth:`Database.autocommit` gives: no BEGIN on SQLite.
+AUTOCOMMIT = "invisible_map_autocommit"
 #: ``Session.info`` key of the sessions :meth:`Database.transaction` made (they may write).
 WRITES = "invisible_map_writes"
 
@@ -77,12 +80,14 @@ class Database:
     ) -> None:
         self.url = make_url(url)
         self.is_sqlite = self.url.get_backend_name() == "sqlite"
+        self._connect_args: dict[str, str] = {}
         if self.is_sqlite:
             _ensure_sqlite_folder(self.url.database)
             self.engine = _sqlite_engine(url, echo=echo, begin="BEGIN IMMEDIATE")
             self.read_engine = _sqlite_engine(url, echo=echo, begin="BEGIN")
         else:
             connect_args = {} if timeouts is None else {"options": timeouts.options()}
+            self._connect_args = connect_args
             self.engine = create_engine(
                 url,
                 echo=echo,
@@ -92,6 +97,8 @@ class Database:
                 connect_args=connect_args,
             )
             self.read_engine = self.engine
+        self._async_commit_engine: Engine | None = None
+        self._engine_lock = threading.Lock()
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         self._read_sessions = sessionmaker(self.read_engine, expire_on_commit=False)
 
@@ -109,6 +116,44 @@ class Database:
             yield db_session
 
     @contextmanager
+    def autocommit(self, *, durable: bool = True) -> Iterator[Connection]:
+        """A connection on which every statement is its own transaction, committed as it ends
+        (no ``BEGIN`` or ``COMMIT`` round trips): for the hot path's single statements, such as a
+        compare-and-set ``UPDATE … WHERE revision = ?``, which need no transaction around them.
+        On SQLite a writing statement takes the write lock as it starts (waiting up to the busy
+        timeout), as ``BEGIN IMMEDIATE`` would.
+
+        ``durable=False``, on PostgreSQL: the commits do not wait for the WAL to reach the disk
+        (``synchronous_commit=off``, a pool of its own): a crash of the database server (not of
+        an API process) may lose the last fraction of a second of such writes, never corrupt
+        anything. For state a client sends again anyway (localization updates). SQLite's
+        commits never wait for the disk here (``synchronous=NORMAL`` in WAL mode)."""
+        if self.is_sqlite:
+            # The connections already run pysqlite in autocommit mode (isolation_level None);
+            # the "begin" listener leaves out its BEGIN for this option, so nothing opens one.
+            options: dict[str, Any] = {AUTOCOMMIT: True}
+            engine = self.engine
+        else:
+            options = {"isolation_level": "AUTOCOMMIT"}
+            engine = self.engine if durable else self._async_commits()
+        with engine.connect().execution_options(**options) as connection:
+            yield connection
+
+    def _async_commits(self) -> Engine:
+        """The PostgreSQL engine of :meth:`autocommit` ``(durable=False)``, made on first use."""
+        with self._engine_lock:
+            if self._async_commit_engine is None:
+                options = self._connect_args.get("options", "")
+                self._async_commit_engine = create_engine(
+                    self.url,
+                    pool_pre_ping=True,
+                    pool_size=5,
+                    max_overflow=10,
+                    connect_args={"options": f"{options} -c synchronous_commit=off".strip()},
+                )
+            return self._async_commit_engine
+
+    @contextmanager
     def read(self) -> Iterator[Session]:
         """One read-only transaction (rolled back at the end)."""
         with self._read_sessions() as session:
@@ -122,6 +167,8 @@ class Database:
 
     def dispose(self) -> None:
         self.engine.dispose()
+        if self._async_commit_engine is not None:
+            self._async_commit_engine.dispose()
         if self.read_engine is not self.engine:
             self.read_engine.dispose()
 
@@ -241,7 +288,8 @@ def _sqlite_engine(url: str, *, echo: bool, begin: str) -> Engine:
         cursor.close()
 
     @event.listens_for(engine, "begin")
-    def _on_begin(connection: Any) -> None:
-        connection.exec_driver_sql(begin)
+    def _on_begin(connection: Connection) -> None:
+        if not connection.get_execution_options().get(AUTOCOMMIT):
+            connection.exec_driver_sql(begin)
 
     return engine

@@ -4,6 +4,13 @@ A localization session's state is the localizer's JSON (``app.domain.localize``)
 optimistic: :func:`save_update` writes only if the session's ``revision`` is still the one the
 caller read, so two API processes handling updates of the same session cannot interleave
 (the loser gets :class:`LocalizationConflict` and the client retries).
+
+The API's update path uses the narrow pair instead, one statement each on a connection of
+``Database.autocommit()`` (no ORM object, no transaction around them)::
+
+    row = read_state(connection, localization_id, unless_revision=known)  # state text or None
+    write_state(connection, localization_id, expected_revision=row.revision, status=…,
+                state_json=…)  # UPDATE … WHERE id = ? AND revision = ?, or LocalizationConflict
 """
 
 from __future__ import annotations
@@ -14,7 +21,8 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import Connection, Text, bindparam, case, cast, select, type_coerce, update
+from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import Session
 
 from app.storage.maps import MapNotFound, version_bytes
@@ -53,6 +61,21 @@ class LocalizationInfo:
     status: str
     update_count: int
     state: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LocalizationState:
+    """What an update needs of its session (:func:`read_state`).
+
+    state_json: the ``state`` column's JSON text, or None when the caller already has this
+        revision's state (``unless_revision``).
+    """
+
+    id: int
+    created_by: str
+    map_version_id: int
+    revision: int
+    state_json: str | None
 
 
 def path_graph_document(db_session: Session, version_id: int) -> dict[str, Any] | None:
@@ -148,3 +171,97 @@ def _info(db_session: Session, row: Localization) -> LocalizationInfo:
         update_count=row.update_count,
         state=dict(row.state),
     )
+
+
+# The update path's statements, built once (only their parameters change).
+_STATE_TEXT = cast(Localization.state, Text)
+_READ_STATE = select(
+    Localization.created_by, Localization.map_version_id, Localization.revision, _STATE_TEXT
+).where(Localization.id == bindparam("localization_id"))
+_READ_STATE_UNLESS = select(
+    Localization.created_by,
+    Localization.map_version_id,
+    Localization.revision,
+    case((Localization.revision == bindparam("known_revision"), None), else_=_STATE_TEXT),
+).where(Localization.id == bindparam("localization_id"))
+_EXISTS = select(Localization.id).where(Localization.id == bindparam("localization_id"))
+
+
+def _write_state_statement(state_value: Any) -> Any:
+    return (
+        update(Localization)
+        .where(
+            Localization.id == bindparam("localization_id"),
+            Localization.revision == bindparam("expected_revision"),
+        )
+        .values(
+            revision=Localization.revision + 1,
+            status=bindparam("status"),
+            state=state_value,
+            update_count=Localization.update_count + 1,
+            updated_at=bindparam("updated_at"),
+        )
+    )
+
+
+_STATE_JSON = type_coerce(bindparam("state_json"), Text)
+#: SQLite keeps JSON as text; PostgreSQL's jsonb is parsed from it.
+_WRITE_STATE = {
+    "sqlite": _write_state_statement(_STATE_JSON),
+    "postgresql": _write_state_statement(cast(_STATE_JSON, JSONB)),
+}
+
+
+def read_state(
+    connection: Connection, localization_id: int, *, unless_revision: int | None = None
+) -> LocalizationState:
+    """One ``SELECT`` of what an update needs: the owner, the version, the revision and the state
+    as JSON text (left out, None, if the revision is ``unless_revision``: the caller has that
+    state already). Raises :class:`LocalizationNotFound`."""
+    if unless_revision is None:
+        result = connection.execute(_READ_STATE, {"localization_id": localization_id})
+    else:
+        result = connection.execute(
+            _READ_STATE_UNLESS,
+            {"localization_id": localization_id, "known_revision": unless_revision},
+        )
+    row = result.one_or_none()
+    if row is None:
+        raise LocalizationNotFound(localization_id)
+    created_by, map_version_id, revision, state_json = row
+    return LocalizationState(
+        id=localization_id,
+        created_by=created_by,
+        map_version_id=map_version_id,
+        revision=revision,
+        state_json=state_json,
+    )
+
+
+def write_state(
+    connection: Connection,
+    localization_id: int,
+    *,
+    expected_revision: int,
+    status: str,
+    state_json: str,
+) -> int:
+    """One ``UPDATE … WHERE id = ? AND revision = ?`` (compare-and-set) storing ``state_json``
+    (the whole ``state`` column as JSON text) as revision ``expected_revision + 1``, which it
+    returns. Raises :class:`LocalizationConflict` if the session is at another revision now
+    (:class:`LocalizationNotFound` if it is gone); then nothing is written."""
+    updated = connection.execute(
+        _WRITE_STATE[connection.dialect.name],
+        {
+            "localization_id": localization_id,
+            "expected_revision": expected_revision,
+            "status": status,
+            "state_json": state_json,
+            "updated_at": utc_now(),
+        },
+    ).rowcount
+    if updated != 1:
+        if connection.scalar(_EXISTS, {"localization_id": localization_id}) is None:
+            raise LocalizationNotFound(localization_id)
+        raise LocalizationConflict(localization_id)
+    return expected_revision + 1

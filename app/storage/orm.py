@@ -162,7 +162,12 @@ class SessionRow(Base):
     """A mapping session as uploaded, with statistics computed when it was parsed."""
 
     __tablename__ = "session"
-    __table_args__ = (UniqueConstraint("uploaded_by", "idempotency_key"), NEVER_REUSE_IDS)
+    __table_args__ = (
+        UniqueConstraint("uploaded_by", "idempotency_key"),
+        # a key's uploads of the last minute (the upload rate limit, across API processes)
+        Index("ix_session_uploaded_by_created_at", "uploaded_by", "created_at"),
+        NEVER_REUSE_IDS,
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     map_name: Mapped[str] = mapped_column(String(200))

@@ -349,6 +349,22 @@ def _escape_like(text: str) -> str:
     return text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
 
 
+def nth_latest_upload_at(
+    db_session: Session, uploaded_by: str, *, n: int, since: datetime
+) -> datetime | None:
+    """When ``uploaded_by``'s ``n``-th latest session stored after ``since`` was stored (the
+    latest is the 1st), or None if it stored fewer than ``n`` since then: the upload rate limit
+    (``app.api.deps.UploadRate``), counted from the table so that it holds across API
+    processes (index ``ix_session_uploaded_by_created_at``)."""
+    return db_session.scalar(
+        select(SessionRow.created_at)
+        .where(SessionRow.uploaded_by == uploaded_by, SessionRow.created_at > since)
+        .order_by(SessionRow.created_at.desc())
+        .limit(1)
+        .offset(n - 1)
+    )
+
+
 def uploader_of(db_session: Session, session_id: int) -> str | None:
     """Who uploaded ``session_id`` (None if there is no such session)."""
     return db_session.scalar(select(SessionRow.uploaded_by).where(SessionRow.id == session_id))

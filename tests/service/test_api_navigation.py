@@ -5,19 +5,24 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from collections.abc import Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import networkx as nx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import text
 
+from app.api.routes import localization as localization_route
 from app.config import Settings
-from app.domain.localize import session_update_documents
+from app.domain.frames import pose_from_xyz_quat_xyzw
+from app.domain.localize import LocalizerState, parse_update, session_update_documents, update
 from app.domain.session import load_session
 from app.main import create_app
-from app.storage import navigation
+from app.storage import maps, navigation
 from app.storage.navigation import LocalizationConflict
 from tests.service.api_support import ADMIN, ADMIN_KEY, SESSIONS_DIR, Api, running_api
 from workers.main import Worker
@@ -400,3 +405,149 @@ def test_a_stale_revision_cannot_overwrite_a_newer_state(nav):
         )
     with api.db.read() as db_session:
         assert navigation.get_localization(db_session, sid).state == info.state
+
+
+def _replayed(map_tags_of: Api, map_id: int, documents: list[dict[str, Any]]) -> dict[str, Any]:
+    """The localizer's state after ``documents``, computed in this process (no HTTP)."""
+    with map_tags_of.db.read() as db_session:
+        version_id = maps.get_map(db_session, map_id).current
+        assert version_id is not None
+        rows = maps.tag_poses(db_session, version_id.id)
+    tags = {r.tag_id: pose_from_xyz_quat_xyzw([*r.position_m, *r.quat_xyzw]) for r in rows}
+    state = LocalizerState.initial()
+    for document in documents:
+        state, _result = update(state, parse_update(document), tags)
+    return state.to_json()
+
+
+def test_updates_alternating_between_two_api_processes_use_the_newest_state(nav, database_url):
+    # Each process keeps the states it wrote (HotStates); after the other process's update its
+    # copy is one revision behind and must not be used.
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    updates = desnat_updates()[:9]
+    settings = Settings(database_url=database_url, admin_key=ADMIN_KEY)
+    with TestClient(create_app(settings)) as other_process:
+        for k, document in enumerate(updates):
+            client = api.client if k % 3 != 2 else other_process
+            response = client.post(f"/v1/localizations/{sid}/updates", json=document, headers=ADMIN)
+            assert response.status_code == 200, response.text
+    with api.db.read() as db_session:
+        stored = navigation.get_localization(db_session, sid)
+    assert (stored.revision, stored.update_count) == (len(updates), len(updates))
+    assert stored.state["localizer"] == json.loads(json.dumps(_replayed(api, map_id, updates)))
+
+
+def test_two_updates_racing_on_one_session_give_one_200_and_one_409(nav, database_url, monkeypatch):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    updates = desnat_updates()
+    api.client.post(f"/v1/localizations/{sid}/updates", json=updates[0], headers=ADMIN)
+    both_read = threading.Barrier(2, timeout=30)
+    real_update = localization_route.update
+
+    def update_after_both_read(*args: Any) -> Any:
+        both_read.wait()  # both requests have read revision 1 before either writes
+        return real_update(*args)
+
+    monkeypatch.setattr(localization_route, "update", update_after_both_read)
+    settings = Settings(database_url=database_url, admin_key=ADMIN_KEY)
+    answers: list[Any] = []
+    with TestClient(create_app(settings)) as other_process:
+
+        def send(client: TestClient) -> None:
+            answers.append(
+                client.post(f"/v1/localizations/{sid}/updates", json=updates[1], headers=ADMIN)
+            )
+
+        threads = [threading.Thread(target=send, args=(c,)) for c in (api.client, other_process)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+    assert sorted(a.status_code for a in answers) == [200, 409], [a.text for a in answers]
+    conflict = next(a for a in answers if a.status_code == 409)
+    assert conflict.json()["code"] == "concurrent_update"
+    with api.db.read() as db_session:
+        stored = navigation.get_localization(db_session, sid)
+    assert (stored.revision, stored.update_count) == (2, 2)
+    assert stored.state["localizer"] == json.loads(json.dumps(_replayed(api, map_id, updates[:2])))
+    # the loser sends it again and is told the pose ids must increase (its update is in)
+    monkeypatch.setattr(localization_route, "update", real_update)
+    again = api.client.post(f"/v1/localizations/{sid}/updates", json=updates[2], headers=ADMIN)
+    assert again.status_code == 200, again.text
+
+
+def test_the_narrow_state_statements_compare_and_set(nav):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    with api.db.autocommit() as connection:
+        row = navigation.read_state(connection, sid)
+        assert (row.revision, row.created_by) == (0, "env-admin")
+        assert row.state_json is not None
+        assert json.loads(row.state_json)["last_result"] is None
+        assert navigation.read_state(connection, sid, unless_revision=0).state_json is None
+        assert navigation.read_state(connection, sid, unless_revision=5).state_json is not None
+        new_state = {"localizer": json.loads(row.state_json)["localizer"], "last_result": None}
+        revision = navigation.write_state(
+            connection,
+            sid,
+            expected_revision=0,
+            status="not_localized",
+            state_json=json.dumps(new_state),
+        )
+        assert revision == 1
+        with pytest.raises(LocalizationConflict):
+            navigation.write_state(
+                connection, sid, expected_revision=0, status="x", state_json="{}"
+            )
+        with pytest.raises(navigation.LocalizationNotFound):
+            navigation.read_state(connection, 999_999)
+        with pytest.raises(navigation.LocalizationNotFound):
+            navigation.write_state(
+                connection, 999_999, expected_revision=0, status="x", state_json="{}"
+            )
+    with api.db.read() as db_session:  # committed without a transaction around it
+        stored = navigation.get_localization(db_session, sid)
+    assert (stored.revision, stored.update_count, stored.state) == (1, 1, new_state)
+
+
+def test_an_unbounded_covariance_is_null_in_the_answer_and_the_state(nav, monkeypatch):
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    real_update = localization_route.update
+
+    def unbounded(*args: Any) -> Any:
+        state, result = real_update(*args)
+        document = result.to_json()
+        document["covariance"] = [[math.inf] * 6 for _ in range(6)]
+        document["position_sigma_m"] = math.nan
+        return state, SimpleNamespace(status=result.status, to_json=lambda: document)
+
+    monkeypatch.setattr(localization_route, "update", unbounded)
+    response = api.client.post(
+        f"/v1/localizations/{sid}/updates", json=desnat_updates()[0], headers=ADMIN
+    )
+    assert response.status_code == 200, response.text
+    assert response.json()["covariance"] == [[None] * 6 for _ in range(6)]
+    assert response.json()["position_sigma_m"] is None
+    with api.db.read() as db_session:
+        stored = navigation.get_localization(db_session, sid).state["last_result"]
+    assert stored["covariance"] == [[None] * 6 for _ in range(6)]
+    assert stored["position_sigma_m"] is None
+
+
+def test_localization_writes_do_not_wait_for_the_disk(nav):
+    # PostgreSQL: Database.autocommit(durable=False) commits without waiting for the WAL's
+    # flush; every other connection still does. (SQLite never waits here: synchronous=NORMAL.)
+    api, _map_id = nav
+    if api.db.is_sqlite:
+        with api.db.autocommit(durable=False) as connection:
+            assert connection.exec_driver_sql("PRAGMA synchronous").scalar() == 1  # NORMAL
+        return
+    with api.db.autocommit(durable=False) as connection:
+        assert connection.exec_driver_sql("SHOW synchronous_commit").scalar() == "off"
+    with api.db.autocommit() as connection:
+        assert connection.exec_driver_sql("SHOW synchronous_commit").scalar() == "on"
+    with api.db.transaction() as db_session:
+        assert db_session.execute(text("SHOW synchronous_commit")).scalar() == "on"

@@ -5,11 +5,13 @@ for few auto-tuning trials, a rebuild's iteration cap is bounded. On SQLite and 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from datetime import timedelta
 
 import pytest
 from api_support import ADMIN, ONETAG, Api, running_api, session_variant
+from sqlalchemy import select
 
-from app.storage.orm import SessionRow
+from app.storage.orm import SessionRow, utc_now
 
 pytestmark = pytest.mark.db
 
@@ -32,6 +34,34 @@ def test_uploads_per_device_key_are_limited(api: Api) -> None:
     # another phone, and an admin, go on uploading
     api.uploaded(session_variant(ONETAG, map_id="other"), auth=other_phone)
     api.uploaded(session_variant(ONETAG, map_id="admin"), auth=ADMIN)
+
+
+def test_the_upload_limit_holds_across_api_processes(api: Api, database_url: str) -> None:
+    # Two apps on one database are two API processes (serve --api-processes 2): the limit is
+    # counted from the stored sessions, not per process.
+    phone = api.device()
+    with running_api(database_url, uploads_per_minute=3) as other_process:
+        api.uploaded(session_variant(ONETAG, map_id="a0"), auth=phone)
+        other_process.uploaded(session_variant(ONETAG, map_id="b0"), auth=phone)
+        api.uploaded(session_variant(ONETAG, map_id="a1"), auth=phone)
+        for process in (other_process, api):
+            refused = process.upload(session_variant(ONETAG, map_id="late"), auth=phone)
+            assert refused.status_code == 429, refused.text
+            assert 1 <= int(refused.headers["retry-after"]) <= 60
+    assert api.count(SessionRow) == 3
+
+
+def test_uploads_older_than_a_minute_do_not_count(api: Api) -> None:
+    phone = api.device()
+    for k in range(3):
+        api.uploaded(session_variant(ONETAG, map_id=f"map {k}"), auth=phone)
+    assert api.upload(session_variant(ONETAG, map_id="map 3"), auth=phone).status_code == 429
+    with api.db.transaction() as db_session:  # the oldest upload is now 61 s old
+        oldest = db_session.scalars(select(SessionRow).order_by(SessionRow.id)).first()
+        assert oldest is not None
+        oldest.created_at = utc_now() - timedelta(seconds=61)
+    api.uploaded(session_variant(ONETAG, map_id="map 3"), auth=phone)
+    assert api.upload(session_variant(ONETAG, map_id="map 4"), auth=phone).status_code == 429
 
 
 def test_a_device_key_may_ask_for_few_tuning_trials(api: Api) -> None:

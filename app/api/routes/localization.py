@@ -4,20 +4,26 @@ odometry and tag detections and answers where the phone is in the map.
 
 The localizer (``app.domain.localize``) is a pure function of (state, update); its state lives in
 the ``localization`` row, so any API process can take the next update, and a restart loses
-nothing. An update reads the state, computes, and writes the new state only if the row's revision
-is still the one it read; a concurrent update of the same session makes the later one a 409
-``concurrent_update`` (send it again). A malformed update (an unknown tag, pose ids or timestamps
-going backwards, a pose that is not a rigid transform, a non-finite number) is a 422 naming the
-field, and the session is left as it was.
+nothing. An update reads the state (one statement), computes, and writes the new state only if
+the row's revision is still the one it read (one ``UPDATE … WHERE revision = ?``), all on one
+thread off the event loop; a concurrent update of the same session makes the later one a 409
+``concurrent_update`` (send it again). Each process keeps the states it wrote decoded
+(:class:`HotStates`) and uses one only while the row is still at its revision. A malformed
+update (an unknown tag, pose ids or timestamps going backwards, a pose that is not a rigid
+transform, a non-finite number) is a 422 naming the field, and the session is left as it was.
 
 Device keys see only the navigation sessions they started (another's is a 404).
 """
 
 from __future__ import annotations
 
+import functools
+import threading
+from collections import OrderedDict
 from typing import Annotated, Any
 
-import numpy as np
+import orjson
+from anyio import to_thread
 from fastapi import APIRouter, Body, Request, Response
 
 from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
@@ -123,6 +129,7 @@ def get(
     "the session-to-map transform with its covariance, the tags used, and the status "
     "(`not_localized` until the first known tag). 422 names a malformed field and changes "
     "nothing; 409 when another update of the same session got in first (send it again).",
+    response_model=LocalizationEstimate,
     responses=error_responses(
         401,
         404,
@@ -134,44 +141,117 @@ def get(
         },
     ),
 )
-def post_update(
+async def post_update(
     localization_id: int,
     body: Annotated[LocalizationUpdate, Body()],
     principal: CurrentPrincipal,
     request: Request,
-) -> LocalizationEstimate:
-    db: Database = request.app.state.db
+) -> Response:
     localization_id = valid_id(localization_id, "localization session")
-    with db.read() as db_session:
-        info = _owned(navigation.get_localization(db_session, localization_id), principal)
-    map_tags = _map_tags(request, db, info.map_version_id)
     document: dict[str, Any] = body.model_dump()
-    try:
-        state = LocalizerState.from_json(info.state["localizer"])
-        new_state, result = update(state, parse_update(document), map_tags)
-    except LocalizationUpdateError as err:
-        raise ApiError(422, "invalid_update", str(err), field=err.field or None) from err
-    result_json = _finite(result.to_json())
-    try:
-        with db.transaction() as db_session:
-            navigation.save_update(
-                db_session,
-                info.id,
-                expected_revision=info.revision,
+    # Read, compute and write on one thread of the pool: one hop off the event loop.
+    estimate = await to_thread.run_sync(
+        functools.partial(apply_update, request, localization_id, document, principal)
+    )
+    return Response(content=estimate, media_type="application/json")
+
+
+def apply_update(
+    request: Request, localization_id: int, document: dict[str, Any], principal: Principal
+) -> bytes:
+    """One update of a navigation session: its state read in one statement, the localizer run,
+    the new state written in one compare-and-set statement; the answer's JSON.
+
+    The state in the database is the truth. This process keeps the states it wrote last
+    (:class:`HotStates`) and skips reading and decoding the state when the row is still at the
+    revision it wrote; after another process's update the revisions differ and the row's state
+    is read."""
+    db: Database = request.app.state.db
+    hot = hot_states(request)
+    known = hot.get(localization_id)
+    # (durable=False: a crash of PostgreSQL itself may lose the last fraction of a second of
+    # updates; the phone's next update then follows the state before them)
+    with db.autocommit(durable=False) as connection:
+        row = navigation.read_state(
+            connection, localization_id, unless_revision=None if known is None else known[0]
+        )
+        if not principal.is_admin and row.created_by != principal.subject:
+            raise ApiError(404, "not_found", f"localization session {localization_id} not found")
+        map_tags = _map_tags(request, db, row.map_version_id)
+        try:
+            if row.state_json is None and known is not None:
+                state = known[1]
+            else:
+                assert row.state_json is not None
+                state = LocalizerState.from_json(orjson.loads(row.state_json)["localizer"])
+            new_state, result = update(state, parse_update(document), map_tags)
+        except LocalizationUpdateError as err:
+            raise ApiError(422, "invalid_update", str(err), field=err.field or None) from err
+        # (non-finite numbers, an unbounded covariance, become null: orjson and pydantic's JSON
+        # both write them so)
+        result_json = result.to_json()
+        state_json = orjson.dumps(
+            {"localizer": new_state.to_json(), "last_result": result_json},
+            option=orjson.OPT_SERIALIZE_NUMPY,
+        ).decode()
+        try:
+            revision = navigation.write_state(
+                connection,
+                localization_id,
+                expected_revision=row.revision,
                 status=result.status,
-                state={"localizer": new_state.to_json(), "last_result": result_json},
+                state_json=state_json,
             )
-    except LocalizationConflict as err:
-        raise ApiError(409, "concurrent_update", str(err)) from err
-    return LocalizationEstimate.from_result_json(result_json)
+        except LocalizationConflict as err:
+            hot.forget(localization_id)
+            raise ApiError(409, "concurrent_update", str(err)) from err
+    hot.put(localization_id, revision, new_state)
+    return LocalizationEstimate.from_result_json(result_json).model_dump_json().encode()
 
 
-def _finite(value: Any) -> Any:
-    """``value`` with non-finite floats (an unbounded covariance) as None, so it is valid JSON."""
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    return value
+#: Navigation sessions whose latest state an API process keeps decoded (:class:`HotStates`).
+HOT_STATES = 1024
+
+
+class HotStates:
+    """The localizer states this process wrote last, by session: ``(revision, state)``, an LRU
+    of :data:`HOT_STATES` sessions. Only a cache: an update uses its state only while the row is
+    still at that revision (``navigation.read_state(…, unless_revision=…)``), so any process may
+    take any update."""
+
+    def __init__(self, max_entries: int = HOT_STATES) -> None:
+        self.max_entries = max_entries
+        self._states: OrderedDict[int, tuple[int, LocalizerState]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, localization_id: int) -> tuple[int, LocalizerState] | None:
+        with self._lock:
+            return self._states.get(localization_id)
+
+    def put(self, localization_id: int, revision: int, state: LocalizerState) -> None:
+        with self._lock:
+            known = self._states.get(localization_id)
+            if known is not None and known[0] > revision:
+                return  # a later update of this process got in first
+            self._states[localization_id] = (revision, state)
+            self._states.move_to_end(localization_id)
+            while len(self._states) > self.max_entries:
+                self._states.popitem(last=False)
+
+    def forget(self, localization_id: int) -> None:
+        with self._lock:
+            self._states.pop(localization_id, None)
+
+
+_hot_states_lock = threading.Lock()
+
+
+def hot_states(request: Request) -> HotStates:
+    """The app's :class:`HotStates`, made on first use."""
+    app_state = request.app.state
+    with _hot_states_lock:
+        states: HotStates | None = getattr(app_state, "hot_localizer_states", None)
+        if states is None:
+            states = HotStates()
+            app_state.hot_localizer_states = states
+    return states

@@ -26,7 +26,6 @@ from app.api.deps import (
     SessionDep,
     SettingsDep,
     UploadBodyDep,
-    UploadRateDep,
     admin_principal,
 )
 from app.api.errors import ApiError, error_responses, unauthorized
@@ -169,7 +168,6 @@ UPLOAD_REQUEST_BODY: dict[str, Any] = {
 def upload_session(
     principal: CurrentPrincipal,
     body: UploadBodyDep,
-    rate: UploadRateDep,
     db: DbDep,
     settings: SettingsDep,
     response: Response,
@@ -238,8 +236,6 @@ def upload_session(
                     job_id=job_id,
                     shares_tags_with=tuple(t for t in result.shares_tags_with if t[0] != info.id),
                 )
-        if not result.replayed:
-            rate.accepted(principal.subject)
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:
         response.headers["Idempotent-Replayed"] = "true"

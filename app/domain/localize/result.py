@@ -6,6 +6,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from app.domain.frames import FloatArray
 from app.domain.localize.params import Status
 
@@ -62,7 +64,8 @@ class LocalizationResult:
         """A JSON-ready dict; 4×4 and 6×6 matrices as nested row lists."""
 
         def rows(matrix: FloatArray | None) -> list[list[float]] | None:
-            return None if matrix is None else [[float(v) for v in row] for row in matrix]
+            # (tolist: the same Python floats as float() of each entry, at once)
+            return None if matrix is None else np.asarray(matrix, dtype=np.float64).tolist()
 
         return {
             "status": self.status,
