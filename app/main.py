@@ -69,7 +69,11 @@ OPENAPI_TAGS = [
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Open the database for the app's life; close its pools at shutdown."""
     settings: Settings = app.state.settings
-    database = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
+    database = Database(
+        settings.resolved_database_url,
+        timeouts=ServerTimeouts.of(settings),
+        pool_share=settings.api_processes or 1,
+    )
     app.state.db = database
     app.state.head_revision = head_revision()
     try:

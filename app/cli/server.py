@@ -130,6 +130,8 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["api_processes"] = args.api_processes
     settings = load_settings(**overrides)
     api_processes = settings.api_processes or default_api_processes()
+    # Each API process then knows how many share the database's connections (their pools).
+    settings = settings.model_copy(update={"api_processes": api_processes})
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     listener = listening_socket(args.host, args.port)  # a busy port stops it before any output
     generated_key = settings.admin_key is None

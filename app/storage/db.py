@@ -70,13 +70,32 @@ class ServerTimeouts:
         )
 
 
+#: PostgreSQL connections one process pools: kept, and more under load.
+POOL_CONNECTIONS = (10, 20)
+#: The same for the localization updates' pool (``Database.autocommit(durable=False)``).
+ASYNC_COMMIT_CONNECTIONS = (5, 10)
+
+
+def _shared(connections: int, share: int) -> int:
+    """``connections`` over ``share`` processes, at least 2 each."""
+    return max(2, connections // max(1, share))
+
+
 class Database:
     """The engines for one database URL; create one per process (after any fork).
     ``timeouts``: :class:`ServerTimeouts` for PostgreSQL's sessions (the API and the workers pass
-    them; the CLI's commands, such as ``migrate`` and ``export``, run without)."""
+    them; the CLI's commands, such as ``migrate`` and ``export``, run without). ``pool_share``:
+    how many processes of the same kind share the database's connections (``serve
+    --api-processes N``): each pools :data:`POOL_CONNECTIONS` over N, so that N processes hold
+    what one did (PostgreSQL's ``max_connections`` is 100 by default)."""
 
     def __init__(
-        self, url: str, *, echo: bool = False, timeouts: ServerTimeouts | None = None
+        self,
+        url: str,
+        *,
+        echo: bool = False,
+        timeouts: ServerTimeouts | None = None,
+        pool_share: int = 1,
     ) -> None:
         self.url = make_url(url)
         self.is_sqlite = self.url.get_backend_name() == "sqlite"
@@ -92,11 +111,12 @@ class Database:
                 url,
                 echo=echo,
                 pool_pre_ping=True,
-                pool_size=10,
-                max_overflow=20,
+                pool_size=_shared(POOL_CONNECTIONS[0], pool_share),
+                max_overflow=_shared(POOL_CONNECTIONS[1], pool_share),
                 connect_args=connect_args,
             )
             self.read_engine = self.engine
+        self._pool_share = pool_share
         self._async_commit_engine: Engine | None = None
         self._engine_lock = threading.Lock()
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
@@ -147,8 +167,8 @@ class Database:
                 self._async_commit_engine = create_engine(
                     self.url,
                     pool_pre_ping=True,
-                    pool_size=5,
-                    max_overflow=10,
+                    pool_size=_shared(ASYNC_COMMIT_CONNECTIONS[0], self._pool_share),
+                    max_overflow=_shared(ASYNC_COMMIT_CONNECTIONS[1], self._pool_share),
                     connect_args={"options": f"{options} -c synchronous_commit=off".strip()},
                 )
             return self._async_commit_engine
