@@ -51,7 +51,7 @@ from app.domain.routing import (
     Route,
     Step,
     TagEnd,
-    plan_route,
+    plan_walk,
     search_pois,
     signed_turn_deg,
     simplify_xz,
@@ -122,8 +122,9 @@ def plan_guided_route(
     style: GuidanceStyle = DEFAULT_STYLE,
     floor_labels: Sequence[str] | None = None,
 ) -> Route:
-    """:func:`app.domain.routing.plan_route` with instructions at decision points only."""
-    route = plan_route(pg, start, goal, avoid=avoid)
+    """:func:`app.domain.routing.plan_route` with instructions at decision points only (the walk
+    of :func:`app.domain.routing.plan_walk`: routing's own steps are not made)."""
+    route = plan_walk(pg, start, goal, avoid=avoid)
     name, thing_m = _goal(pg, goal)
     steps = guidance_steps(
         pg,

@@ -50,6 +50,7 @@ Errors (each ``str(err)`` is one sentence fit for a person):
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import threading
@@ -225,6 +226,28 @@ def plan_route(
     Raises :class:`UnknownEndpoint`, :class:`AmbiguousEndpoint`, :class:`Unreachable` or
     :class:`RouteError` (see the module docstring).
     """
+    route, (xyz, floors, kinds, goal_end) = _planned_walk(pg, start, goal, avoid)
+    return dataclasses.replace(route, steps=_steps(xyz, floors, kinds, goal_end))
+
+
+def plan_walk(
+    pg: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str] = frozenset(),
+) -> Route:
+    """:func:`plan_route` without its steps (``steps`` is empty): the walk alone, for a caller
+    that words the steps itself (:mod:`app.domain.instructions`). Same refusals."""
+    route, _ = _planned_walk(pg, start, goal, avoid)
+    return route
+
+
+def _planned_walk(
+    pg: PathGraph, start: Endpoint, goal: Endpoint, avoid: frozenset[str]
+) -> tuple[Route, tuple[FloatArray, list[int], list[str], _Terminal]]:
+    """(the route without steps, what its steps are made of: points (N, 3), floor of each point,
+    kind of each segment, the goal's terminal)."""
     avoid = frozenset(avoid)
     bad = avoid - AVOIDABLE
     if bad:
@@ -239,13 +262,14 @@ def plan_route(
     points, floors, kinds, nodes = walk
     xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     length_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
-    return Route(
+    route = Route(
         polyline_m=points,
         length_m=length_m,
         floors=_without_repeats(floors),
         nodes=nodes,
-        steps=_steps(xyz, floors, kinds, b),
+        steps=[],
     )
+    return route, (xyz, floors, kinds, b)
 
 
 def search_pois(pg: PathGraph, query: str) -> list[Anchor]:
