@@ -252,15 +252,13 @@ def decision_points(
                     Decision(index=k, turn_deg=turn, at_junction=False, along_m=float(walked_m[k]))
                 )
     chosen: list[Decision] = []
+    walked = walked_m.tolist()
+    junctions = [j for j in range(len(xyz)) if junction[j]]
     for c in sorted(candidates, key=lambda d: -abs(d.turn_deg)):
-        near = [
-            j
-            for j in range(len(xyz))
-            if junction[j] and abs(walked_m[j] - c.along_m) <= JUNCTION_SNAP_M
-        ]
+        near = [j for j in junctions if abs(walked[j] - c.along_m) <= JUNCTION_SNAP_M]
         if near:
-            j = min(near, key=lambda j: abs(walked_m[j] - c.along_m))
-            c = dataclasses.replace(c, index=j, at_junction=True, along_m=float(walked_m[j]))
+            j = min(near, key=lambda j: abs(walked[j] - c.along_m))
+            c = dataclasses.replace(c, index=j, at_junction=True, along_m=walked[j])
         if any(
             abs(c.along_m - d.along_m) < MIN_SPACING_M and not (c.at_junction and d.at_junction)
             for d in chosen
@@ -418,10 +416,11 @@ def _segment_kinds(
 ) -> tuple[list[str], list[bool]]:
     """(kind of each polyline segment, whether each point is a junction)."""
     G = pg.graph
+    node_m = np.array([G.nodes[n]["position_m"] for n in nodes], dtype=np.float64).reshape(-1, 3)
     node_at: dict[tuple[float, ...], int] = {
-        tuple(np.round(G.nodes[n]["position_m"], 9)): n for n in nodes
+        tuple(p): n for p, n in zip(np.round(node_m, 9).tolist(), nodes, strict=True)
     }
-    at = [node_at.get(tuple(np.round(p, 9))) for p in xyz]
+    at = [node_at.get(tuple(p)) for p in np.round(xyz, 9).tolist()]
     junction = [n is not None and G.nodes[n]["kind"] == JUNCTION for n in at]
     kinds = []
     for a, b in itertools.pairwise(at):
