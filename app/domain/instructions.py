@@ -484,5 +484,5 @@ def _xyz(xz: FloatArray | None) -> tuple[float, float, float]:
 
 
 def _point(values: FloatArray) -> tuple[float, float, float]:
-    x, y, z = (float(c) for c in values)
+    x, y, z = np.asarray(values, dtype=np.float64).tolist()
     return (x, y, z)

@@ -256,9 +256,10 @@ def _planned_walk(
         )
     a = _resolve(pg, start)
     b = _resolve(pg, goal)
-    walk = _shortest_walk(pg.graph, a, b, avoid)
+    index = _edge_index(pg)
+    walk = _shortest_walk(index, a, b, avoid)
     if walk is None:
-        raise _unreachable(pg.graph, a, b, avoid)
+        raise _unreachable(index, a, b, avoid)
     points, floors, kinds, nodes = walk
     xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     length_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
@@ -402,7 +403,8 @@ def _find_poi(pg: PathGraph, name: str) -> Anchor:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class _EdgeIndex:
-    """Walk edges and nodes as arrays, for snapping positions (built once per graph)."""
+    """Walk edges and nodes as arrays, for snapping positions, and each node's position and floor
+    as Python values, for the polyline of a route (built once per graph)."""
 
     graph: nx.Graph[int]
     n_nodes: int
@@ -417,6 +419,8 @@ class _EdgeIndex:
     node_floor: npt.NDArray[np.int64]  # (N,)
     floors: npt.NDArray[np.int64]  # (F,) floor indices that have nodes
     floor_height_m: FloatArray  # (F,) their heights, m
+    point_of_node: dict[int, Point3]  # node → position_m as floats, map frame
+    floor_of_node: dict[int, int]  # node → floor
 
 
 _INDEX_CACHE: dict[int, _EdgeIndex] = {}
@@ -465,6 +469,8 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
     )
     return _EdgeIndex(
         graph=G,
+        point_of_node={n: _point(d["position_m"]) for n, d in nodes},
+        floor_of_node={n: int(d["floor"]) for n, d in nodes},
         n_nodes=G.number_of_nodes(),
         n_edges=G.number_of_edges(),
         edge_u=node_ids[rows_u],
@@ -538,13 +544,14 @@ _Walk: TypeAlias = tuple[list[Point3], list[int], list[str], list[int]]
 
 
 def _shortest_walk(
-    G: nx.Graph[int], a: _Terminal, b: _Terminal, avoid: frozenset[str]
+    index: _EdgeIndex, a: _Terminal, b: _Terminal, avoid: frozenset[str]
 ) -> _Walk | None:
     """(points, floor of each point, kind of each segment, nodes) of the shortest route, or None.
 
     An end on an edge is searched from its nearer node ``s`` with costs shifted by ``d(P, s)``:
     the edge then costs ``L − 2·d(P, s)`` ≥ 0, the shifted cost of leaving by its far end.
     """
+    G = index.graph
     if a.edge is not None and b.edge is not None and set(a.edge) == set(b.edge):
         if a.position_m == b.position_m:
             return [a.position_m], [a.floor], [], []
@@ -578,12 +585,13 @@ def _shortest_walk(
         kinds.append(WALK)
     if b.edge is not None and len(nodes) > 1 and set(nodes[-2:]) == set(b.edge):
         nodes = nodes[:-1]  # came in by the far end
+    adjacency = G.adj
+    point_of_node, floor_of_node = index.point_of_node, index.floor_of_node
     for i, n in enumerate(nodes):
-        data = G.nodes[n]
-        points.append(_point(data["position_m"]))
-        floors.append(int(data["floor"]))
+        points.append(point_of_node[n])
+        floors.append(floor_of_node[n])
         if i > 0:
-            kinds.append(str(G.edges[nodes[i - 1], n]["kind"]))
+            kinds.append(str(adjacency[nodes[i - 1]][n]["kind"]))
     if b.edge is not None:
         points.append(b.position_m)
         floors.append(b.floor)
@@ -604,14 +612,14 @@ def _search_end(G: nx.Graph[int], end: _Terminal) -> tuple[int, dict[str, Any] |
 
 
 def _unreachable(
-    G: nx.Graph[int], a: _Terminal, b: _Terminal, avoid: frozenset[str]
+    index: _EdgeIndex, a: _Terminal, b: _Terminal, avoid: frozenset[str]
 ) -> Unreachable:
     """Why there is no route: the avoided kinds (if a route exists without them) or the map."""
-    if avoid and _shortest_walk(G, a, b, frozenset()) is not None:
+    if avoid and _shortest_walk(index, a, b, frozenset()) is not None:
         avoided = [kind for kind in _KIND_ORDER if kind in avoid]
         needed = avoided  # which of them are needed, when more than one is avoided
         if len(avoided) > 1:
-            needed = [k for k in avoided if _shortest_walk(G, a, b, avoid - {k}) is not None]
+            needed = [k for k in avoided if _shortest_walk(index, a, b, avoid - {k}) is not None]
         uses = " or ".join(_KIND_USED[k] for k in (needed or avoided))
         where = f"floor {b.floor + 1}"
         if a.floor == b.floor:
