@@ -233,7 +233,7 @@ def decision_points(
     ``end_margin_m`` of the stretch's ends."""
     walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
     total_m = float(walked_m[-1]) if len(xyz) else 0.0
-    candidates: list[Decision] = []
+    candidates: list[tuple[int, float]] = []  # (index, turn_deg)
     inner = np.arange(1, max(len(xyz) - 1, 1))
     inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
     if inner.size:
@@ -248,23 +248,24 @@ def decision_points(
         moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
         for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
             if abs(turn) >= BEAR_MIN_DEG:
-                candidates.append(
-                    Decision(index=k, turn_deg=turn, at_junction=False, along_m=float(walked_m[k]))
-                )
+                candidates.append((k, turn))
     chosen: list[Decision] = []
     walked = walked_m.tolist()
     junctions = [j for j in range(len(xyz)) if junction[j]]
-    for c in sorted(candidates, key=lambda d: -abs(d.turn_deg)):
-        near = [j for j in junctions if abs(walked[j] - c.along_m) <= JUNCTION_SNAP_M]
+    for k, turn in sorted(candidates, key=lambda c: -abs(c[1])):
+        index, at_junction, along_m = k, False, walked[k]
+        near = [j for j in junctions if abs(walked[j] - along_m) <= JUNCTION_SNAP_M]
         if near:
-            j = min(near, key=lambda j: abs(walked[j] - c.along_m))
-            c = dataclasses.replace(c, index=j, at_junction=True, along_m=walked[j])
+            index = min(near, key=lambda j: abs(walked[j] - along_m))
+            at_junction, along_m = True, walked[index]
         if any(
-            abs(c.along_m - d.along_m) < MIN_SPACING_M and not (c.at_junction and d.at_junction)
+            abs(along_m - d.along_m) < MIN_SPACING_M and not (at_junction and d.at_junction)
             for d in chosen
-        ) or any(c.index == d.index for d in chosen):
+        ) or any(index == d.index for d in chosen):
             continue
-        chosen.append(c)
+        chosen.append(
+            Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
+        )
     return sorted(chosen, key=lambda d: d.along_m)
 
 

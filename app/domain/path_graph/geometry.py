@@ -73,23 +73,25 @@ def _douglas_peucker_small_2d(points: list[list[float]], tolerance_m: float) -> 
     floating-point operations in the same order as :func:`project_to_segments` (so the same
     distances to the last bit, and the same points kept)."""
     kept: list[int] = []
+    xs = [p[0] for p in points]
+    ys = [p[1] for p in points]
+    sqrt = math.sqrt
     stack = [(0, len(points) - 1)]
     while stack:
         s, e = stack.pop()
         if e - s < 2:
             continue
-        ax, ay = points[s]
-        bx, by = points[e]
-        dx, dy = bx - ax, by - ay
+        ax, ay = xs[s], ys[s]
+        dx, dy = xs[e] - ax, ys[e] - ay
         length2 = dx * dx + dy * dy
         best_k, best_m = -1, -1.0
         for k in range(s + 1, e):
-            px, py = points[k]
+            px, py = xs[k], ys[k]
             t = ((px - ax) * dx + (py - ay) * dy) / length2 if length2 > 0 else 0.0
             t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
             qx = px - (ax + t * dx)
             qy = py - (ay + t * dy)
-            distance_m = math.sqrt(qx * qx + qy * qy)
+            distance_m = sqrt(qx * qx + qy * qy)
             if distance_m != distance_m:  # NaN: numpy's argmax picks the first, never kept
                 best_k, best_m = k, distance_m
                 break
