@@ -42,7 +42,7 @@ import numpy as np
 
 from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
-from app.domain.path_graph import JUNCTION, STAIRS, WALK, PathGraph
+from app.domain.path_graph import STAIRS, WALK, PathGraph
 from app.domain.routing import (
     Endpoint,
     NodeEnd,
@@ -51,6 +51,8 @@ from app.domain.routing import (
     Route,
     Step,
     TagEnd,
+    junction_nodes,
+    node_points,
     plan_walk,
     search_pois,
     signed_turn_deg,
@@ -416,17 +418,19 @@ def _segment_kinds(
     pg: PathGraph, xyz: FloatArray, nodes: Sequence[int]
 ) -> tuple[list[str], list[bool]]:
     """(kind of each polyline segment, whether each point is a junction)."""
-    G = pg.graph
-    node_m = np.array([G.nodes[n]["position_m"] for n in nodes], dtype=np.float64).reshape(-1, 3)
+    adjacency = pg.graph.adj
+    points = node_points(pg)
+    node_m = np.array([points[n] for n in nodes], dtype=np.float64).reshape(-1, 3)
     node_at: dict[tuple[float, ...], int] = {
         tuple(p): n for p, n in zip(np.round(node_m, 9).tolist(), nodes, strict=True)
     }
     at = [node_at.get(tuple(p)) for p in np.round(xyz, 9).tolist()]
-    junction = [n is not None and G.nodes[n]["kind"] == JUNCTION for n in at]
+    junctions = junction_nodes(pg)
+    junction = [n is not None and n in junctions for n in at]
     kinds = []
     for a, b in itertools.pairwise(at):
-        if a is not None and b is not None and G.has_edge(a, b):
-            kinds.append(str(G.edges[a, b]["kind"]))
+        if a is not None and b is not None and b in adjacency[a]:
+            kinds.append(str(adjacency[a][b]["kind"]))
         else:
             kinds.append(WALK)
     return kinds, junction

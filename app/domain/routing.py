@@ -63,7 +63,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
-from app.domain.path_graph import ELEVATOR, STAIRS, WALK, Anchor, PathGraph
+from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker
 
 Point3: TypeAlias = tuple[float, float, float]
@@ -317,6 +317,17 @@ def turn_instruction(turn_deg: float) -> str | None:
     return "turn around"
 
 
+def node_points(pg: PathGraph) -> dict[int, Point3]:
+    """Each node's ``position_m`` as floats (map frame, m), made once per graph (a graph must not
+    change once routed on); do not modify it."""
+    return _edge_index(pg).point_of_node
+
+
+def junction_nodes(pg: PathGraph) -> frozenset[int]:
+    """The nodes of kind ``"junction"``, found once per graph."""
+    return _edge_index(pg).junctions
+
+
 def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M) -> list[int]:
     """Douglas–Peucker on (N, 3) points (map frame, m) in the horizontal x–z plane: indices of the
     points to keep (first and last always), so that no dropped point is farther than
@@ -421,6 +432,7 @@ class _EdgeIndex:
     floor_height_m: FloatArray  # (F,) their heights, m
     point_of_node: dict[int, Point3]  # node → position_m as floats, map frame
     floor_of_node: dict[int, int]  # node → floor
+    junctions: frozenset[int]  # nodes of kind "junction"
 
 
 _INDEX_CACHE: dict[int, _EdgeIndex] = {}
@@ -471,6 +483,7 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
         graph=G,
         point_of_node={n: _point(d["position_m"]) for n, d in nodes},
         floor_of_node={n: int(d["floor"]) for n, d in nodes},
+        junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
         n_nodes=G.number_of_nodes(),
         n_edges=G.number_of_edges(),
         edge_u=node_ids[rows_u],
