@@ -51,8 +51,7 @@ from app.domain.routing import (
     Route,
     Step,
     TagEnd,
-    junction_nodes,
-    node_points,
+    node_points_and_junctions,
     plan_walk,
     search_pois,
     signed_turn_deg,
@@ -419,13 +418,12 @@ def _segment_kinds(
 ) -> tuple[list[str], list[bool]]:
     """(kind of each polyline segment, whether each point is a junction)."""
     adjacency = pg.graph.adj
-    points = node_points(pg)
+    points, junctions = node_points_and_junctions(pg)
     node_m = np.array([points[n] for n in nodes], dtype=np.float64).reshape(-1, 3)
     node_at: dict[tuple[float, ...], int] = {
         tuple(p): n for p, n in zip(np.round(node_m, 9).tolist(), nodes, strict=True)
     }
     at = [node_at.get(tuple(p)) for p in np.round(xyz, 9).tolist()]
-    junctions = junction_nodes(pg)
     junction = [n is not None and n in junctions for n in at]
     kinds = []
     for a, b in itertools.pairwise(at):

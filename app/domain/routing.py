@@ -317,15 +317,11 @@ def turn_instruction(turn_deg: float) -> str | None:
     return "turn around"
 
 
-def node_points(pg: PathGraph) -> dict[int, Point3]:
-    """Each node's ``position_m`` as floats (map frame, m), made once per graph (a graph must not
-    change once routed on); do not modify it."""
-    return _edge_index(pg).point_of_node
-
-
-def junction_nodes(pg: PathGraph) -> frozenset[int]:
-    """The nodes of kind ``"junction"``, found once per graph."""
-    return _edge_index(pg).junctions
+def node_points_and_junctions(pg: PathGraph) -> tuple[dict[int, Point3], frozenset[int]]:
+    """(each node's ``position_m`` as floats (map frame, m), the nodes of kind ``"junction"``),
+    made once per graph (a graph must not change once routed on); do not modify them."""
+    index = _edge_index(pg)
+    return index.point_of_node, index.junctions
 
 
 def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M) -> list[int]:
@@ -419,7 +415,7 @@ class _EdgeIndex:
 
     graph: nx.Graph[int]
     n_nodes: int
-    n_edges: int
+    n_neighbours: int  # :func:`_neighbour_count`: changes when an edge is added or removed
     edge_u: npt.NDArray[np.int64]  # (E,)
     edge_v: npt.NDArray[np.int64]  # (E,)
     edge_a_m: FloatArray  # (E, 3) position of u, map frame
@@ -449,7 +445,7 @@ def _edge_index(pg: PathGraph) -> _EdgeIndex:
         index is not None
         and index.graph is G
         and index.n_nodes == G.number_of_nodes()
-        and index.n_edges == G.number_of_edges()
+        and index.n_neighbours == _neighbour_count(G)
     ):
         return index
     index = _build_edge_index(pg)
@@ -458,6 +454,12 @@ def _edge_index(pg: PathGraph) -> _EdgeIndex:
         while len(_INDEX_CACHE) > _INDEX_CACHE_SIZE:
             del _INDEX_CACHE[next(iter(_INDEX_CACHE))]
     return index
+
+
+def _neighbour_count(G: nx.Graph[int]) -> int:
+    """The sum of the nodes' neighbour counts (twice the edges, self-loops once): an edge added
+    or removed changes it, and it costs a tenth of ``G.number_of_edges()`` (degree views)."""
+    return sum(map(len, G.adj.values()))
 
 
 def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
@@ -485,7 +487,7 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
         floor_of_node={n: int(d["floor"]) for n, d in nodes},
         junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
         n_nodes=G.number_of_nodes(),
-        n_edges=G.number_of_edges(),
+        n_neighbours=_neighbour_count(G),
         edge_u=node_ids[rows_u],
         edge_v=node_ids[rows_v],
         edge_a_m=node_m[rows_u],
