@@ -226,13 +226,19 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
 
 
 def decision_points(
-    xyz: FloatArray, junction: Sequence[bool], *, end_margin_m: float = END_MARGIN_M
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    *,
+    end_margin_m: float = END_MARGIN_M,
+    walked_m: FloatArray | None = None,
 ) -> list[Decision]:
     """The decision points of a walked stretch (N, 3) whose points ``junction`` flags (module
     step 2): bends of at least ``BEAR_MIN_DEG`` measured over ``CHORD_M`` either side, strongest
     first, none within ``MIN_SPACING_M`` of a stronger one (unless both are junctions), none within
-    ``end_margin_m`` of the stretch's ends."""
-    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    ``end_margin_m`` of the stretch's ends. ``walked_m``: (N,) each point's distance along the
+    stretch (:func:`walked_distances_m`), when the caller has it already."""
+    if walked_m is None:
+        walked_m = walked_distances_m(xyz)
     total_m = float(walked_m[-1]) if len(xyz) else 0.0
     candidates: list[tuple[int, float]] = []  # (index, turn_deg)
     inner = np.arange(1, max(len(xyz) - 1, 1))
@@ -268,6 +274,11 @@ def decision_points(
             Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
         )
     return sorted(chosen, key=lambda d: d.along_m)
+
+
+def walked_distances_m(xyz: FloatArray) -> FloatArray:
+    """(N,) the distance of each of the (N, 3) points along the polyline from its first, m."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
 
 
 def is_announced(decision: Decision) -> bool:
@@ -322,7 +333,7 @@ def _walk_steps(
     steps: list[Step],
 ) -> FloatArray | None:
     """Append the steps of a walked stretch (N, 3); return its final x–z heading."""
-    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    walked_m = walked_distances_m(xyz)
     kept = simplify_xz(xyz, LEG_TOLERANCE_M)
     first_dir = _direction(xyz[kept[0]], xyz[kept[1]]) if len(kept) > 1 else None
     if heading_rad is not None and first_dir is not None:
@@ -332,7 +343,7 @@ def _walk_steps(
             if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
                 words = f"{words} {round(abs(bearing))}°"
             steps.append(_step(f"{words} to face the way", xyz[0], "face", 0.0, bearing, floor))
-    announced = [d for d in decision_points(xyz, junction) if is_announced(d)]
+    announced = [d for d in decision_points(xyz, junction, walked_m=walked_m) if is_announced(d)]
     from_m, from_i = 0.0, 0
     for d in announced:
         leg_m = d.along_m - from_m
@@ -461,7 +472,7 @@ def _step(
 
 
 def _point_at(xyz: FloatArray, walked_m: FloatArray, along_m: float) -> FloatArray:
-    k = int(np.clip(np.searchsorted(walked_m, along_m) - 1, 0, len(xyz) - 2))
+    k = min(max(int(np.searchsorted(walked_m, along_m)) - 1, 0), len(xyz) - 2)
     span = float(walked_m[k + 1] - walked_m[k])
     t = 0.0 if span == 0 else (along_m - float(walked_m[k])) / span
     return np.asarray(xyz[k] + t * (xyz[k + 1] - xyz[k]), dtype=np.float64)
