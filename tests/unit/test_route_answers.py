@@ -3,7 +3,7 @@
 ``data/route_answers.json.gz`` holds three path graphs as the API reads them (floor_2_straight and
 the demo session with points of interest, both built by the worker's ``build_skeleton`` from the
 optimized sessions, and a simulated two-floor building with stairs and an elevator) and the full
-answer of ``plan_guided_route`` to each of ~1,500 questions on them — every ordered tag pair, points
+answer of ``plan_guided_route`` to each of ~3,300 questions on them — every ordered tag pair, points
 of interest, nodes, positions, avoided stairs and elevators, headings, units, clock faces, and the
 refusals — recorded from the code of 2026-11-25 before the route computation was optimized.
 Every answer must stay the same: polylines, lengths and step positions within 1e-9, the rest
