@@ -42,7 +42,7 @@ import numpy as np
 
 from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
-from app.domain.path_graph import JUNCTION, STAIRS, WALK, PathGraph
+from app.domain.path_graph import STAIRS, WALK, PathGraph
 from app.domain.routing import (
     Endpoint,
     NodeEnd,
@@ -51,7 +51,8 @@ from app.domain.routing import (
     Route,
     Step,
     TagEnd,
-    plan_route,
+    node_points_and_junctions,
+    plan_walk,
     search_pois,
     signed_turn_deg,
     simplify_xz,
@@ -122,8 +123,9 @@ def plan_guided_route(
     style: GuidanceStyle = DEFAULT_STYLE,
     floor_labels: Sequence[str] | None = None,
 ) -> Route:
-    """:func:`app.domain.routing.plan_route` with instructions at decision points only."""
-    route = plan_route(pg, start, goal, avoid=avoid)
+    """:func:`app.domain.routing.plan_route` with instructions at decision points only (the walk
+    of :func:`app.domain.routing.plan_walk`: routing's own steps are not made)."""
+    route = plan_walk(pg, start, goal, avoid=avoid)
     name, thing_m = _goal(pg, goal)
     steps = guidance_steps(
         pg,
@@ -224,15 +226,21 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
 
 
 def decision_points(
-    xyz: FloatArray, junction: Sequence[bool], *, end_margin_m: float = END_MARGIN_M
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    *,
+    end_margin_m: float = END_MARGIN_M,
+    walked_m: FloatArray | None = None,
 ) -> list[Decision]:
     """The decision points of a walked stretch (N, 3) whose points ``junction`` flags (module
     step 2): bends of at least ``BEAR_MIN_DEG`` measured over ``CHORD_M`` either side, strongest
     first, none within ``MIN_SPACING_M`` of a stronger one (unless both are junctions), none within
-    ``end_margin_m`` of the stretch's ends."""
-    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    ``end_margin_m`` of the stretch's ends. ``walked_m``: (N,) each point's distance along the
+    stretch (:func:`walked_distances_m`), when the caller has it already."""
+    if walked_m is None:
+        walked_m = walked_distances_m(xyz)
     total_m = float(walked_m[-1]) if len(xyz) else 0.0
-    candidates: list[Decision] = []
+    candidates: list[tuple[int, float]] = []  # (index, turn_deg)
     inner = np.arange(1, max(len(xyz) - 1, 1))
     inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
     if inner.size:
@@ -247,26 +255,30 @@ def decision_points(
         moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
         for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
             if abs(turn) >= BEAR_MIN_DEG:
-                candidates.append(
-                    Decision(index=k, turn_deg=turn, at_junction=False, along_m=float(walked_m[k]))
-                )
+                candidates.append((k, turn))
     chosen: list[Decision] = []
-    for c in sorted(candidates, key=lambda d: -abs(d.turn_deg)):
-        near = [
-            j
-            for j in range(len(xyz))
-            if junction[j] and abs(walked_m[j] - c.along_m) <= JUNCTION_SNAP_M
-        ]
+    walked = walked_m.tolist()
+    junctions = [j for j in range(len(xyz)) if junction[j]]
+    for k, turn in sorted(candidates, key=lambda c: -abs(c[1])):
+        index, at_junction, along_m = k, False, walked[k]
+        near = [j for j in junctions if abs(walked[j] - along_m) <= JUNCTION_SNAP_M]
         if near:
-            j = min(near, key=lambda j: abs(walked_m[j] - c.along_m))
-            c = dataclasses.replace(c, index=j, at_junction=True, along_m=float(walked_m[j]))
+            index = min(near, key=lambda j: abs(walked[j] - along_m))
+            at_junction, along_m = True, walked[index]
         if any(
-            abs(c.along_m - d.along_m) < MIN_SPACING_M and not (c.at_junction and d.at_junction)
+            abs(along_m - d.along_m) < MIN_SPACING_M and not (at_junction and d.at_junction)
             for d in chosen
-        ) or any(c.index == d.index for d in chosen):
+        ) or any(index == d.index for d in chosen):
             continue
-        chosen.append(c)
+        chosen.append(
+            Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
+        )
     return sorted(chosen, key=lambda d: d.along_m)
+
+
+def walked_distances_m(xyz: FloatArray) -> FloatArray:
+    """(N,) the distance of each of the (N, 3) points along the polyline from its first, m."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
 
 
 def is_announced(decision: Decision) -> bool:
@@ -321,7 +333,7 @@ def _walk_steps(
     steps: list[Step],
 ) -> FloatArray | None:
     """Append the steps of a walked stretch (N, 3); return its final x–z heading."""
-    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    walked_m = walked_distances_m(xyz)
     kept = simplify_xz(xyz, LEG_TOLERANCE_M)
     first_dir = _direction(xyz[kept[0]], xyz[kept[1]]) if len(kept) > 1 else None
     if heading_rad is not None and first_dir is not None:
@@ -331,7 +343,7 @@ def _walk_steps(
             if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
                 words = f"{words} {round(abs(bearing))}°"
             steps.append(_step(f"{words} to face the way", xyz[0], "face", 0.0, bearing, floor))
-    announced = [d for d in decision_points(xyz, junction) if is_announced(d)]
+    announced = [d for d in decision_points(xyz, junction, walked_m=walked_m) if is_announced(d)]
     from_m, from_i = 0.0, 0
     for d in announced:
         leg_m = d.along_m - from_m
@@ -416,16 +428,18 @@ def _segment_kinds(
     pg: PathGraph, xyz: FloatArray, nodes: Sequence[int]
 ) -> tuple[list[str], list[bool]]:
     """(kind of each polyline segment, whether each point is a junction)."""
-    G = pg.graph
+    adjacency = pg.graph.adj
+    points, junctions = node_points_and_junctions(pg)
+    node_m = np.array([points[n] for n in nodes], dtype=np.float64).reshape(-1, 3)
     node_at: dict[tuple[float, ...], int] = {
-        tuple(np.round(G.nodes[n]["position_m"], 9)): n for n in nodes
+        tuple(p): n for p, n in zip(np.round(node_m, 9).tolist(), nodes, strict=True)
     }
-    at = [node_at.get(tuple(np.round(p, 9))) for p in xyz]
-    junction = [n is not None and G.nodes[n]["kind"] == JUNCTION for n in at]
+    at = [node_at.get(tuple(p)) for p in np.round(xyz, 9).tolist()]
+    junction = [n is not None and n in junctions for n in at]
     kinds = []
     for a, b in itertools.pairwise(at):
-        if a is not None and b is not None and G.has_edge(a, b):
-            kinds.append(str(G.edges[a, b]["kind"]))
+        if a is not None and b is not None and b in adjacency[a]:
+            kinds.append(str(adjacency[a][b]["kind"]))
         else:
             kinds.append(WALK)
     return kinds, junction
@@ -458,7 +472,7 @@ def _step(
 
 
 def _point_at(xyz: FloatArray, walked_m: FloatArray, along_m: float) -> FloatArray:
-    k = int(np.clip(np.searchsorted(walked_m, along_m) - 1, 0, len(xyz) - 2))
+    k = min(max(int(np.searchsorted(walked_m, along_m)) - 1, 0), len(xyz) - 2)
     span = float(walked_m[k + 1] - walked_m[k])
     t = 0.0 if span == 0 else (along_m - float(walked_m[k])) / span
     return np.asarray(xyz[k] + t * (xyz[k + 1] - xyz[k]), dtype=np.float64)
@@ -484,5 +498,5 @@ def _xyz(xz: FloatArray | None) -> tuple[float, float, float]:
 
 
 def _point(values: FloatArray) -> tuple[float, float, float]:
-    x, y, z = (float(c) for c in values)
+    x, y, z = np.asarray(values, dtype=np.float64).tolist()
     return (x, y, z)

@@ -50,6 +50,7 @@ Errors (each ``str(err)`` is one sentence fit for a person):
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import threading
@@ -62,7 +63,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
-from app.domain.path_graph import ELEVATOR, STAIRS, WALK, Anchor, PathGraph
+from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker
 
 Point3: TypeAlias = tuple[float, float, float]
@@ -225,6 +226,28 @@ def plan_route(
     Raises :class:`UnknownEndpoint`, :class:`AmbiguousEndpoint`, :class:`Unreachable` or
     :class:`RouteError` (see the module docstring).
     """
+    route, (xyz, floors, kinds, goal_end) = _planned_walk(pg, start, goal, avoid)
+    return dataclasses.replace(route, steps=_steps(xyz, floors, kinds, goal_end))
+
+
+def plan_walk(
+    pg: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str] = frozenset(),
+) -> Route:
+    """:func:`plan_route` without its steps (``steps`` is empty): the walk alone, for a caller
+    that words the steps itself (:mod:`app.domain.instructions`). Same refusals."""
+    route, _ = _planned_walk(pg, start, goal, avoid)
+    return route
+
+
+def _planned_walk(
+    pg: PathGraph, start: Endpoint, goal: Endpoint, avoid: frozenset[str]
+) -> tuple[Route, tuple[FloatArray, list[int], list[str], _Terminal]]:
+    """(the route without steps, what its steps are made of: points (N, 3), floor of each point,
+    kind of each segment, the goal's terminal)."""
     avoid = frozenset(avoid)
     bad = avoid - AVOIDABLE
     if bad:
@@ -233,19 +256,21 @@ def plan_route(
         )
     a = _resolve(pg, start)
     b = _resolve(pg, goal)
-    walk = _shortest_walk(pg.graph, a, b, avoid)
+    index = _edge_index(pg)
+    walk = _shortest_walk(index, a, b, avoid)
     if walk is None:
-        raise _unreachable(pg.graph, a, b, avoid)
+        raise _unreachable(index, a, b, avoid)
     points, floors, kinds, nodes = walk
     xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     length_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
-    return Route(
+    route = Route(
         polyline_m=points,
         length_m=length_m,
         floors=_without_repeats(floors),
         nodes=nodes,
-        steps=_steps(xyz, floors, kinds, b),
+        steps=[],
     )
+    return route, (xyz, floors, kinds, b)
 
 
 def search_pois(pg: PathGraph, query: str) -> list[Anchor]:
@@ -290,6 +315,13 @@ def turn_instruction(turn_deg: float) -> str | None:
     if size <= TURN_MAX_DEG:
         return f"turn {side}"
     return "turn around"
+
+
+def node_points_and_junctions(pg: PathGraph) -> tuple[dict[int, Point3], frozenset[int]]:
+    """(each node's ``position_m`` as floats (map frame, m), the nodes of kind ``"junction"``),
+    made once per graph (a graph must not change once routed on); do not modify them."""
+    index = _edge_index(pg)
+    return index.point_of_node, index.junctions
 
 
 def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M) -> list[int]:
@@ -378,11 +410,12 @@ def _find_poi(pg: PathGraph, name: str) -> Anchor:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class _EdgeIndex:
-    """Walk edges and nodes as arrays, for snapping positions (built once per graph)."""
+    """Walk edges and nodes as arrays, for snapping positions, and each node's position and floor
+    as Python values, for the polyline of a route (built once per graph)."""
 
     graph: nx.Graph[int]
     n_nodes: int
-    n_edges: int
+    n_neighbours: int  # :func:`_neighbour_count`: changes when an edge is added or removed
     edge_u: npt.NDArray[np.int64]  # (E,)
     edge_v: npt.NDArray[np.int64]  # (E,)
     edge_a_m: FloatArray  # (E, 3) position of u, map frame
@@ -393,6 +426,9 @@ class _EdgeIndex:
     node_floor: npt.NDArray[np.int64]  # (N,)
     floors: npt.NDArray[np.int64]  # (F,) floor indices that have nodes
     floor_height_m: FloatArray  # (F,) their heights, m
+    point_of_node: dict[int, Point3]  # node → position_m as floats, map frame
+    floor_of_node: dict[int, int]  # node → floor
+    junctions: frozenset[int]  # nodes of kind "junction"
 
 
 _INDEX_CACHE: dict[int, _EdgeIndex] = {}
@@ -409,7 +445,7 @@ def _edge_index(pg: PathGraph) -> _EdgeIndex:
         index is not None
         and index.graph is G
         and index.n_nodes == G.number_of_nodes()
-        and index.n_edges == G.number_of_edges()
+        and index.n_neighbours == _neighbour_count(G)
     ):
         return index
     index = _build_edge_index(pg)
@@ -418,6 +454,12 @@ def _edge_index(pg: PathGraph) -> _EdgeIndex:
         while len(_INDEX_CACHE) > _INDEX_CACHE_SIZE:
             del _INDEX_CACHE[next(iter(_INDEX_CACHE))]
     return index
+
+
+def _neighbour_count(G: nx.Graph[int]) -> int:
+    """The sum of the nodes' neighbour counts (twice the edges, self-loops once): an edge added
+    or removed changes it, and it costs a third of ``G.number_of_edges()`` (degree views)."""
+    return sum(len(neighbours) for _, neighbours in G.adjacency())
 
 
 def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
@@ -441,8 +483,11 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
     )
     return _EdgeIndex(
         graph=G,
+        point_of_node={n: _point(d["position_m"]) for n, d in nodes},
+        floor_of_node={n: int(d["floor"]) for n, d in nodes},
+        junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
         n_nodes=G.number_of_nodes(),
-        n_edges=G.number_of_edges(),
+        n_neighbours=_neighbour_count(G),
         edge_u=node_ids[rows_u],
         edge_v=node_ids[rows_v],
         edge_a_m=node_m[rows_u],
@@ -514,13 +559,14 @@ _Walk: TypeAlias = tuple[list[Point3], list[int], list[str], list[int]]
 
 
 def _shortest_walk(
-    G: nx.Graph[int], a: _Terminal, b: _Terminal, avoid: frozenset[str]
+    index: _EdgeIndex, a: _Terminal, b: _Terminal, avoid: frozenset[str]
 ) -> _Walk | None:
     """(points, floor of each point, kind of each segment, nodes) of the shortest route, or None.
 
     An end on an edge is searched from its nearer node ``s`` with costs shifted by ``d(P, s)``:
     the edge then costs ``L − 2·d(P, s)`` ≥ 0, the shifted cost of leaving by its far end.
     """
+    G = index.graph
     if a.edge is not None and b.edge is not None and set(a.edge) == set(b.edge):
         if a.position_m == b.position_m:
             return [a.position_m], [a.floor], [], []
@@ -554,12 +600,13 @@ def _shortest_walk(
         kinds.append(WALK)
     if b.edge is not None and len(nodes) > 1 and set(nodes[-2:]) == set(b.edge):
         nodes = nodes[:-1]  # came in by the far end
+    adjacency = G.adj
+    point_of_node, floor_of_node = index.point_of_node, index.floor_of_node
     for i, n in enumerate(nodes):
-        data = G.nodes[n]
-        points.append(_point(data["position_m"]))
-        floors.append(int(data["floor"]))
+        points.append(point_of_node[n])
+        floors.append(floor_of_node[n])
         if i > 0:
-            kinds.append(str(G.edges[nodes[i - 1], n]["kind"]))
+            kinds.append(str(adjacency[nodes[i - 1]][n]["kind"]))
     if b.edge is not None:
         points.append(b.position_m)
         floors.append(b.floor)
@@ -580,14 +627,14 @@ def _search_end(G: nx.Graph[int], end: _Terminal) -> tuple[int, dict[str, Any] |
 
 
 def _unreachable(
-    G: nx.Graph[int], a: _Terminal, b: _Terminal, avoid: frozenset[str]
+    index: _EdgeIndex, a: _Terminal, b: _Terminal, avoid: frozenset[str]
 ) -> Unreachable:
     """Why there is no route: the avoided kinds (if a route exists without them) or the map."""
-    if avoid and _shortest_walk(G, a, b, frozenset()) is not None:
+    if avoid and _shortest_walk(index, a, b, frozenset()) is not None:
         avoided = [kind for kind in _KIND_ORDER if kind in avoid]
         needed = avoided  # which of them are needed, when more than one is avoided
         if len(avoided) > 1:
-            needed = [k for k in avoided if _shortest_walk(G, a, b, avoid - {k}) is not None]
+            needed = [k for k in avoided if _shortest_walk(index, a, b, avoid - {k}) is not None]
         uses = " or ".join(_KIND_USED[k] for k in (needed or avoided))
         where = f"floor {b.floor + 1}"
         if a.floor == b.floor:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import networkx as nx
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +45,10 @@ def douglas_peucker(points: FloatArray, tolerance_m: float) -> npt.NDArray[np.bo
     kept = np.ones(m, dtype=np.bool_)
     if m <= 2:
         return kept
+    if m <= SMALL_POLYLINE_POINTS and points.ndim == 2 and points.shape[1] == 2:
+        kept[1:-1] = False
+        kept[_douglas_peucker_small_2d(points.tolist(), tolerance_m)] = True
+        return kept
     kept[1:-1] = False
     stack = [(0, m - 1)]
     while stack:
@@ -54,6 +60,46 @@ def douglas_peucker(points: FloatArray, tolerance_m: float) -> npt.NDArray[np.bo
         if distance_m[k] > tolerance_m:
             kept[s + 1 + k] = True
             stack += [(s, s + 1 + k), (s + 1 + k, e)]
+    return kept
+
+
+#: Up to this many points, :func:`douglas_peucker` of a 2-D polyline runs in plain Python, which
+#: for a route's few dozen points costs a fraction of numpy's per-call overhead.
+SMALL_POLYLINE_POINTS = 96
+
+
+def _douglas_peucker_small_2d(points: list[list[float]], tolerance_m: float) -> list[int]:
+    """The inner points :func:`douglas_peucker` keeps, for (M, 2) points as lists: the same
+    floating-point operations in the same order as :func:`project_to_segments` (so the same
+    distances to the last bit, and the same points kept)."""
+    kept: list[int] = []
+    xs = [p[0] for p in points]
+    ys = [p[1] for p in points]
+    sqrt = math.sqrt
+    stack = [(0, len(points) - 1)]
+    while stack:
+        s, e = stack.pop()
+        if e - s < 2:
+            continue
+        ax, ay = xs[s], ys[s]
+        dx, dy = xs[e] - ax, ys[e] - ay
+        length2 = dx * dx + dy * dy
+        best_k, best_m = -1, -1.0
+        for k in range(s + 1, e):
+            px, py = xs[k], ys[k]
+            t = ((px - ax) * dx + (py - ay) * dy) / length2 if length2 > 0 else 0.0
+            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+            qx = px - (ax + t * dx)
+            qy = py - (ay + t * dy)
+            distance_m = sqrt(qx * qx + qy * qy)
+            if distance_m != distance_m:  # NaN: numpy's argmax picks the first, never kept
+                best_k, best_m = k, distance_m
+                break
+            if distance_m > best_m or best_k < 0:
+                best_k, best_m = k, distance_m
+        if best_m > tolerance_m:
+            kept.append(best_k)
+            stack += [(s, best_k), (best_k, e)]
     return kept
 
 
