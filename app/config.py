@@ -74,6 +74,10 @@ class Settings(BaseSettings):
     data_dir: Path = Path("var")
     admin_key: str | None = None
     workers: int = Field(default=1, ge=0, le=64)
+    #: How much lower the CPU priority of worker processes is than the API's (``nice``
+    #: increment, 0–19): on a machine they share, a phone's route or localization update is
+    #: answered first and a map build takes what is left.
+    worker_nice: int = Field(default=10, ge=0, le=19)
     #: API processes ``serve`` runs on its one listening socket (``serve --api-processes N``);
     #: None: :func:`default_api_processes`, what the machine's cores suggest.
     api_processes: int | None = Field(default=None, ge=1, le=MAX_API_PROCESSES)

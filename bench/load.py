@@ -436,19 +436,27 @@ class Deployment:
     size_bytes: Callable[[], int]
 
 
+def _processes(api_processes: int | None) -> str:
+    return "" if api_processes is None else f" --api-processes {api_processes}"
+
+
 @contextmanager
-def sqlite_deployment(folder: Path) -> Iterator[Deployment]:
-    """Embedded: ``serve --workers 2`` on a new SQLite file."""
+def sqlite_deployment(folder: Path, api_processes: int | None) -> Iterator[Deployment]:
+    """Embedded: ``serve --workers 2`` on a new SQLite file (``api_processes`` None: serve's
+    default, one per core)."""
     url = f"sqlite:///{folder / 'load.sqlite3'}"
     log = folder / "server.log"
     env = {
         "INVISIBLE_MAP_DATA_DIR": str(folder),
         **ONE_ADDRESS,
     }
-    with ServerProcess(url, workers=2, env=env, log_path=log) as server:
+    with ServerProcess(
+        url, workers=2, env=env, log_path=log, api_processes=api_processes
+    ) as server:
         yield Deployment(
             backend="SQLite",
-            description="embedded: `invisible-map serve --workers 2`, a new SQLite file",
+            description=f"embedded: `invisible-map serve --workers 2{_processes(api_processes)}`, "
+            "a new SQLite file",
             server=server,
             process_groups=[server.pid],
             log_paths=[log],
@@ -457,7 +465,9 @@ def sqlite_deployment(folder: Path) -> Iterator[Deployment]:
 
 
 @contextmanager
-def postgres_deployment(folder: Path, admin_url: str) -> Iterator[Deployment]:
+def postgres_deployment(
+    folder: Path, admin_url: str, api_processes: int | None
+) -> Iterator[Deployment]:
     """Scale-out: ``serve --workers 0`` and ``worker --processes 2`` on a new database, dropped
     at the end."""
     name = f"im_load_{uuid.uuid4().hex[:8]}"
@@ -472,12 +482,15 @@ def postgres_deployment(folder: Path, admin_url: str) -> Iterator[Deployment]:
         }
         api_log, worker_log = folder / "api.log", folder / "worker.log"
         with (
-            ServerProcess(url, workers=0, env=env, log_path=api_log) as server,
+            ServerProcess(
+                url, workers=0, env=env, log_path=api_log, api_processes=api_processes
+            ) as server,
             WorkerProcess(url, processes=2, env=env, log_path=worker_log) as workers,
         ):
             yield Deployment(
                 backend="PostgreSQL",
-                description="scale-out: `invisible-map serve --workers 0` and "
+                description="scale-out: `invisible-map serve --workers 0"
+                f"{_processes(api_processes)}` and "
                 f"`invisible-map worker --processes 2`, database {name}",
                 server=server,
                 process_groups=[server.pid, workers.pid],
@@ -687,9 +700,9 @@ def run_backend(backend: str, args: argparse.Namespace) -> Outcome:
     with tempfile.TemporaryDirectory(prefix="im-load-") as temp:
         folder = Path(temp)
         deployment = (
-            sqlite_deployment(folder)
+            sqlite_deployment(folder, args.api_processes)
             if backend == "sqlite"
-            else postgres_deployment(folder, args.postgres_url)
+            else postgres_deployment(folder, args.postgres_url, args.api_processes)
         )
         try:
             with deployment as running:
@@ -734,6 +747,9 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         )
         ticks_after = machine_ticks()
         cpu_after = process_cpu_s(deployment.process_groups)
+        # The worker processes say who they are; every other process of the groups is the API
+        # (`serve` and, with --api-processes N, its API processes).
+        worker_pids = {worker["pid"] for worker in admin.info()["workers"]}
         queue_at_close = sum(
             admin.list_jobs(state=s, limit=1)["count"] for s in ("queued", "running")
         )
@@ -749,7 +765,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
         for endpoint, tally in result.tallies.items():
             tallies[endpoint].merge(tally)
     spent = {pid: cpu_after[pid] - cpu_before.get(pid, 0.0) for pid in cpu_after}
-    api_cpu_s = spent.get(server.pid, 0.0)
+    api_cpu_s = sum(cpu for pid, cpu in spent.items() if pid not in worker_pids)
     busy = (ticks_after[0] - ticks_before[0]) / max(1, ticks_after[1] - ticks_before[1])
     return Outcome(
         backend=deployment.backend,
@@ -960,6 +976,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--drain-timeout-s", type=float, default=600.0, help="longest wait for the queue (600)"
+    )
+    parser.add_argument(
+        "--api-processes",
+        type=int,
+        help="the API processes of `serve` (default: serve's own, one per core)",
     )
     parser.add_argument("--log-dir", type=Path, help="keep the server's logs here")
     return parser

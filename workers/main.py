@@ -343,6 +343,7 @@ def configure_logging() -> None:
 
 def run_worker(settings: Settings, *, signums: Sequence[int]) -> int:
     """Run one worker in this process until a signal in ``signums`` stops it; returns 0."""
+    lower_priority(settings)
     db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)
@@ -351,6 +352,15 @@ def run_worker(settings: Settings, *, signums: Sequence[int]) -> int:
     finally:
         db.dispose()
     return 0
+
+
+def lower_priority(settings: Settings) -> None:
+    """Lower this process's CPU priority by ``INVISIBLE_MAP_WORKER_NICE`` (best effort)."""
+    if settings.worker_nice:
+        try:
+            os.nice(settings.worker_nice)
+        except OSError as err:
+            logger.warning("could not lower the worker's priority: %s", err)
 
 
 def _watch_parent(parent_pid: int, worker: Worker) -> None:
@@ -366,6 +376,7 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
     forwards it as SIGTERM, which must count once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     configure_logging()
+    lower_priority(settings)
     db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
         worker = Worker(db, settings)

@@ -248,6 +248,25 @@ def test_embedded_mode_starts_and_stops_worker_processes(db: Database, database_
         assert tx.scalars(select(WorkerRow)).all() == []
 
 
+@pytest.mark.parametrize("nice", [0, 7])
+def test_worker_processes_run_at_lower_cpu_priority_than_the_api(
+    database_url: str, nice: int
+) -> None:
+    """INVISIBLE_MAP_WORKER_NICE: a build must not take the CPU from phones' requests."""
+    settings = Settings(database_url=database_url, poll_s=0.05, worker_nice=nice)
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    procs = start_worker_processes(settings, 1)
+    try:
+        assert procs[0].pid is not None
+        wait_for(
+            lambda: os.getpriority(os.PRIO_PROCESS, procs[0].pid) == min(19, own + nice),
+            timeout_s=30,
+            what=f"the worker process at nice {own + nice}",
+        )
+    finally:
+        stop_worker_processes(procs, timeout_s=20)
+
+
 def test_kill_9_mid_sweep_every_trial_is_stored_exactly_once(
     db: Database, database_url: str, tmp_path: Path, workers: list[WorkerProcess]
 ) -> None:
