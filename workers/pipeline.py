@@ -35,6 +35,7 @@ import dataclasses
 import enum
 import functools
 import gzip
+import json
 import logging
 import math
 import time
@@ -46,14 +47,26 @@ from typing import Any, TypeVar
 
 from sqlalchemy.exc import DataError
 
+from app.domain.derived_documents import (
+    APP_MAP_EXPORT,
+    DERIVED_GZIP_LEVEL,
+    app_map_bytes,
+    overview_document,
+)
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.joint import JointMap, optimize_sessions
 from app.domain.joint_path_graph import build_joint_path_graph
-from app.domain.map_io import map_to_app_format
+from app.domain.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, path_graph_to_json
+from app.domain.path_graph import (
+    ELEVATOR,
+    JUNCTION,
+    STAIRS,
+    path_graph_from_json,
+    path_graph_to_json,
+)
 from app.domain.session import Session, decode_json_bytes, parse_session, require_tags
 from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
@@ -473,19 +486,51 @@ def path_graph(ctx: JobContext) -> None:
     )
 
 
+def derived_documents(ctx: JobContext) -> maps.DerivedDocuments:
+    """What the API would otherwise make of the stored version on every process's first request
+    (issue 19, finding 3), made once here from the version as stored (its map document read
+    back, the path graph through JSON) so that it equals what the API makes: the app's map file
+    (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview."""
+    result = _need(ctx.result, "result")
+    document = json.loads(json.dumps(map_to_json(result), allow_nan=False))
+    graph_document = (
+        None if ctx.path_graph is None else json.loads(json.dumps(ctx.path_graph, allow_nan=False))
+    )
+    app_map = app_map_bytes(document, graph_document)
+    overview = overview_document(
+        map_from_json(document),
+        ctx.session if ctx.joint is None else None,
+        None if graph_document is None else path_graph_from_json(graph_document),
+        sessions=_session_contributions(ctx) or [],
+    )
+    overview_json = json.dumps(overview, separators=(",", ":"), allow_nan=False).encode()
+    derived = maps.DerivedDocuments(
+        app_map_gzip=gzip.compress(app_map, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+        app_map_export=APP_MAP_EXPORT,
+        overview_gzip=gzip.compress(overview_json, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+    )
+    return derived
+
+
 def store(ctx: JobContext) -> None:
-    """Write the version's bulk data (map document, plot, path graph) as blobs, each chunk in
-    a small transaction of its own; then, in ONE small transaction: end the job as succeeded
-    (fenced: raises LeaseLost, and the transaction rolls back, if the lease is gone) and add the
-    map version that refers to the blobs. So the build's write lock (SQLite's only one) is held
+    """Write the version's bulk data (map document, plot, path graph) and what is derived from
+    it (:func:`derived_documents`) as blobs, each chunk in a small transaction of its own;
+    then, in ONE small transaction: end the job as succeeded (fenced: raises LeaseLost, and the
+    transaction rolls back, if the lease is gone) and add the map version that refers to the
+    blobs. So the build's write lock (SQLite's only one) is held
     for milliseconds, not for the seconds the bulk data takes (issue 19, finding 4). Afterwards,
     blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
-    ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses")
+    derived = derived_documents(ctx)
+    ctx.log(
+        f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses; app-map "
+        f"{len(derived.app_map_gzip) / 1e3:.0f} kB, overview "
+        f"{len(derived.overview_gzip) / 1e3:.0f} kB (gzip)"
+    )
     bulk = maps.write_version_bulk(
-        ctx.db, result=result, plot_png=ctx.plot_png, path_graph=ctx.path_graph
+        ctx.db, result=result, plot_png=ctx.plot_png, path_graph=ctx.path_graph, derived=derived
     )
     ctx.report(0.9)
     with ctx.db.transaction() as tx:

@@ -24,6 +24,11 @@
                                     ``path_graph.json.gz`` its path graph (as stored)
 ==================================  ========================================================
 
+What a worker derived from a version (its app-map and dashboard overview,
+``app.domain.derived_documents``) is not in the archive: it is made again from the map
+document. A restored version is served as one stored before they existed (the API builds its
+app-map and figure on the first request of each process).
+
 In the JSON rows datetimes are ISO 8601 strings with their UTC offset, and a binary column holds
 the name of the member with its bytes (or null). Of the queue only ``build_map`` jobs are in it:
 finished and queued ones as they are (so a version still names its job, and a phone's job URL
