@@ -26,6 +26,7 @@ from app.storage.maps import VersionInfo
 from app.storage.navigation import path_graph_document
 from app.storage.orm import utc_now
 from tests.conftest import fresh_database_url
+from tests.service.test_api_multi_session import FLOOR_2, STRAIGHT_209, with_poi
 from tests.service.test_version_blobs import LATER
 from tests.service.test_worker import settings_for
 from workers.main import Worker
@@ -138,6 +139,45 @@ def test_the_map_page_draws_the_stored_overview(api: Api, monkeypatch: pytest.Mo
     assert figure["floors"][0]["raw"] is not None  # the raw walk is in it
     tester = api.client.get(f"/admin/maps/{created['map_id']}/route")
     assert tester.status_code == 200, tester.text  # the route tester draws the same figure
+
+
+def test_the_overview_of_a_map_of_two_sessions_draws_each_session(
+    api: Api, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = api.uploaded(with_poi(FLOOR_2, "Room 209", 400))
+    second = api.uploaded(with_poi(STRAIGHT_209, "Occam lab door", 900))
+    worker = Worker(api.db, settings_for(api.db))
+    while worker.run_once():
+        pass
+    merge = api.client.post(
+        f"/v1/maps/{first['map_id']}/merge", json={"map_id": second["map_id"]}, headers=ADMIN
+    )
+    assert merge.status_code == 202, merge.text
+    assert worker.run_once()
+    version = current_version(api, first["map_id"])
+    assert version.session_ids == [first["session_id"], second["session_id"]]
+    assert version.overview_sha256 is not None
+    with api.db.read() as tx:
+        graph = path_graph_document(tx, version.id)
+        assert graph is not None
+        expected = overview_document(
+            map_from_json(maps.map_document(tx, first["map_id"])),
+            None,  # each session's raw odometry is in its own frame: none is drawn
+            path_graph_from_json(graph),
+            sessions=version.statistics["sessions"],
+        )["figure"]
+
+    monkeypatch.setattr(maps, "map_document", never)
+    logged_in(api.client)
+    page = api.client.get(f"/admin/maps/{first['map_id']}")
+    assert page.status_code == 200, page.text
+    match = _FIGURE.search(page.text)
+    assert match is not None
+    figure = json.loads(match.group(1))
+    assert figure == json.loads(json.dumps(expected))
+    assert all(floor["raw"] is None for floor in figure["floors"])
+    drawn = {line["name"] for floor in figure["floors"] for line in floor["sessions"]}
+    assert drawn == {f"Session {first['session_id']}", f"Session {second['session_id']}"}
 
 
 def test_the_derived_blobs_are_not_collected_as_orphans(api: Api) -> None:
