@@ -51,7 +51,7 @@ from sqlalchemy.exc import DataError
 from app.domain.derived_documents import (
     APP_MAP_EXPORT,
     DERIVED_GZIP_LEVEL,
-    app_map_bytes,
+    app_map_of,
     overview_document,
 )
 from app.domain.errors import InvisibleMapError
@@ -527,21 +527,23 @@ def path_graph(ctx: JobContext) -> None:
     )
 
 
-def derived_documents(ctx: JobContext) -> maps.DerivedDocuments:
+def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.DerivedDocuments:
     """What the API would otherwise make of the stored version on every process's first request
     (issue 19, finding 3), made once here from the version as stored (its map document read
     back, the path graph through JSON) so that it equals what the API makes: the app's map file
-    (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview."""
-    result = _need(ctx.result, "result")
-    document = json.loads(json.dumps(map_to_json(result), allow_nan=False))
-    graph_document = (
-        None if ctx.path_graph is None else json.loads(json.dumps(ctx.path_graph, allow_nan=False))
+    (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview.
+    ``document``: the version's map document (``map_to_json`` of the result)."""
+    stored = map_from_json(json.loads(json.dumps(document, allow_nan=False)))
+    graph = (
+        None
+        if ctx.path_graph is None
+        else path_graph_from_json(json.loads(json.dumps(ctx.path_graph, allow_nan=False)))
     )
-    app_map = app_map_bytes(document, graph_document)
+    app_map = app_map_of(stored, graph)
     overview = overview_document(
-        map_from_json(document),
+        stored,
         ctx.session if ctx.joint is None else None,
-        None if graph_document is None else path_graph_from_json(graph_document),
+        graph,
         sessions=_session_contributions(ctx) or [],
     )
     overview_json = json.dumps(overview, separators=(",", ":"), allow_nan=False).encode()
@@ -564,14 +566,20 @@ def store(ctx: JobContext) -> None:
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
-    derived = derived_documents(ctx)
+    document = map_to_json(result)
+    derived = derived_documents(ctx, document)
     ctx.log(
         f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses; app-map "
         f"{len(derived.app_map_gzip) / 1e3:.0f} kB, overview "
         f"{len(derived.overview_gzip) / 1e3:.0f} kB (gzip)"
     )
     bulk = maps.write_version_bulk(
-        ctx.db, result=result, plot_png=ctx.plot_png, path_graph=ctx.path_graph, derived=derived
+        ctx.db,
+        result=result,
+        document=document,
+        plot_png=ctx.plot_png,
+        path_graph=ctx.path_graph,
+        derived=derived,
     )
     ctx.report(0.9)
     with ctx.db.transaction() as tx:

@@ -4,6 +4,7 @@ stored instead of decoding the whole map document (16 MiB of JSON for a 100,000-
 process and request.
 
     app_map = app_map_bytes(document, path_graph_document)     # compact JSON bytes
+    app_map = app_map_of(map_from_json(document), path_graph)  # the same, read back already
     overview = overview_document(result, raw_session, path_graph, sessions=contributions)
     figure = figure_of_overview(overview)                      # None: another format
 
@@ -40,12 +41,16 @@ def app_map_bytes(document: dict[str, Any], path_graph_document: dict[str, Any] 
     """The app's map file (docs/architecture.md §7) of a stored version, compact JSON bytes:
     from its map document (``app.domain.map_io`` format) and its path graph document
     (``path_graph_to_json``; None for a version built before path graphs)."""
-    app_map = map_to_app_format(
+    return app_map_of(
         map_from_json(document),
-        path_graph=None
-        if path_graph_document is None
-        else path_graph_from_json(path_graph_document),
+        None if path_graph_document is None else path_graph_from_json(path_graph_document),
     )
+
+
+def app_map_of(stored: MapResult, path_graph: PathGraph | None) -> bytes:
+    """:func:`app_map_bytes` of the version read back already (``map_from_json`` of its
+    document, ``path_graph_from_json`` of its path graph)."""
+    app_map = map_to_app_format(stored, path_graph=path_graph)
     return json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
 
 

@@ -298,16 +298,19 @@ def write_version_bulk(
     plot_png: bytes | None,
     path_graph: dict[str, Any] | None = None,
     derived: DerivedDocuments | None = None,
+    document: dict[str, Any] | None = None,
 ) -> VersionBulk:
     """Store a version's map document, plot and path graph (and ``derived``, what the worker
     derived from it) as blobs, each chunk in a small transaction of its own (never in the
     transaction that stores the version: issue 19, finding 4); then :func:`store_version` with
-    ``bulk=`` makes the version visible."""
+    ``bulk=`` makes the version visible. ``document``: ``map_to_json(result)``, if the caller
+    has made it already (it takes seconds for a long walk)."""
     bulk = _version_bulk(
         lambda data: blobs.put_blob(db, data),
         result=result,
         plot_png=plot_png,
         path_graph=path_graph,
+        document=document,
     )
     if derived is None:
         return bulk
@@ -325,8 +328,10 @@ def _version_bulk(
     result: MapResult,
     plot_png: bytes | None,
     path_graph: dict[str, Any] | None,
+    document: dict[str, Any] | None = None,
 ) -> VersionBulk:
-    document = map_to_json(result)
+    if document is None:
+        document = map_to_json(result)
     encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
     return VersionBulk(
         content_sha256=hashlib.sha256(encoded).hexdigest(),
