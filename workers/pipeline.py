@@ -567,12 +567,18 @@ def store(ctx: JobContext) -> None:
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
     document = map_to_json(result)
-    derived = derived_documents(ctx, document)
-    ctx.log(
-        f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses; app-map "
-        f"{len(derived.app_map_gzip) / 1e3:.0f} kB, overview "
-        f"{len(derived.overview_gzip) / 1e3:.0f} kB (gzip)"
-    )
+    derived: maps.DerivedDocuments | None
+    try:
+        derived = derived_documents(ctx, document)
+    except Exception as err:  # what the API would make: it makes it then, as for older versions
+        logger.warning("job %d: the derived documents failed", ctx.lease.job_id, exc_info=True)
+        derived, made = None, f"no app-map or overview stored ({type(err).__name__})"
+    else:
+        made = (
+            f"app-map {len(derived.app_map_gzip) / 1e3:.0f} kB, "
+            f"overview {len(derived.overview_gzip) / 1e3:.0f} kB (gzip)"
+        )
+    ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses; {made}")
     bulk = maps.write_version_bulk(
         ctx.db,
         result=result,

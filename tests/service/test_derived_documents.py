@@ -21,7 +21,7 @@ from app.domain.map_io import map_from_json
 from app.domain.path_graph import path_graph_from_json
 from app.services import maps as map_services
 from app.services.uploads import stored_session
-from app.storage import backup, blobs, maps
+from app.storage import backup, blobs, maps, queue
 from app.storage.maps import VersionInfo
 from app.storage.navigation import path_graph_document
 from app.storage.orm import utc_now
@@ -29,6 +29,7 @@ from tests.conftest import fresh_database_url
 from tests.service.test_api_multi_session import FLOOR_2, STRAIGHT_209, with_poi
 from tests.service.test_version_blobs import LATER
 from tests.service.test_worker import settings_for
+from workers import pipeline
 from workers.main import Worker
 
 pytestmark = pytest.mark.db
@@ -178,6 +179,28 @@ def test_the_overview_of_a_map_of_two_sessions_draws_each_session(
     assert all(floor["raw"] is None for floor in figure["floors"])
     drawn = {line["name"] for floor in figure["floors"] for line in floor["sessions"]}
     assert drawn == {f"Session {first['session_id']}", f"Session {second['session_id']}"}
+
+
+def test_a_version_is_stored_without_derived_documents_that_fail(
+    api: Api, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """They are what the API would make anyway: a failure costs the build nothing."""
+
+    def failing(*_: object, **__: object) -> Any:
+        raise RuntimeError("no overview")
+
+    monkeypatch.setattr(pipeline, "overview_document", failing)
+    created = worker_built(api)
+    version = current_version(api, created["map_id"])
+    assert version.app_map_sha256 is None
+    assert version.overview_sha256 is None
+    with api.db.read() as tx:
+        log_tail = queue.get_job(tx, version.job_id or 0).log_tail
+    assert "no app-map or overview stored (RuntimeError)" in log_tail
+    answer = api.client.get(created["map_url"] + "/app-map", headers=ADMIN)
+    assert answer.status_code == 200, answer.text
+    logged_in(api.client)
+    assert api.client.get(f"/admin/maps/{created['map_id']}").status_code == 200
 
 
 def test_the_derived_blobs_are_not_collected_as_orphans(api: Api) -> None:
