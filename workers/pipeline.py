@@ -533,7 +533,7 @@ def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.Derived
     back, the path graph through JSON) so that it equals what the API makes: the app's map file
     (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview.
     ``document``: the version's map document (``map_to_json`` of the result)."""
-    stored = map_from_json(json.loads(json.dumps(document, allow_nan=False)))
+    stored = map_from_json(document)  # JSON keeps its floats exactly: no round trip needed
     graph = (
         None
         if ctx.path_graph is None
