@@ -202,8 +202,8 @@ def app_map_gzip(cache: VersionCache, db_session: Session, version: VersionInfo)
 def stored_app_map_gzip(db_session: Session, version: VersionInfo) -> bytes:
     """The app-map of ``version``, gzip: as the worker stored it with the version when the
     current export (:data:`APP_MAP_EXPORT`) made it (1–2 MiB read, nothing decoded: issue 19,
-    finding 3), else made by :func:`app_map_content` (versions stored before, restored ones, or
-    made by an older export), which decodes the whole map document (for a 100,000-pose walk the
+    finding 3), else made by :func:`app_map_content` (versions stored before, or made by an
+    older export), which decodes the whole map document (for a 100,000-pose walk the
     API grows by about 100 MiB while it does)."""
     if version.app_map_export == APP_MAP_EXPORT:
         stored = maps.derived_bytes(db_session, version.app_map_sha256)

@@ -323,7 +323,7 @@ class MapVersion(Base):
     #: what the worker derived from the version when it stored it (issue 19, finding 3): the
     #: app's map file (gzip), made by export ``app_map_export``
     #: (``app.domain.derived_documents.APP_MAP_EXPORT``), and the dashboard's overview (gzip
-    #: JSON); null for versions stored before (and restored ones): the API builds them then
+    #: JSON); null for versions stored before (an import makes them): the API builds them
     app_map_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     app_map_export: Mapped[int | None]
     overview_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)

@@ -99,8 +99,8 @@ class TableSpec:
     #: as a blob again
     blob_refs: Mapping[str, str] = field(default_factory=dict)
     #: columns not exported: what is derived from the row's data (a version's app-map and
-    #: overview, ``app.domain.derived_documents``); an import leaves them null, and the server
-    #: makes them again when asked (as for a version stored before they were)
+    #: overview, ``app.domain.derived_documents``); an import makes them again
+    #: (``app.storage.derived``)
     derived: tuple[str, ...] = ()
     #: column → table whose ids it holds (the row must be in the archive)
     refs: Mapping[str, str] = field(default_factory=dict)
