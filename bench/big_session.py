@@ -4,7 +4,8 @@ once a worker has built the map, the size and time of the app-map's first GET an
 dashboard's map page and the memory they grow the API by; how long each build stage takes, the
 ``store`` stage's write transactions (on SQLite each holds the write lock that long: the bulk data
 in chunks of 1 MiB, then one small fenced write), and how soon a cancel stops the build's running
-optimization, and a running sweep trial.
+optimization, and a running sweep trial; and the worker's peak memory after each build stage
+(``--only worker-memory``: the build in a process of its own).
 
     .venv/bin/python -m bench.big_session                    # 100,000 poses (the most accepted)
     .venv/bin/python -m bench.big_session --poses 20000 --refused-poses 0 --only sweep-cancel
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import gzip
 import re
+import subprocess
 import sys
 import tempfile
 import threading
@@ -223,6 +225,50 @@ def stage_times(raw: bytes, url: str) -> None:
     )
 
 
+#: Run by :func:`worker_memory` in a process of its own: one build, the peak resident set after
+#: each stage (MiB).
+_WORKER_PEAKS = """
+import sys
+from app.config import Settings
+from app.storage.db import Database
+from bench.big_session import peak_mib
+from workers import pipeline
+from workers.main import Worker
+import os
+
+url = sys.argv[1]
+peaks = {"start": peak_mib(os.getpid())}
+
+def measured(stage):
+    def run(ctx):
+        stage.run(ctx)
+        peaks[stage.name] = peak_mib(os.getpid())
+    return pipeline.Stage(name=stage.name, weight=stage.weight, run=run)
+
+stages = tuple(measured(stage) for stage in pipeline.BUILD_MAP_STAGES)
+settings = Settings(database_url=url, lease_s=600.0, heartbeat_s=5.0)
+Worker(Database(url), settings, pipelines={"build_map": stages}).run_once()
+print(", ".join(f"{name} {mib:.0f}" for name, mib in peaks.items()))
+"""
+
+
+def worker_memory(raw: bytes, url: str) -> None:
+    """The worker's peak resident set after each stage of one build, in a process of its own
+    (the bench's own process holds the simulated session)."""
+    db = Database(url)
+    upgrade_to_head(db)
+    insert_session(db, raw)
+    db.dispose()
+    done = subprocess.run(
+        [sys.executable, "-c", _WORKER_PEAKS, url],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    print(f"worker peak memory after each stage, MiB: {done.stdout.strip()}")
+
+
 def cancel_latency(raw: bytes, url: str) -> None:
     """Cancel the build 0.5 s into its optimization; how long until the job is canceled."""
     db = Database(url)
@@ -306,7 +352,9 @@ def main() -> int:
     )
     parser.add_argument("--postgres-url", help="also build on this (empty, migrated) database")
     parser.add_argument(
-        "--only", choices=("memory", "stages", "cancel", "sweep-cancel"), help="one measurement"
+        "--only",
+        choices=("memory", "stages", "worker-memory", "cancel", "sweep-cancel"),
+        help="one measurement",
     )
     parser.add_argument(
         "--api-postgres-url",
@@ -322,6 +370,8 @@ def main() -> int:
             del refused
         if args.only in (None, "stages"):
             stage_times(raw, f"sqlite:///{Path(folder) / 'build.sqlite3'}")
+        if args.only in (None, "worker-memory"):
+            worker_memory(raw, f"sqlite:///{Path(folder) / 'worker.sqlite3'}")
         if args.only in (None, "cancel"):
             cancel_latency(raw, f"sqlite:///{Path(folder) / 'cancel.sqlite3'}")
         if args.only in (None, "sweep-cancel"):

@@ -35,26 +35,40 @@ import dataclasses
 import enum
 import functools
 import gzip
+import json
 import logging
 import math
+import sys
 import time
 import zlib
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from sqlalchemy.exc import DataError
 
+from app.domain.derived_documents import (
+    APP_MAP_EXPORT,
+    DERIVED_GZIP_LEVEL,
+    app_map_of,
+    overview_document,
+)
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.joint import JointMap, optimize_sessions
 from app.domain.joint_path_graph import build_joint_path_graph
-from app.domain.map_io import map_to_app_format
+from app.domain.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
-from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, path_graph_to_json
-from app.domain.session import Session, decode_json_bytes, parse_session, require_tags
+from app.domain.path_graph import (
+    ELEVATOR,
+    JUNCTION,
+    STAIRS,
+    path_graph_from_json,
+    path_graph_to_json,
+)
+from app.domain.session import Session, parse_session_stream, require_tags
 from app.domain.skeleton import build_skeleton
 from app.domain.slam import optimize_session
 from app.domain.sweep_plan import SweepPlan
@@ -70,7 +84,8 @@ from app.storage.sessions import (
     BUILD_MAP,
     SESSION_IDS,
     SessionNotFound,
-    raw_upload,
+    raw_upload_gzip_size,
+    raw_upload_gzip_slice,
 )
 from workers.failures import log_failure
 from workers.lease import JobControl
@@ -129,8 +144,8 @@ class JobReport:
 class JobContext:
     """A job's inputs, what its stages produced so far, and how a stage reports progress.
 
-    Stages read and fill the fields in order: ``load`` sets ``params``, ``raw_upload`` and
-    ``session``; ``optimize`` sets ``result``; ``evaluate`` sets ``evaluation`` and ``plot_png``;
+    Stages read and fill the fields in order: ``load`` sets ``params`` and ``session``;
+    ``optimize`` sets ``result``; ``evaluate`` sets ``evaluation`` and ``plot_png``;
     ``path_graph`` sets ``path_graph``; ``store`` sets ``version`` and ``finished``.
     ``log_tail`` is the job's log as the worker will next write it (started from
     ``lease.log_tail``); add to it with :meth:`log`.
@@ -141,7 +156,6 @@ class JobContext:
     control: JobControl
     log_tail: str
     params: SlamParams | None = None
-    raw_upload: bytes | None = None
     session: Session | None = None
     result: MapResult | None = None
     evaluation: Evaluation | None = None
@@ -261,20 +275,20 @@ def load(ctx: JobContext) -> None:
         if ctx.auto_tune_trials:
             raise PermanentJobError(f"{AUTO_TUNE_TRIALS} is for maps of one session")
         for session_id in ctx.session_ids:
-            raw, session = load_session_upload(ctx.db, session_id)
+            size_bytes, session = load_session_upload(ctx.db, session_id)
             ctx.sessions.append(session)
             ctx.log(
                 f"load: session {session_id}: {session.num_poses} poses, "
                 f"{len(session.detections)} detections of {len(session.tag_ids)} tags, "
-                f"{len(raw) / 1e6:.2f} MB"
+                f"{size_bytes / 1e6:.2f} MB"
             )
         return
-    ctx.raw_upload, ctx.session = load_session_upload(ctx.db, lease.session_id)
-    raw, session = ctx.raw_upload, ctx.session
+    size_bytes, ctx.session = load_session_upload(ctx.db, lease.session_id)
+    session = ctx.session
     require_tags(session)  # before any tuning: a walk with no tag makes no map
     ctx.log(
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
-        f"{len(session.tag_ids)} tags, {len(raw) / 1e6:.2f} MB"
+        f"{len(session.tag_ids)} tags, {size_bytes / 1e6:.2f} MB"
     )
 
 
@@ -325,19 +339,59 @@ def tune(ctx: JobContext) -> None:
     )
 
 
-def load_session_upload(db: Database, session_id: int) -> tuple[bytes, Session]:
-    """A session's stored raw upload and its parse; PermanentJobError if missing or corrupt."""
+#: Bytes of a stored upload read from the database, and inflated, at once while it is parsed.
+STORED_CHUNK_BYTES = 1 << 20
+#: zlib's window bits for a gzip stream.
+GZIP_WBITS = 16 + zlib.MAX_WBITS
+
+
+def load_session_upload(db: Database, session_id: int) -> tuple[int, Session]:
+    """A session's stored upload parsed as it is read from the database a piece at a time and
+    inflated (``parse_session_stream``: never the whole JSON, nor its object graph, in memory);
+    its size (bytes of JSON) and the parse. PermanentJobError if missing or corrupt."""
+    inflated: list[int] = []
     try:
         with db.read() as tx:
-            raw = raw_upload(tx, session_id)
+            size = raw_upload_gzip_size(tx, session_id)
+            packed = (
+                raw_upload_gzip_slice(tx, session_id, offset, STORED_CHUNK_BYTES)
+                for offset in range(0, size, STORED_CHUNK_BYTES)
+            )
+            session = parse_session_stream(
+                _inflated(packed, inflated),
+                max_poses=sys.maxsize,  # accepted once, within the limit there was then
+                source=f"stored upload of session {session_id}",
+            )
     except SessionNotFound as err:
         raise PermanentJobError(f"the raw upload of session {session_id} is missing") from err
-    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
+    except (EOFError, zlib.error) as err:
         raise PermanentJobError(
             f"the stored upload of session {session_id} is corrupt (not valid gzip: {err})"
         ) from err
-    source = f"stored upload of session {session_id}"
-    return raw, parse_session(decode_json_bytes(raw, source=source))
+    return sum(inflated), session
+
+
+def _inflated(packed: Iterable[bytes], inflated: list[int]) -> Iterator[bytes]:
+    """The inflated bytes of the gzip pieces ``packed`` (one or more members), at most
+    :data:`STORED_CHUNK_BYTES` at a time, each piece's length appended to ``inflated``;
+    EOFError if the last member is cut short (a parse of what came would blame the JSON)."""
+    inflater = zlib.decompressobj(GZIP_WBITS)
+    started = False
+    for chunk in packed:
+        pending = chunk
+        while pending:
+            started = True
+            out = inflater.decompress(pending, STORED_CHUNK_BYTES)
+            if out:
+                inflated.append(len(out))
+                yield out
+            if inflater.eof:  # another member may follow
+                pending, started = inflater.unused_data, False
+                inflater = zlib.decompressobj(GZIP_WBITS)
+            else:
+                pending = inflater.unconsumed_tail
+    if started and not inflater.eof:
+        raise EOFError("the stream is cut short")
 
 
 def optimize(ctx: JobContext) -> None:
@@ -473,19 +527,65 @@ def path_graph(ctx: JobContext) -> None:
     )
 
 
+def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.DerivedDocuments:
+    """What the API would otherwise make of the stored version on every process's first request
+    (issue 19, finding 3), made once here from the version as stored (its map document read
+    back, the path graph through JSON) so that it equals what the API makes: the app's map file
+    (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview.
+    ``document``: the version's map document (``map_to_json`` of the result)."""
+    stored = map_from_json(document)  # JSON keeps its floats exactly: no round trip needed
+    graph = (
+        None
+        if ctx.path_graph is None
+        else path_graph_from_json(json.loads(json.dumps(ctx.path_graph, allow_nan=False)))
+    )
+    app_map = app_map_of(stored, graph)
+    overview = overview_document(
+        stored,
+        ctx.session if ctx.joint is None else None,
+        graph,
+        sessions=_session_contributions(ctx) or [],
+    )
+    overview_json = json.dumps(overview, separators=(",", ":"), allow_nan=False).encode()
+    derived = maps.DerivedDocuments(
+        app_map_gzip=gzip.compress(app_map, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+        app_map_export=APP_MAP_EXPORT,
+        overview_gzip=gzip.compress(overview_json, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+    )
+    return derived
+
+
 def store(ctx: JobContext) -> None:
-    """Write the version's bulk data (map document, plot, path graph) as blobs, each chunk in
-    a small transaction of its own; then, in ONE small transaction: end the job as succeeded
-    (fenced: raises LeaseLost, and the transaction rolls back, if the lease is gone) and add the
-    map version that refers to the blobs. So the build's write lock (SQLite's only one) is held
+    """Write the version's bulk data (map document, plot, path graph) and what is derived from
+    it (:func:`derived_documents`) as blobs, each chunk in a small transaction of its own;
+    then, in ONE small transaction: end the job as succeeded (fenced: raises LeaseLost, and the
+    transaction rolls back, if the lease is gone) and add the map version that refers to the
+    blobs. So the build's write lock (SQLite's only one) is held
     for milliseconds, not for the seconds the bulk data takes (issue 19, finding 4). Afterwards,
     blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
-    ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses")
+    document = map_to_json(result)
+    derived: maps.DerivedDocuments | None
+    try:
+        derived = derived_documents(ctx, document)
+    except Exception as err:  # what the API would make: it makes it then, as for older versions
+        logger.warning("job %d: the derived documents failed", ctx.lease.job_id, exc_info=True)
+        derived, made = None, f"no app-map or overview stored ({type(err).__name__})"
+    else:
+        made = (
+            f"app-map {len(derived.app_map_gzip) / 1e3:.0f} kB, "
+            f"overview {len(derived.overview_gzip) / 1e3:.0f} kB (gzip)"
+        )
+    ctx.log(f"store: map {map_id}, {len(result.tag_ids)} tags, {session.num_poses} poses; {made}")
     bulk = maps.write_version_bulk(
-        ctx.db, result=result, plot_png=ctx.plot_png, path_graph=ctx.path_graph
+        ctx.db,
+        result=result,
+        document=document,
+        plot_png=ctx.plot_png,
+        path_graph=ctx.path_graph,
+        derived=derived,
     )
     ctx.report(0.9)
     with ctx.db.transaction() as tx:

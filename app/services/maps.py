@@ -6,7 +6,6 @@ What the API routers and the dashboard pages both do; errors are :mod:`app.servi
 from __future__ import annotations
 
 import gzip
-import json
 import threading
 import time
 from collections import OrderedDict
@@ -17,10 +16,10 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.domain.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
+from app.domain.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.errors import ParameterError
-from app.domain.map_io import map_from_json, map_to_app_format
 from app.domain.params import SlamParams
-from app.domain.path_graph import path_graph_from_json
 from app.services.errors import Conflict, InvalidInput, NotFound
 from app.services.version_cache import VersionCache, size_in_bytes
 from app.storage import images, maps, queue, sessions
@@ -182,11 +181,6 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     return {name: params[name] for name in overrides}
 
 
-#: The version of what :func:`app_map_content` makes of a stored version. It is part of the
-#: app-map's ETag: raise it whenever the export changes, so that a phone holding a file made by
-#: the older export downloads the new one instead of a 304. 2: links at both ends, one connected
-#: part, unique waypoint names, ``notes``. 3: at most 5,000 poses besides the graph's nodes.
-APP_MAP_EXPORT = 3
 #: Longest display name, characters (the column's size).
 MAX_DISPLAY_NAME_LENGTH = 200
 #: Media type of the pictures the app sends.
@@ -194,30 +188,40 @@ JPEG_MEDIA_TYPE = "image/jpeg"
 
 
 #: gzip level of the app-map kept in memory: made once per version, so the smaller file wins.
-APP_MAP_GZIP_LEVEL = 6
+APP_MAP_GZIP_LEVEL = DERIVED_GZIP_LEVEL
 
 
 def app_map_gzip(cache: VersionCache, db_session: Session, version: VersionInfo) -> bytes:
-    """:func:`app_map_content` of ``version``, gzip-compressed, made once per API process and
-    then served from ``cache`` (a version never changes; a rebuild is another version). Only
-    the compressed file is kept: a quarter of the memory, and a client that does not take gzip
-    costs a decompression (about 2 ms per MB) instead of a rebuild of the file (about 90 ms)."""
-    return cache.get(
-        ("app_map_gzip", version.id),
-        lambda: gzip.compress(
-            app_map_content(db_session, version), compresslevel=APP_MAP_GZIP_LEVEL, mtime=0
-        ),
+    """:func:`app_map_content` of ``version``, gzip-compressed, read or made once per API
+    process and then served from ``cache`` (a version never changes; a rebuild is another
+    version). Only the compressed file is kept: a quarter of the memory, and a client that does
+    not take gzip costs a decompression (about 2 ms per MB) instead of a rebuild of the file."""
+    return cache.get(("app_map_gzip", version.id), lambda: stored_app_map_gzip(db_session, version))
+
+
+def stored_app_map_gzip(db_session: Session, version: VersionInfo) -> bytes:
+    """The app-map of ``version``, gzip: as the worker stored it with the version when the
+    current export (:data:`APP_MAP_EXPORT`) made it (1–2 MiB read, nothing decoded: issue 19,
+    finding 3), else made by :func:`app_map_content` (versions stored before, or made by an
+    older export), which decodes the whole map document (for a 100,000-pose walk the
+    API grows by about 100 MiB while it does)."""
+    if version.app_map_export == APP_MAP_EXPORT:
+        stored = maps.derived_bytes(db_session, version.app_map_sha256)
+        if stored is not None:
+            return stored
+    return gzip.compress(
+        app_map_content(db_session, version), compresslevel=APP_MAP_GZIP_LEVEL, mtime=0
     )
 
 
 def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
-    """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes."""
-    graph_document = path_graph_document(db_session, version.id)
-    app_map = map_to_app_format(
-        map_from_json(maps.map_document(db_session, version.map_id, version.number)),
-        path_graph=None if graph_document is None else path_graph_from_json(graph_document),
+    """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes, made
+    from its stored map document (``app.domain.derived_documents.app_map_bytes``: what the
+    worker stores with a new version)."""
+    return app_map_bytes(
+        maps.map_document(db_session, version.map_id, version.number),
+        path_graph_document(db_session, version.id),
     )
-    return json.dumps(app_map, separators=(",", ":"), allow_nan=False).encode()
 
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:

@@ -137,6 +137,8 @@ def _orphan(cutoff: datetime) -> Any:
         MapVersion.map_json_sha256 == Blob.sha256,
         MapVersion.plot_png_sha256 == Blob.sha256,
         MapVersion.path_graph_sha256 == Blob.sha256,
+        MapVersion.app_map_sha256 == Blob.sha256,
+        MapVersion.overview_sha256 == Blob.sha256,
     )
     return (Blob.touched_at < cutoff) & ~exists().where(referred)
 

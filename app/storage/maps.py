@@ -6,11 +6,14 @@ map); the newest version is the map's current one. A version keeps our lossless 
 metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable. The bulk data
 (document, plot, path graph) is in content-addressed blobs (``app.storage.blobs``) that a worker
 writes before the small transaction that stores the version (:func:`write_version_bulk`);
-versions stored before the blobs hold it in their row.
+versions stored before the blobs hold it in their row. The worker also stores what is derived
+from a version once (``app.domain.derived_documents``: the app's map file and the dashboard's
+overview) as blobs the version refers to (:class:`DerivedDocuments`); older versions have none.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import hashlib
 import json
@@ -41,6 +44,16 @@ _WITHOUT_BLOBS = (
     defer(MapVersion.plot_png),
     defer(MapVersion.path_graph_gzip),
 )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DerivedDocuments:
+    """What a worker derives from a version once, stored as blobs with it: the app's map file
+    (gzip) made by export ``app_map_export``, and the dashboard's overview (gzip JSON)."""
+
+    app_map_gzip: bytes
+    app_map_export: int
+    overview_gzip: bytes
 
 
 class MapNotFound(LookupError):
@@ -74,6 +87,11 @@ class VersionInfo:
     #: the sessions it was optimized from, in order (the first is the reference frame); empty for
     #: versions made before maps held several sessions (made from the map's ``session_id``)
     session_ids: list[int]
+    #: the blobs of its derived documents (:class:`DerivedDocuments`; None: not stored) and the
+    #: export that made the stored app-map
+    app_map_sha256: str | None = None
+    app_map_export: int | None = None
+    overview_sha256: str | None = None
 
     @classmethod
     def from_row(cls, row: MapVersion) -> VersionInfo:
@@ -267,6 +285,10 @@ class VersionBulk:
     path_graph_sha256: str | None
     #: the document's ``rejections`` (a column of the version)
     rejections: list[dict[str, Any]]
+    #: the derived documents' blobs (None: none stored) and the app-map's export
+    app_map_sha256: str | None = None
+    app_map_export: int | None = None
+    overview_sha256: str | None = None
 
 
 def write_version_bulk(
@@ -275,15 +297,28 @@ def write_version_bulk(
     result: MapResult,
     plot_png: bytes | None,
     path_graph: dict[str, Any] | None = None,
+    derived: DerivedDocuments | None = None,
+    document: dict[str, Any] | None = None,
 ) -> VersionBulk:
-    """Store a version's map document, plot and path graph as blobs, each chunk in a small
-    transaction of its own (never in the transaction that stores the version: issue 19,
-    finding 4); then :func:`store_version` with ``bulk=`` makes the version visible."""
-    return _version_bulk(
+    """Store a version's map document, plot and path graph (and ``derived``, what the worker
+    derived from it) as blobs, each chunk in a small transaction of its own (never in the
+    transaction that stores the version: issue 19, finding 4); then :func:`store_version` with
+    ``bulk=`` makes the version visible. ``document``: ``map_to_json(result)``, if the caller
+    has made it already (it takes seconds for a long walk)."""
+    bulk = _version_bulk(
         lambda data: blobs.put_blob(db, data),
         result=result,
         plot_png=plot_png,
         path_graph=path_graph,
+        document=document,
+    )
+    if derived is None:
+        return bulk
+    return dataclasses.replace(
+        bulk,
+        app_map_sha256=blobs.put_blob(db, derived.app_map_gzip),
+        app_map_export=derived.app_map_export,
+        overview_sha256=blobs.put_blob(db, derived.overview_gzip),
     )
 
 
@@ -293,8 +328,10 @@ def _version_bulk(
     result: MapResult,
     plot_png: bytes | None,
     path_graph: dict[str, Any] | None,
+    document: dict[str, Any] | None = None,
 ) -> VersionBulk:
-    document = map_to_json(result)
+    if document is None:
+        document = map_to_json(result)
     encoded = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
     return VersionBulk(
         content_sha256=hashlib.sha256(encoded).hexdigest(),
@@ -341,7 +378,13 @@ def store_version(
         db_session,
         [
             sha256
-            for sha256 in (bulk.map_json_sha256, bulk.plot_png_sha256, bulk.path_graph_sha256)
+            for sha256 in (
+                bulk.map_json_sha256,
+                bulk.plot_png_sha256,
+                bulk.path_graph_sha256,
+                bulk.app_map_sha256,
+                bulk.overview_sha256,
+            )
             if sha256 is not None
         ],
     )
@@ -394,6 +437,9 @@ def store_version(
         map_json_sha256=bulk.map_json_sha256,
         plot_png_sha256=bulk.plot_png_sha256,
         path_graph_sha256=bulk.path_graph_sha256,
+        app_map_sha256=bulk.app_map_sha256,
+        app_map_export=bulk.app_map_export,
+        overview_sha256=bulk.overview_sha256,
         session_ids=session_ids,
     )
     db_session.add(row)
@@ -554,6 +600,12 @@ def map_document(db_session: Session, map_id: int, number: int | None = None) ->
         raise LookupError(f"version {row.id} of map {map_id} has no map document")
     document: dict[str, Any] = json.loads(gzip.decompress(packed))
     return document
+
+
+def derived_bytes(db_session: Session, sha256: str | None) -> bytes | None:
+    """A stored derived document of a version (``VersionInfo.app_map_sha256``,
+    ``overview_sha256``), as stored (gzip); None when the version has none."""
+    return None if sha256 is None else blobs.read_blob(db_session, sha256)
 
 
 def plot_png(db_session: Session, map_id: int, number: int | None = None) -> bytes | None:

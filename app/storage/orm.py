@@ -325,6 +325,13 @@ class MapVersion(Base):
     map_json_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     plot_png_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     path_graph_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
+    #: what the worker derived from the version when it stored it (issue 19, finding 3): the
+    #: app's map file (gzip), made by export ``app_map_export``
+    #: (``app.domain.derived_documents.APP_MAP_EXPORT``), and the dashboard's overview (gzip
+    #: JSON); null for versions stored before (an import makes them): the API builds them
+    app_map_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
+    app_map_export: Mapped[int | None]
+    overview_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     #: the sessions it was optimized from, in order (the first is the reference frame); null for
     #: versions built before maps held several sessions (their map's ``session_id`` alone)
     session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)

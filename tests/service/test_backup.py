@@ -23,6 +23,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from app.domain.derived_documents import APP_MAP_EXPORT
 from app.domain.session import decode_json_bytes, parse_session
 from app.domain.sweep_plan import SweepPlan
 from app.domain.tuning import Axis, SearchSpace, Trial
@@ -277,6 +278,15 @@ def test_round_trip_sqlite_postgresql_sqlite_keeps_everything(
         first["sweep"] = [canceled if sweep["id"] == 2 else sweep for sweep in first["sweep"]]
         for trial in first["sweep_trial"]:
             trial["job_id"] = None
+        # and the import makes what a worker derives from each version (the source's versions,
+        # stored without a worker, have none)
+        derived = ("app_map_sha256", "app_map_export", "overview_sha256")
+        assert all(version["app_map_export"] == APP_MAP_EXPORT for version in second["map_version"])
+        assert all(version["overview_sha256"] for version in second["map_version"])
+        first["map_version"] = [
+            {**version, **{name: made[name] for name in derived}}
+            for version, made in zip(first["map_version"], second["map_version"], strict=True)
+        ]
         assert first == second
 
         originals = raw_uploads(source_db)

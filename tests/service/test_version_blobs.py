@@ -44,7 +44,11 @@ def version_blob_shas(db: Database) -> set[str]:
     with db.read() as tx:
         rows = tx.execute(
             select(
-                MapVersion.map_json_sha256, MapVersion.plot_png_sha256, MapVersion.path_graph_sha256
+                MapVersion.map_json_sha256,
+                MapVersion.plot_png_sha256,
+                MapVersion.path_graph_sha256,
+                MapVersion.app_map_sha256,
+                MapVersion.overview_sha256,
             )
         ).all()
     return {sha for row in rows for sha in row if sha is not None}
@@ -165,8 +169,8 @@ def test_an_attempt_that_loses_its_lease_while_storing_leaves_only_collectable_o
     worker_with(db).run_once()
     assert version_count(db, map_id=inserted.map_id) == 0  # the fenced write rolled back
     written = blob_shas(db)
-    assert len(written) == 3  # document, plot, path graph: nobody refers to them
-    assert blobs.collect_orphan_blobs(db, now=utc_now() + LATER) == 3
+    assert len(written) == 5  # document, plot, path graph, app-map, overview: nobody refers to them
+    assert blobs.collect_orphan_blobs(db, now=utc_now() + LATER) == 5
     assert blob_shas(db) == set()
 
 

@@ -24,7 +24,7 @@ from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.params import SlamParams
 from app.domain.session import decode_json_bytes, parse_session
 from app.domain.slam import optimize_session
-from app.storage import maps, queue
+from app.storage import maps, queue, sessions
 from app.storage.db import Database
 from app.storage.orm import Job, JobState, MapVersion, WorkerRow, utc_now
 from app.storage.queue import LeaseLost
@@ -202,6 +202,31 @@ def test_corrupt_stored_uploads_fail_permanently_and_the_next_job_succeeds(db: D
         assert version_count(db, job_id=inserted.job_id) == 0
     assert get_job(db, good.job_id).state == JobState.SUCCEEDED
     assert version_count(db) == 1
+
+
+def test_the_stored_upload_is_parsed_as_it_streams_never_whole(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The load stage reads the stored upload a piece at a time (here 1,000 bytes) and parses it
+    as it is inflated; two gzip members (as a resumed upload may store) are one document."""
+    raw = session_bytes("occam_room")
+    inserted = insert_session(db, raw)
+    replace_stored_upload(
+        db, inserted.session_id, gzip.compress(raw[:300_000]) + gzip.compress(raw[300_000:])
+    )
+
+    def whole_file(*_: object) -> bytes:
+        raise AssertionError("the whole stored upload was read")
+
+    monkeypatch.setattr(sessions, "raw_upload", whole_file)
+    monkeypatch.setattr(sessions, "raw_upload_gzip", whole_file)
+    monkeypatch.setattr(pipeline, "STORED_CHUNK_BYTES", 1000)
+    assert worker_with(db).run_once()
+    job = get_job(db, inserted.job_id)
+    assert job.state == JobState.SUCCEEDED, job.error
+    expected = parse_session(decode_json_bytes(raw))
+    assert f"load: {expected.num_poses} poses" in job.log_tail
+    assert f"{len(raw) / 1e6:.2f} MB" in job.log_tail  # the JSON's size, counted as inflated
 
 
 @pytest.mark.parametrize(

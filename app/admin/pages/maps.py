@@ -4,13 +4,16 @@ versions with parameters and metrics, its sessions with what each contributed (a
 another map in; maps sharing its tags are offered), a rebuild form, delete, and downloads (the
 app's map file and the path graph as GeoJSON).
 
-The plot's data is built once per map version and kept in the process's version cache (versions
-never change).
+The plot's data is the version's overview, built once by the worker that stored the version
+(``app.domain.derived_documents``) and read from its blob (tens of kB, not the whole map
+document); versions stored before have none, and their figure is built from the map document.
+Either way it is kept in the process's version cache (versions never change).
 """
 
 from __future__ import annotations
 
 import gzip
+import json
 from typing import Annotated, Any
 
 from fastapi import Query, Request, Response
@@ -18,12 +21,12 @@ from sqlalchemy.orm import Session
 
 from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.forms import changed_params, rebuild_fields, rebuild_overrides
-from app.admin.map_figure import map_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.api.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
 from app.api.schemas.maps import MapSessionsPublic
+from app.domain.derived_documents import figure_of_overview, overview_document
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import PathGraph
 from app.domain.session import Session as ParsedSession
@@ -90,19 +93,26 @@ def path_graph_or_none(
 def version_figure(
     request: Request, db_session: Session, info: MapInfo, version: VersionInfo
 ) -> dict[str, Any]:
-    """The plot data of a map version (cached per process: versions never change)."""
+    """The plot data of a map version: its stored overview's figure, else built from its map
+    document (cached per process: versions never change)."""
 
     def build() -> dict[str, Any]:
+        stored = maps.derived_bytes(db_session, version.overview_sha256)
+        if stored is not None:
+            figure = figure_of_overview(json.loads(gzip.decompress(stored)))
+            if figure is not None:
+                return figure
         result = map_from_json(maps.map_document(db_session, info.id, version.number))
         contributions = version.statistics.get("sessions") or []
         # several sessions: their raw odometry is each in its own frame, so none is drawn
-        return map_figure(
+        overview = overview_document(
             result,
             raw_session(db_session, info.session_id) if len(contributions) < 2 else None,
             path_graph_or_none(request, db_session, version),
-            session_starts=[int(c["first_pose_row"]) for c in contributions],
-            session_names=[f"Session {c['session_id']}" for c in contributions],
+            sessions=contributions,
         )
+        figure_built: dict[str, Any] = overview["figure"]
+        return figure_built
 
     cache: VersionCache = request.app.state.version_cache
     return cache.get(("admin_figure", version.id), build)

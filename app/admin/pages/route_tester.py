@@ -13,12 +13,12 @@ from fastapi import Query, Request, Response
 
 from app.admin.auth import DashboardUserDep
 from app.admin.forms import parse_endpoint
-from app.admin.map_figure import with_route
 from app.admin.pages.maps import version_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
 from app.api.deps import ReadDbSessionDep, valid_id
+from app.domain.map_figure import with_route
 from app.domain.routing import AVOIDABLE, Route
 from app.services.errors import ServiceError
 from app.services.navigation import current_path_graph, planned_route

@@ -98,6 +98,10 @@ class TableSpec:
     #: binary column's member (the blob columns are not exported), and an import stores them
     #: as a blob again
     blob_refs: Mapping[str, str] = field(default_factory=dict)
+    #: columns not exported: what is derived from the row's data (a version's app-map and
+    #: overview, ``app.domain.derived_documents``); an import makes them again
+    #: (``app.storage.derived``)
+    derived: tuple[str, ...] = ()
     #: column → table whose ids it holds (the row must be in the archive)
     refs: Mapping[str, str] = field(default_factory=dict)
     #: column → table whose ids it holds, or null when that row is not in the archive
@@ -127,7 +131,11 @@ class TableSpec:
 
     def columns(self) -> list[Column[Any]]:
         """The exported columns, in table order."""
-        skipped = set(self.blob_refs.values()) | (set() if self.export_key else {self.key})
+        skipped = (
+            set(self.blob_refs.values())
+            | set(self.derived)
+            | (set() if self.export_key else {self.key})
+        )
         return [c for c in self.table.columns if c.name not in skipped]
 
 
@@ -174,6 +182,7 @@ TABLES = (
             "plot_png": "plot_png_sha256",
             "path_graph_gzip": "path_graph_sha256",
         },
+        derived=("app_map_sha256", "app_map_export", "overview_sha256"),
     ),
     TableSpec(model=MapTag, export_key=False, refs={"map_version_id": "map_version"}),
     TableSpec(

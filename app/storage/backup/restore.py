@@ -47,6 +47,7 @@ from app.storage.backup.archive import (
 )
 from app.storage.backup.export import sequence_value
 from app.storage.db import Database
+from app.storage.derived import add_derived_documents
 from app.storage.orm import (
     ApiKey,
     JobState,
@@ -203,6 +204,10 @@ class _ImportRun:
                     f"{self.archive.path}: {spec.member} has {read} rows, the manifest says "
                     f"{self.archive.manifest.counts[spec.name]}"
                 )
+        # what a worker derived from each version is not in the archive: made again here, so
+        # that the API serves it as stored (issue 19, finding 3)
+        for version_id in self.ids["map_version"].values():
+            add_derived_documents(self.db_session, version_id)
 
     def report(self) -> ImportReport:
         return ImportReport(
