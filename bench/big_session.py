@@ -275,11 +275,22 @@ def cancel_latency(raw: bytes, url: str) -> None:
     upgrade_to_head(db)
     job_id = insert_session(db, raw).job_id
     settings = Settings(database_url=url, lease_s=30.0, heartbeat_s=5.0)
+    state, latency_s = cancel_during(db, settings, job_id, stage="optimize", after_s=0.5)
+    print(
+        f"cancel 0.5 s into optimize (heartbeat 5 s): {state} {latency_s:.2f} s after it was asked"
+    )
+
+
+def cancel_during(
+    db: Database, settings: Settings, job_id: int, *, stage: str, after_s: float
+) -> tuple[str, float]:
+    """Run one job on a worker thread, cancel it ``after_s`` into ``stage``: its final state and
+    how long after the cancel was asked it stopped running, s."""
     thread = threading.Thread(target=Worker(db, settings).run_once)
     thread.start()
-    while get_job(db, job_id).stage != "optimize":
+    while get_job(db, job_id).stage != stage:
         time.sleep(0.05)
-    time.sleep(0.5)
+    time.sleep(after_s)
     asked_s = time.monotonic()
     with db.transaction() as db_session:
         queue.request_cancel(db_session, job_id)
@@ -289,9 +300,7 @@ def cancel_latency(raw: bytes, url: str) -> None:
     thread.join()
     state = get_job(db, job_id).state.value
     db.dispose()
-    print(
-        f"cancel 0.5 s into optimize (heartbeat 5 s): {state} {latency_s:.2f} s after it was asked"
-    )
+    return state, latency_s
 
 
 def sweep_cancel_latency(raw: bytes, url: str) -> None:
@@ -321,20 +330,7 @@ def sweep_cancel_latency(raw: bytes, url: str) -> None:
         )
     job_id = inserted.job_id + 1
     settings = Settings(database_url=url, lease_s=30.0, heartbeat_s=0.5)
-    thread = threading.Thread(target=Worker(db, settings).run_once)
-    thread.start()
-    while get_job(db, job_id).stage != "trials":
-        time.sleep(0.05)
-    time.sleep(1.0)
-    asked_s = time.monotonic()
-    with db.transaction() as db_session:
-        queue.request_cancel(db_session, job_id)
-    while get_job(db, job_id).state.value == "running":
-        time.sleep(0.02)
-    latency_s = time.monotonic() - asked_s
-    thread.join()
-    state = get_job(db, job_id).state.value
-    db.dispose()
+    state, latency_s = cancel_during(db, settings, job_id, stage="trials", after_s=1.0)
     print(
         f"cancel 1 s into a sweep's first trial (heartbeat 0.5 s): {state} {latency_s:.2f} s "
         "after it was asked"
