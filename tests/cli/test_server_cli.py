@@ -405,7 +405,8 @@ def test_serve_answers_health_readiness_and_info(
         url,
         workers=0,
         admin_key=ADMIN_KEY,
-        env={"INVISIBLE_MAP_DATA_DIR": str(tmp_path / "var")},
+        # a key revoked by another process (the CLI) is refused within this bound
+        env={"INVISIBLE_MAP_DATA_DIR": str(tmp_path / "var"), "INVISIBLE_MAP_KEY_CACHE_S": "1"},
         log_path=tmp_path / "serve.log",
     )
     with server, httpx.Client(base_url=server.url, timeout=10.0) as client:
@@ -430,7 +431,12 @@ def test_serve_answers_health_readiness_and_info(
         assert as_device.json()["principal"]["role"] == "device"
         key_id = as_device.json()["principal"]["subject"].removeprefix("key:")
         assert run_main("keys", "revoke", key_id)[0] == 0
-        revoked = client.get("/v1/info", headers={"Authorization": f"Bearer {device_key}"})
+        revoked_at_s = time.monotonic()
+        while True:  # refused within INVISIBLE_MAP_KEY_CACHE_S (1 s; 2 s more for a slow machine)
+            revoked = client.get("/v1/info", headers={"Authorization": f"Bearer {device_key}"})
+            if revoked.status_code != 200 or time.monotonic() - revoked_at_s > 3.0:
+                break
+            time.sleep(0.05)
         assert revoked.status_code == 401
 
         assert server.stop() == 0
