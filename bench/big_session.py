@@ -73,15 +73,50 @@ def timed_request(
     """One request to the API, printed with its status, size, time and the API's memory growth."""
     peak_before = peak_mib(server.pid)
     started_s = time.monotonic()
-    answer = httpx.request(method, server.url + path, timeout=600, **kwargs)
+    with others_probed(server) as others_s:
+        answer = httpx.request(method, server.url + path, timeout=600, **kwargs)
     took_s = time.monotonic() - started_s
     peak_after = peak_mib(server.pid)
     print(
         f"{what}: {answer.status_code}, {len(answer.content) / 2**20:.2f} MiB in {took_s:.1f} s; "
         f"API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
-        f"(+{peak_after - peak_before:.0f} MiB)"
+        f"(+{peak_after - peak_before:.0f} MiB); {others(others_s)}"
     )
     return answer
+
+
+@contextmanager
+def others_probed(server: ServerProcess) -> Iterator[list[float]]:
+    """Another client's ``GET /v1/maps``, every 50 ms while the block runs (is anyone else kept
+    waiting by this request?): their latencies, s."""
+    latencies_s: list[float] = []
+    stop = threading.Event()
+    auth = {"Authorization": f"Bearer {server.admin_key}"}
+
+    def probe() -> None:
+        with httpx.Client(base_url=server.url, timeout=600, headers=auth) as client:
+            while not stop.is_set():
+                started_s = time.monotonic()
+                client.get("/v1/maps")
+                latencies_s.append(time.monotonic() - started_s)
+                stop.wait(0.05)
+
+    thread = threading.Thread(target=probe, daemon=True)
+    thread.start()
+    try:
+        yield latencies_s
+    finally:
+        stop.set()
+        thread.join()
+
+
+def others(latencies_s: list[float]) -> str:
+    if not latencies_s:
+        return "no other request meanwhile"
+    return (
+        f"another client's GET /v1/maps meanwhile: {len(latencies_s)} answered, the slowest in "
+        f"{max(latencies_s) * 1000:.0f} ms"
+    )
 
 
 def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> None:
@@ -140,13 +175,14 @@ def api_memory_growth(raw: bytes, folder: Path, *, refused: bytes | None) -> Non
             browser.get("/admin")  # warm: the templates
             peak_before = peak_mib(server.pid)
             started_s = time.monotonic()
-            page = browser.get(path, headers={"Accept-Encoding": "identity"})
+            with others_probed(server) as others_s:
+                page = browser.get(path, headers={"Accept-Encoding": "identity"})
             took_s = time.monotonic() - started_s
             peak_after = peak_mib(server.pid)
             print(
                 f"{what}: {page.status_code}, {len(page.content) / 2**20:.2f} MiB in "
                 f"{took_s:.1f} s; API peak memory {peak_before:.0f} → {peak_after:.0f} MiB "
-                f"(+{peak_after - peak_before:.0f} MiB)"
+                f"(+{peak_after - peak_before:.0f} MiB); {others(others_s)}"
             )
 
 
