@@ -106,6 +106,7 @@ def create_app(
     app.state.map_states = MapStates(app.state.settings.map_cache_s)
     app.state.map_pages = MapPages(app.state.settings.map_cache_s)
     app.state.version_cache = VersionCache(max_bytes=app.state.settings.version_cache_bytes)
+    app.state.hot_localizer_states = localization.HotStates()
     app.state.worker_pool = worker_pool
     install_error_handlers(app)
     app.add_middleware(

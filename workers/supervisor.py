@@ -56,14 +56,30 @@ def describe_exit(exitcode: int | None) -> str:
 
 
 @dataclass(slots=True)
-class _Slot:
-    """One of the N places a worker process fills."""
+class ProcessSlot:
+    """One of the N places a supervised process fills (a worker process here, an API process
+    in ``app.cli.api_processes``), with its restart back-off."""
 
-    number: int  #: worker-{number}
+    number: int  #: worker-{number}, api-{number}
     process: BaseProcess | None = None
     started_s: float = 0.0
     restart_at_s: float | None = None  # when the next process starts (after a death)
     backoff_s: float = FIRST_RESTART_S
+
+    def schedule_restart(self, now_s: float, lived_s: float) -> float:
+        """After this slot's process died, having lived ``lived_s``: when the next one starts.
+        The delay, s: :data:`FIRST_RESTART_S` after a life of :data:`STABLE_S` or more, else
+        doubled for each death in a row, up to :data:`MAX_RESTART_S`."""
+        if lived_s >= STABLE_S:
+            self.backoff_s = FIRST_RESTART_S
+        delay_s = self.backoff_s
+        self.restart_at_s = now_s + delay_s
+        self.backoff_s = min(2 * delay_s, MAX_RESTART_S)
+        return delay_s
+
+    def restart_due(self, now_s: float) -> bool:
+        """Whether a replacement is scheduled and its time has come."""
+        return self.process is None and self.restart_at_s is not None and now_s >= self.restart_at_s
 
 
 class WorkerSupervisor:
@@ -73,7 +89,7 @@ class WorkerSupervisor:
         if processes < 0:
             raise ValueError(f"processes must be at least 0, got {processes}")
         self.settings = settings
-        self._slots = [_Slot(number=k + 1) for k in range(processes)]
+        self._slots = [ProcessSlot(number=k + 1) for k in range(processes)]
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
@@ -187,25 +203,19 @@ class WorkerSupervisor:
             if proc is not None and not proc.is_alive():  # is_alive() reaps it (waitpid)
                 proc.join(0)
                 lived_s = now_s - slot.started_s
-                if lived_s >= STABLE_S:
-                    slot.backoff_s = FIRST_RESTART_S
                 self._end_leases_of(proc.pid)
+                with self._lock:
+                    slot.process = None
                 logger.error(
                     "worker process worker-%d (pid %s) %s after %.1f s; restarting it in %g s",
                     slot.number,
                     proc.pid,
                     describe_exit(proc.exitcode),
                     lived_s,
-                    slot.backoff_s,
+                    slot.schedule_restart(now_s, lived_s),
                     extra={"action": "worker_died", "job_id": None},
                 )
-                with self._lock:
-                    slot.process = None
-                slot.restart_at_s = now_s + slot.backoff_s
-                slot.backoff_s = min(2 * slot.backoff_s, MAX_RESTART_S)
-            if slot.process is None and slot.restart_at_s is not None:
-                if now_s < slot.restart_at_s or self._stopping.is_set():
-                    continue
+            if slot.restart_due(now_s) and not self._stopping.is_set():
                 (new,) = start_worker_processes(self.settings, 1, first_number=slot.number)
                 with self._lock:
                     slot.process, slot.started_s, slot.restart_at_s = new, now_s, None

@@ -36,14 +36,13 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from multiprocessing.connection import wait
 from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
 
 from app.config import Settings
 from app.services.system import WorkerPool
-from workers.supervisor import FIRST_RESTART_S, MAX_RESTART_S, STABLE_S, describe_exit
+from workers.supervisor import ProcessSlot, describe_exit
 
 if TYPE_CHECKING:
     import uvicorn
@@ -88,17 +87,6 @@ class WorkerPoolStatus:
         return int(self._values[2])
 
 
-@dataclass(slots=True)
-class _Slot:
-    """One of the N places an API process fills."""
-
-    number: int  #: api-{number}, and its X-Api-Process header
-    process: BaseProcess | None = None
-    started_s: float = 0.0
-    restart_at_s: float | None = None
-    backoff_s: float = FIRST_RESTART_S
-
-
 class ApiProcessSupervisor:
     """Starts ``processes`` API processes on ``listener`` and keeps that many alive."""
 
@@ -115,7 +103,7 @@ class ApiProcessSupervisor:
         self.settings = settings
         self.listener = listener
         self.worker_status = worker_status
-        self._slots = [_Slot(number=k + 1) for k in range(processes)]
+        self._slots = [ProcessSlot(number=k + 1) for k in range(processes)]
         self.restarts = 0
         #: Why serving cannot go on (an API process could not start), or None.
         self.failure: str | None = None
@@ -134,7 +122,7 @@ class ApiProcessSupervisor:
         for slot in self._slots:
             self._start(slot, time.monotonic())
 
-    def _start(self, slot: _Slot, now_s: float) -> BaseProcess:
+    def _start(self, slot: ProcessSlot, now_s: float) -> BaseProcess:
         context = multiprocessing.get_context("spawn")
         process = context.Process(
             target=api_process_main,
@@ -184,22 +172,16 @@ class ApiProcessSupervisor:
                     )
                     logger.error(self.failure, extra={"action": "api_process_failed"})
                     return
-                if lived_s >= STABLE_S:
-                    slot.backoff_s = FIRST_RESTART_S
                 logger.error(
                     "API process api-%d (pid %s) %s after %.1f s; restarting it in %g s",
                     slot.number,
                     process.pid,
                     describe_exit(process.exitcode),
                     lived_s,
-                    slot.backoff_s,
+                    slot.schedule_restart(now_s, lived_s),
                     extra={"action": "api_process_died"},
                 )
-                slot.restart_at_s = now_s + slot.backoff_s
-                slot.backoff_s = min(2 * slot.backoff_s, MAX_RESTART_S)
-            if slot.process is None and slot.restart_at_s is not None:
-                if now_s < slot.restart_at_s:
-                    continue
+            if slot.restart_due(now_s):
                 new = self._start(slot, now_s)
                 self.restarts += 1
                 logger.warning(

@@ -243,15 +243,7 @@ class HotStates:
             self._states.pop(localization_id, None)
 
 
-_hot_states_lock = threading.Lock()
-
-
 def hot_states(request: Request) -> HotStates:
-    """The app's :class:`HotStates`, made on first use."""
-    app_state = request.app.state
-    with _hot_states_lock:
-        states: HotStates | None = getattr(app_state, "hot_localizer_states", None)
-        if states is None:
-            states = HotStates()
-            app_state.hot_localizer_states = states
+    """The app's :class:`HotStates` (made by ``create_app``)."""
+    states: HotStates = request.app.state.hot_localizer_states
     return states
