@@ -58,6 +58,7 @@ from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.joint import JointMap, optimize_sessions
 from app.domain.joint_path_graph import build_joint_path_graph
+from app.domain.json_stream import gunzipped
 from app.domain.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.map_result import MapResult
 from app.domain.params import SlamParams
@@ -83,9 +84,9 @@ from app.storage.sessions import (
     AUTO_TUNE_TRIALS,
     BUILD_MAP,
     SESSION_IDS,
+    STORED_PIECE_BYTES,
     SessionNotFound,
-    raw_upload_gzip_size,
-    raw_upload_gzip_slice,
+    raw_upload_gzip_pieces,
 )
 from workers.failures import log_failure
 from workers.lease import JobControl
@@ -339,12 +340,6 @@ def tune(ctx: JobContext) -> None:
     )
 
 
-#: Bytes of a stored upload read from the database, and inflated, at once while it is parsed.
-STORED_CHUNK_BYTES = 1 << 20
-#: zlib's window bits for a gzip stream.
-GZIP_WBITS = 16 + zlib.MAX_WBITS
-
-
 def load_session_upload(db: Database, session_id: int) -> tuple[int, Session]:
     """A session's stored upload parsed as it is read from the database a piece at a time and
     inflated (``parse_session_stream``: never the whole JSON, nor its object graph, in memory);
@@ -352,13 +347,15 @@ def load_session_upload(db: Database, session_id: int) -> tuple[int, Session]:
     inflated: list[int] = []
     try:
         with db.read() as tx:
-            size = raw_upload_gzip_size(tx, session_id)
-            packed = (
-                raw_upload_gzip_slice(tx, session_id, offset, STORED_CHUNK_BYTES)
-                for offset in range(0, size, STORED_CHUNK_BYTES)
-            )
             session = parse_session_stream(
-                _inflated(packed, inflated),
+                _counted(
+                    gunzipped(
+                        raw_upload_gzip_pieces(tx, session_id, STORED_PIECE_BYTES),
+                        STORED_PIECE_BYTES,
+                        complete=True,
+                    ),
+                    inflated,
+                ),
                 max_poses=sys.maxsize,  # accepted once, within the limit there was then
                 source=f"stored upload of session {session_id}",
             )
@@ -371,27 +368,11 @@ def load_session_upload(db: Database, session_id: int) -> tuple[int, Session]:
     return sum(inflated), session
 
 
-def _inflated(packed: Iterable[bytes], inflated: list[int]) -> Iterator[bytes]:
-    """The inflated bytes of the gzip pieces ``packed`` (one or more members), at most
-    :data:`STORED_CHUNK_BYTES` at a time, each piece's length appended to ``inflated``;
-    EOFError if the last member is cut short (a parse of what came would blame the JSON)."""
-    inflater = zlib.decompressobj(GZIP_WBITS)
-    started = False
-    for chunk in packed:
-        pending = chunk
-        while pending:
-            started = True
-            out = inflater.decompress(pending, STORED_CHUNK_BYTES)
-            if out:
-                inflated.append(len(out))
-                yield out
-            if inflater.eof:  # another member may follow
-                pending, started = inflater.unused_data, False
-                inflater = zlib.decompressobj(GZIP_WBITS)
-            else:
-                pending = inflater.unconsumed_tail
-    if started and not inflater.eof:
-        raise EOFError("the stream is cut short")
+def _counted(pieces: Iterable[bytes], lengths: list[int]) -> Iterator[bytes]:
+    """``pieces``, each one's length appended to ``lengths`` as it passes."""
+    for piece in pieces:
+        lengths.append(len(piece))
+        yield piece
 
 
 def optimize(ctx: JobContext) -> None:

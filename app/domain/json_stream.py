@@ -201,18 +201,26 @@ class JsonStream:
             self._text += text
 
 
-def gunzipped(chunks: Iterable[bytes], max_chunk_bytes: int) -> Iterator[bytes]:
+def gunzipped(
+    chunks: Iterable[bytes], max_chunk_bytes: int, *, complete: bool = False
+) -> Iterator[bytes]:
     """The inflated bytes of gzip ``chunks`` (one or more members), at most ``max_chunk_bytes``
-    at a time (a stored upload read a piece at a time, for a download or a parse)."""
+    at a time (a stored upload read a piece at a time, for a download or a parse). With
+    ``complete``: EOFError if the last member is cut short (a parse of what came would blame
+    the JSON instead)."""
     inflater = zlib.decompressobj(_GZIP_WBITS)
+    started = False
     for chunk in chunks:
         pending = chunk
         while pending:
+            started = True
             out = inflater.decompress(pending, max_chunk_bytes)
             if out:
                 yield out
             if inflater.eof:  # another member may follow
-                pending = inflater.unused_data
+                pending, started = inflater.unused_data, False
                 inflater = zlib.decompressobj(_GZIP_WBITS)
             else:
                 pending = inflater.unconsumed_tail
+    if complete and started and not inflater.eof:
+        raise EOFError("the stream is cut short")

@@ -16,20 +16,16 @@ and rendered, and a bad one is a 422 naming the field instead of a 500 or a buil
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Iterable
 
 from sqlalchemy.orm import Session
 
 from app.domain.errors import SessionFormatError
-from app.domain.json_stream import gunzipped
 from app.domain.session import Session as ParsedSession
 from app.domain.session import parse_session_stream
 from app.storage import sessions
 from app.storage.sessions import MAX_MAP_NAME_LENGTH
 
-#: Bytes of a stored upload read from the database at once when it is parsed again.
-STORED_CHUNK_BYTES = 1 << 20
 #: The largest tag id the database stores (``map_tag.tag_id`` is a 32-bit integer).
 MAX_TAG_ID = 2**31 - 1
 
@@ -55,15 +51,7 @@ def stored_session(db_session: Session, session_id: int) -> ParsedSession:
     """A stored session parsed again (the dashboard's raw trajectory, detections per tag), read
     from the database a piece at a time and parsed as it is inflated, never held whole.
     Raises SessionNotFound."""
-    size = sessions.raw_upload_gzip_size(db_session, session_id)
-    packed = (
-        sessions.raw_upload_gzip_slice(db_session, session_id, offset, STORED_CHUNK_BYTES)
-        for offset in range(0, size, STORED_CHUNK_BYTES)
-    )
-    # accepted once, so within any limit there was then: no limit now
-    return parse_session_stream(
-        gunzipped(packed, STORED_CHUNK_BYTES), max_poses=sys.maxsize, source=f"session {session_id}"
-    )
+    return sessions.parsed_upload(db_session, session_id)
 
 
 def check_text(field: str, value: str) -> None:

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import gzip
 import json
-import sys
-from collections.abc import Iterator
 
 from sqlalchemy.orm import Session
 
@@ -23,16 +21,11 @@ from app.domain.derived_documents import (
     app_map_of,
     overview_document,
 )
-from app.domain.json_stream import gunzipped
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import path_graph_from_json
 from app.domain.session import Session as ParsedSession
-from app.domain.session import parse_session_stream
 from app.storage import blobs, maps, sessions
 from app.storage.orm import MapRow, MapVersion
-
-#: Bytes of a stored upload read at once while it is parsed again.
-STORED_CHUNK_BYTES = 1 << 20
 
 
 def add_derived_documents(db_session: Session, version_id: int) -> None:
@@ -75,19 +68,9 @@ def add_derived_documents(db_session: Session, version_id: int) -> None:
 def _stored_session(db_session: Session, session_id: int) -> ParsedSession | None:
     """The session's stored upload parsed as it is read a piece at a time; None without one."""
     try:
-        size = sessions.raw_upload_gzip_size(db_session, session_id)
+        return sessions.parsed_upload(db_session, session_id)
     except sessions.SessionNotFound:
         return None
-
-    def pieces() -> Iterator[bytes]:
-        for offset in range(0, size, STORED_CHUNK_BYTES):
-            yield sessions.raw_upload_gzip_slice(db_session, session_id, offset, STORED_CHUNK_BYTES)
-
-    return parse_session_stream(
-        gunzipped(pieces(), STORED_CHUNK_BYTES),
-        max_poses=sys.maxsize,  # accepted once, within the limit there was then
-        source=f"session {session_id}",
-    )
 
 
 def _gzip(data: bytes) -> bytes:

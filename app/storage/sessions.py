@@ -24,6 +24,8 @@ import gzip
 import hashlib
 import sqlite3
 import struct
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -31,7 +33,9 @@ from sqlalchemy import ColumnElement, LargeBinary, and_, func, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from app.domain.json_stream import gunzipped
 from app.domain.session import Session as ParsedSession
+from app.domain.session import parse_session_stream
 from app.storage import maps, queue
 from app.storage.orm import Job, MapRow, MapSession, SessionRow, SessionUpload, utc_now
 from app.storage.rows import info_from_row
@@ -430,6 +434,32 @@ def raw_upload_gzip_size(db_session: Session, session_id: int) -> int:
     if size is None:
         raise SessionNotFound(session_id)
     return int(size)
+
+
+#: Bytes of a stored upload read from the database, and inflated, at once.
+STORED_PIECE_BYTES = 1 << 20
+
+
+def raw_upload_gzip_pieces(
+    db_session: Session, session_id: int, piece_bytes: int = STORED_PIECE_BYTES
+) -> Iterator[bytes]:
+    """The stored upload (:func:`raw_upload_gzip`) read ``piece_bytes`` at a time
+    (:func:`raw_upload_gzip_slice`), never whole. Raises SessionNotFound at once."""
+    size = raw_upload_gzip_size(db_session, session_id)
+    return (
+        raw_upload_gzip_slice(db_session, session_id, offset, piece_bytes)
+        for offset in range(0, size, piece_bytes)
+    )
+
+
+def parsed_upload(db_session: Session, session_id: int) -> ParsedSession:
+    """A stored session parsed again, read a piece at a time and parsed as it is inflated,
+    never held whole. Raises SessionNotFound."""
+    return parse_session_stream(
+        gunzipped(raw_upload_gzip_pieces(db_session, session_id), STORED_PIECE_BYTES),
+        max_poses=sys.maxsize,  # accepted once, within the limit there was then
+        source=f"session {session_id}",
+    )
 
 
 def raw_upload_gzip_slice(db_session: Session, session_id: int, offset: int, size: int) -> bytes:

@@ -220,7 +220,7 @@ def test_the_stored_upload_is_parsed_as_it_streams_never_whole(
 
     monkeypatch.setattr(sessions, "raw_upload", whole_file)
     monkeypatch.setattr(sessions, "raw_upload_gzip", whole_file)
-    monkeypatch.setattr(pipeline, "STORED_CHUNK_BYTES", 1000)
+    monkeypatch.setattr(pipeline, "STORED_PIECE_BYTES", 1000)
     assert worker_with(db).run_once()
     job = get_job(db, inserted.job_id)
     assert job.state == JobState.SUCCEEDED, job.error
