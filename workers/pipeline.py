@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-import gzip
 import json
 import logging
 import math
@@ -48,12 +47,7 @@ from typing import Any, TypeVar
 
 from sqlalchemy.exc import DataError
 
-from app.domain.derived_documents import (
-    APP_MAP_EXPORT,
-    DERIVED_GZIP_LEVEL,
-    app_map_of,
-    overview_document,
-)
+from app.domain.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation import Evaluation, evaluate_map
 from app.domain.joint import JointMap, optimize_sessions
@@ -520,20 +514,15 @@ def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.Derived
         if ctx.path_graph is None
         else path_graph_from_json(json.loads(json.dumps(ctx.path_graph, allow_nan=False)))
     )
-    app_map = app_map_of(stored, graph)
-    overview = overview_document(
+    app_map_gzip, overview_gzip = packed_documents(
         stored,
         ctx.session if ctx.joint is None else None,
         graph,
         sessions=_session_contributions(ctx) or [],
     )
-    overview_json = json.dumps(overview, separators=(",", ":"), allow_nan=False).encode()
-    derived = maps.DerivedDocuments(
-        app_map_gzip=gzip.compress(app_map, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
-        app_map_export=APP_MAP_EXPORT,
-        overview_gzip=gzip.compress(overview_json, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+    return maps.DerivedDocuments(
+        app_map_gzip=app_map_gzip, app_map_export=APP_MAP_EXPORT, overview_gzip=overview_gzip
     )
-    return derived
 
 
 def store(ctx: JobContext) -> None:

@@ -7,6 +7,7 @@ process and request.
     app_map = app_map_of(map_from_json(document), path_graph)  # the same, read back already
     overview = overview_document(result, raw_session, path_graph, sessions=contributions)
     figure = figure_of_overview(overview)                      # None: another format
+    app_map_gz, overview_gz = packed_documents(result, raw_session, path_graph, sessions=…)
 
 Each has a format number stored with it: a version whose stored file was made by another
 export is served by building the file again, as before the files were stored.
@@ -14,6 +15,7 @@ export is served by building the file again, as before the files were stored.
 
 from __future__ import annotations
 
+import gzip
 import json
 from collections.abc import Sequence
 from typing import Any
@@ -75,6 +77,24 @@ def overview_document(
         session_names=[f"Session {c['session_id']}" for c in sessions],
     )
     return {"format": OVERVIEW_FORMAT, "figure": figure}
+
+
+def packed_documents(
+    result: MapResult,
+    raw_session: Session | None,
+    path_graph: PathGraph | None,
+    *,
+    sessions: Sequence[dict[str, Any]] = (),
+) -> tuple[bytes, bytes]:
+    """The app-map (:func:`app_map_of`) and the overview (:func:`overview_document`, compact
+    JSON) as stored: each gzip at :data:`DERIVED_GZIP_LEVEL` with no timestamp, so that the same
+    version always gives the same bytes (the worker's and a backup import's blobs agree)."""
+    overview = overview_document(result, raw_session, path_graph, sessions=sessions)
+    overview_json = json.dumps(overview, separators=(",", ":"), allow_nan=False).encode()
+    return (
+        gzip.compress(app_map_of(result, path_graph), compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+        gzip.compress(overview_json, compresslevel=DERIVED_GZIP_LEVEL, mtime=0),
+    )
 
 
 def figure_of_overview(overview: Any) -> dict[str, Any] | None:

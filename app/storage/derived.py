@@ -15,12 +15,7 @@ import json
 
 from sqlalchemy.orm import Session
 
-from app.domain.derived_documents import (
-    APP_MAP_EXPORT,
-    DERIVED_GZIP_LEVEL,
-    app_map_of,
-    overview_document,
-)
+from app.domain.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.map_io import map_from_json
 from app.domain.path_graph import path_graph_from_json
 from app.domain.session import Session as ParsedSession
@@ -53,15 +48,10 @@ def add_derived_documents(db_session: Session, version_id: int) -> None:
         map_row = db_session.get(MapRow, row.map_id)
         session_ids = list(row.session_ids or ([map_row.session_id] if map_row else []))
         raw = _stored_session(db_session, session_ids[0]) if session_ids else None
-    app_map = app_map_of(stored, graph)
-    overview = json.dumps(
-        overview_document(stored, raw, graph, sessions=contributions),
-        separators=(",", ":"),
-        allow_nan=False,
-    ).encode()
-    row.app_map_sha256 = blobs.put_blob_in(db_session, _gzip(app_map))
+    app_map_gzip, overview_gzip = packed_documents(stored, raw, graph, sessions=contributions)
+    row.app_map_sha256 = blobs.put_blob_in(db_session, app_map_gzip)
     row.app_map_export = APP_MAP_EXPORT
-    row.overview_sha256 = blobs.put_blob_in(db_session, _gzip(overview))
+    row.overview_sha256 = blobs.put_blob_in(db_session, overview_gzip)
     db_session.flush()
 
 
@@ -71,7 +61,3 @@ def _stored_session(db_session: Session, session_id: int) -> ParsedSession | Non
         return sessions.parsed_upload(db_session, session_id)
     except sessions.SessionNotFound:
         return None
-
-
-def _gzip(data: bytes) -> bytes:
-    return gzip.compress(data, compresslevel=DERIVED_GZIP_LEVEL, mtime=0)
