@@ -21,12 +21,13 @@ Design decisions:
   node, the arrival step says where it is ("arrive at Room 209, 2 m to your left"). A position is
   joined to the graph at the nearest point on a walk edge of its floor (the floor whose height is
   nearest, then the nearest edge in x–z), so the route starts where the person is, not at a node.
-- **Shortest path.** networkx's bidirectional Dijkstra on ``length_m``, with a weight function that
-  hides the avoided kinds (no copy of the graph per query). A position on an edge is handled without
-  adding nodes to the shared graph: the search starts from the nearer end ``s`` of the edge with all
-  costs shifted by the distance to it, and the edge itself costs ``L − 2·d(P, s)`` (≥ 0), which
-  is exactly the shifted cost of leaving through the far end; the same holds at the goal. Start and
-  goal on the same edge go straight along it.
+- **Shortest path.** networkx's bidirectional Dijkstra on ``length_m``, step for step over each
+  node's neighbours listed once per graph (:mod:`app.domain.shortest_path`: the same path on
+  equal-length alternatives), the avoided kinds hidden (no copy of the graph per query). A position
+  on an edge is handled without adding nodes to the shared graph: the search starts from the
+  nearer end ``s`` of the edge with all costs shifted by the distance to it, and the edge itself
+  costs ``L − 2·d(P, s)`` (≥ 0), which is exactly the shifted cost of leaving through the far end;
+  the same holds at the goal. Start and goal on the same edge go straight along it.
 - **The polyline** is the path as walked: graph node positions plus the snapped start and goal, and
   ``length_m`` is the sum of its segment lengths (3-D, m).
 - **Steps** are computed on a simplified copy of each walked stretch (Douglas–Peucker in x–z,
@@ -56,7 +57,7 @@ import math
 import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, TypeAlias
+from typing import Literal, TypeAlias
 
 import networkx as nx
 import numpy as np
@@ -65,6 +66,7 @@ import numpy.typing as npt
 from app.domain.errors import InvisibleMapError
 from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker
+from app.domain.shortest_path import Neighbours, bidirectional_dijkstra, neighbour_lists
 
 Point3: TypeAlias = tuple[float, float, float]
 FloatArray: TypeAlias = npt.NDArray[np.float64]
@@ -410,8 +412,9 @@ def _find_poi(pg: PathGraph, name: str) -> Anchor:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class _EdgeIndex:
-    """Walk edges and nodes as arrays, for snapping positions, and each node's position and floor
-    as Python values, for the polyline of a route (built once per graph)."""
+    """Walk edges and nodes as arrays, for snapping positions; each node's position and floor as
+    Python values, for the polyline of a route; each node's neighbours, for the search (built once
+    per graph)."""
 
     graph: nx.Graph[int]
     n_nodes: int
@@ -429,6 +432,8 @@ class _EdgeIndex:
     point_of_node: dict[int, Point3]  # node → position_m as floats, map frame
     floor_of_node: dict[int, int]  # node → floor
     junctions: frozenset[int]  # nodes of kind "junction"
+    neighbours: Neighbours  # for the search (:func:`app.domain.shortest_path.neighbour_lists`)
+    kind_between: dict[int, dict[int, str]]  # node → {neighbour → the edge's kind}
 
 
 _INDEX_CACHE: dict[int, _EdgeIndex] = {}
@@ -486,6 +491,10 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
         point_of_node={n: _point(d["position_m"]) for n, d in nodes},
         floor_of_node={n: int(d["floor"]) for n, d in nodes},
         junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
+        neighbours=neighbour_lists(G),
+        kind_between={
+            v: {w: str(d["kind"]) for w, d in around.items()} for v, around in G.adjacency()
+        },
         n_nodes=G.number_of_nodes(),
         n_neighbours=_neighbour_count(G),
         edge_u=node_ids[rows_u],
@@ -571,24 +580,19 @@ def _shortest_walk(
         if a.position_m == b.position_m:
             return [a.position_m], [a.floor], [], []
         return [a.position_m, b.position_m], [a.floor, b.floor], [WALK], []
-    source, source_edge, source_cost = _search_end(G, a)
-    target, target_edge, target_cost = _search_end(G, b)
-
-    def weight(_u: int, _v: int, data: dict[str, Any]) -> float | None:
-        if data["kind"] in avoid:
-            return None
-        if data is source_edge:
-            return source_cost
-        if data is target_edge:
-            return target_cost
-        return float(data["length_m"])
-
-    try:
-        _, path = nx.bidirectional_dijkstra(G, source, target, weight=weight)
-    except nx.NetworkXNoPath:
+    source, source_edge = _search_end(G, a)
+    target, target_edge = _search_end(G, b)
+    changed_costs: dict[int, dict[int, float]] = {}
+    for changed in (source_edge, target_edge):  # two different edges (one is handled above)
+        if changed is not None:
+            u, v, cost = changed
+            changed_costs.setdefault(u, {})[v] = cost
+            changed_costs.setdefault(v, {})[u] = cost
+    nodes = bidirectional_dijkstra(
+        index.neighbours, source, target, avoid=avoid, changed_costs=changed_costs
+    )
+    if nodes is None:
         return None
-
-    nodes = list(path)
     points: list[Point3] = []
     floors: list[int] = []
     kinds: list[str] = []
@@ -600,13 +604,13 @@ def _shortest_walk(
         kinds.append(WALK)
     if b.edge is not None and len(nodes) > 1 and set(nodes[-2:]) == set(b.edge):
         nodes = nodes[:-1]  # came in by the far end
-    adjacency = G.adj
     point_of_node, floor_of_node = index.point_of_node, index.floor_of_node
+    kind_between = index.kind_between
     for i, n in enumerate(nodes):
         points.append(point_of_node[n])
         floors.append(floor_of_node[n])
         if i > 0:
-            kinds.append(str(adjacency[nodes[i - 1]][n]["kind"]))
+            kinds.append(kind_between[nodes[i - 1]][n])
     if b.edge is not None:
         points.append(b.position_m)
         floors.append(b.floor)
@@ -614,16 +618,15 @@ def _shortest_walk(
     return points, floors, kinds, nodes
 
 
-def _search_end(G: nx.Graph[int], end: _Terminal) -> tuple[int, dict[str, Any] | None, float]:
-    """(node to search from/to, the edge whose weight is changed, its changed weight)."""
+def _search_end(G: nx.Graph[int], end: _Terminal) -> tuple[int, tuple[int, int, float] | None]:
+    """(node to search from/to, (u, v, changed cost) of the edge the end is on, if it is on one)."""
     if end.edge is None:
         assert end.node is not None
-        return end.node, None, 0.0
+        return end.node, None
     u, v = end.edge
-    data = G.edges[u, v]
-    length = float(data["length_m"])
+    length = float(G.edges[u, v]["length_m"])
     near, to_near = (u, end.along_m) if end.along_m <= length / 2 else (v, length - end.along_m)
-    return near, data, max(length - 2.0 * to_near, 0.0)
+    return near, (u, v, max(length - 2.0 * to_near, 0.0))
 
 
 def _unreachable(
