@@ -70,15 +70,19 @@ class ServerTimeouts:
         )
 
 
-#: PostgreSQL connections one process pools: kept, and more under load.
-POOL_CONNECTIONS = (10, 20)
+#: PostgreSQL connections one API process may hold (opened as needed, then kept).
+POOL_CONNECTIONS = 30
 #: The same for the localization updates' pool (``Database.autocommit(durable=False)``).
-ASYNC_COMMIT_CONNECTIONS = (5, 10)
+ASYNC_COMMIT_CONNECTIONS = 15
+#: SQLite connections each of a process's two engines (writes, reads) may hold, opened as needed
+#: and kept. A connection is cheap to keep, dear to open: its PRAGMAs, then the schema parsed on
+#: its first statement.
+SQLITE_POOL_CONNECTIONS = 30
 
 
 def _shared(connections: int, share: int) -> int:
-    """``connections`` over ``share`` processes, at least 2 each."""
-    return max(2, connections // max(1, share))
+    """``connections`` over ``share`` processes, at least 4 each."""
+    return max(4, connections // max(1, share))
 
 
 class Database:
@@ -111,8 +115,10 @@ class Database:
                 url,
                 echo=echo,
                 pool_pre_ping=True,
-                pool_size=_shared(POOL_CONNECTIONS[0], pool_share),
-                max_overflow=_shared(POOL_CONNECTIONS[1], pool_share),
+                # Every connection opened is kept (no overflow): under load a pool that closes
+                # what it opened beyond its size opens a new server process per request.
+                pool_size=_shared(POOL_CONNECTIONS, pool_share),
+                max_overflow=0,
                 connect_args=connect_args,
             )
             self.read_engine = self.engine
@@ -167,8 +173,8 @@ class Database:
                 self._async_commit_engine = create_engine(
                     self.url,
                     pool_pre_ping=True,
-                    pool_size=_shared(ASYNC_COMMIT_CONNECTIONS[0], self._pool_share),
-                    max_overflow=_shared(ASYNC_COMMIT_CONNECTIONS[1], self._pool_share),
+                    pool_size=_shared(ASYNC_COMMIT_CONNECTIONS, self._pool_share),
+                    max_overflow=0,
                     connect_args={"options": f"{options} -c synchronous_commit=off".strip()},
                 )
             return self._async_commit_engine
@@ -294,7 +300,13 @@ def _ensure_sqlite_folder(database: str | None) -> None:
 
 
 def _sqlite_engine(url: str, *, echo: bool, begin: str) -> Engine:
-    engine = create_engine(url, echo=echo, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000})
+    engine = create_engine(
+        url,
+        echo=echo,
+        pool_size=SQLITE_POOL_CONNECTIONS,
+        max_overflow=0,
+        connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
+    )
 
     @event.listens_for(engine, "connect")
     def _on_connect(dbapi_connection: Any, _record: Any) -> None:
