@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Connection, Text, bindparam, case, cast, select, type_coerce, update
-from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy import Connection, select, update
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from app.storage.maps import MapNotFound, version_bytes
@@ -173,43 +173,73 @@ def _info(db_session: Session, row: Localization) -> LocalizationInfo:
     )
 
 
-# The update path's statements, built once (only their parameters change).
-_STATE_TEXT = cast(Localization.state, Text)
-_READ_STATE = select(
-    Localization.created_by, Localization.map_version_id, Localization.revision, _STATE_TEXT
-).where(Localization.id == bindparam("localization_id"))
-_READ_STATE_UNLESS = select(
-    Localization.created_by,
-    Localization.map_version_id,
-    Localization.revision,
-    case((Localization.revision == bindparam("known_revision"), None), else_=_STATE_TEXT),
-).where(Localization.id == bindparam("localization_id"))
-_EXISTS = select(Localization.id).where(Localization.id == bindparam("localization_id"))
+# The update path's two statements, as SQL text run on the driver's own cursor: SQLAlchemy's
+# statement execution costs several times what SQLite or PostgreSQL spend on a one-row
+# statement (0.30 → 0.07 ms of CPU for the pair, measured). Named parameters in each driver's
+# style: sqlite3 ``:name``, psycopg ``%(name)s``.
+_READ_STATE_SQL = (
+    "SELECT created_by, map_version_id, revision, {state} FROM localization WHERE id = {id}"
+)
+_STATE_UNLESS_SQL = "CASE WHEN revision = {known} THEN NULL ELSE CAST(state AS TEXT) END"
+_WRITE_STATE_SQL = (
+    "UPDATE localization SET revision = revision + 1, status = {status}, state = {state}, "
+    "update_count = update_count + 1, updated_at = {updated_at} "
+    "WHERE id = {id} AND revision = {expected_revision}"
+)
+_EXISTS_SQL = "SELECT id FROM localization WHERE id = {id}"
 
 
-def _write_state_statement(state_value: Any) -> Any:
-    return (
-        update(Localization)
-        .where(
-            Localization.id == bindparam("localization_id"),
-            Localization.revision == bindparam("expected_revision"),
-        )
-        .values(
-            revision=Localization.revision + 1,
-            status=bindparam("status"),
-            state=state_value,
-            update_count=Localization.update_count + 1,
-            updated_at=bindparam("updated_at"),
-        )
-    )
+def _driver_sql(template: str, dialect: str, **fragments: str) -> str:
+    names = ("id", "known", "status", "state", "updated_at", "expected_revision")
+    style = ":{}" if dialect == "sqlite" else "%({})s"
+    values = {name: style.format(name) for name in names}
+    values.update({name: fragment.format(**values) for name, fragment in fragments.items()})
+    return template.format(**values)
 
 
-_STATE_JSON = type_coerce(bindparam("state_json"), Text)
-#: SQLite keeps JSON as text; PostgreSQL's jsonb is parsed from it.
-_WRITE_STATE = {
-    "sqlite": _write_state_statement(_STATE_JSON),
-    "postgresql": _write_state_statement(cast(_STATE_JSON, JSONB)),
-}
+def _statements(dialect: str) -> dict[str, str]:
+    # SQLite keeps JSON as text; PostgreSQL's jsonb is parsed from it.
+    state = ":state" if dialect == "sqlite" else "CAST(%(state)s AS jsonb)"
+    return {
+        "read": _driver_sql(_READ_STATE_SQL, dialect, state="CAST(state AS TEXT)"),
+        "read_unless": _driver_sql(_READ_STATE_SQL, dialect, state=_STATE_UNLESS_SQL),
+        "write": _driver_sql(_WRITE_STATE_SQL, dialect, state=state),
+        "exists": _driver_sql(_EXISTS_SQL, dialect),
+    }
+
+
+_STATEMENTS = {dialect: _statements(dialect) for dialect in ("sqlite", "postgresql")}
+
+
+def _run(connection: Connection, name: str, parameters: dict[str, Any]) -> Any:
+    """Run statement ``name`` on ``connection``'s driver cursor; the cursor, executed. Driver
+    errors are raised as SQLAlchemy's (``DBAPIError``: the API's 503s), and a connection the
+    server dropped is invalidated, as ``Connection.execute`` would."""
+    statement = _STATEMENTS[connection.dialect.name][name]
+    dbapi_connection = connection.connection
+    cursor = dbapi_connection.cursor()
+    try:
+        cursor.execute(statement, parameters)
+    except connection.dialect.loaded_dbapi.Error as err:
+        disconnected = connection.dialect.is_disconnect(err, dbapi_connection, cursor)
+        cursor.close()
+        if disconnected:
+            connection.invalidate(err)
+        raise DBAPIError.instance(
+            statement,
+            parameters,
+            err,
+            connection.dialect.loaded_dbapi.Error,
+            connection_invalidated=disconnected,
+            dialect=connection.dialect,
+        ) from err
+    return cursor
+
+
+def _stored_time(connection: Connection, value: datetime) -> Any:
+    """``value`` as the ``updated_at`` column's type stores it on this connection's database."""
+    process = Localization.__table__.c.updated_at.type.bind_processor(connection.dialect)
+    return value if process is None else process(value)
 
 
 def read_state(
@@ -219,13 +249,11 @@ def read_state(
     as JSON text (left out, None, if the revision is ``unless_revision``: the caller has that
     state already). Raises :class:`LocalizationNotFound`."""
     if unless_revision is None:
-        result = connection.execute(_READ_STATE, {"localization_id": localization_id})
+        cursor = _run(connection, "read", {"id": localization_id})
     else:
-        result = connection.execute(
-            _READ_STATE_UNLESS,
-            {"localization_id": localization_id, "known_revision": unless_revision},
-        )
-    row = result.one_or_none()
+        cursor = _run(connection, "read_unless", {"id": localization_id, "known": unless_revision})
+    row = cursor.fetchone()
+    cursor.close()
     if row is None:
         raise LocalizationNotFound(localization_id)
     created_by, map_version_id, revision, state_json = row
@@ -250,18 +278,24 @@ def write_state(
     (the whole ``state`` column as JSON text) as revision ``expected_revision + 1``, which it
     returns. Raises :class:`LocalizationConflict` if the session is at another revision now
     (:class:`LocalizationNotFound` if it is gone); then nothing is written."""
-    updated = connection.execute(
-        _WRITE_STATE[connection.dialect.name],
+    cursor = _run(
+        connection,
+        "write",
         {
-            "localization_id": localization_id,
+            "id": localization_id,
             "expected_revision": expected_revision,
             "status": status,
-            "state_json": state_json,
-            "updated_at": utc_now(),
+            "state": state_json,
+            "updated_at": _stored_time(connection, utc_now()),
         },
-    ).rowcount
+    )
+    updated = cursor.rowcount
+    cursor.close()
     if updated != 1:
-        if connection.scalar(_EXISTS, {"localization_id": localization_id}) is None:
+        exists = _run(connection, "exists", {"id": localization_id})
+        found = exists.fetchone()
+        exists.close()
+        if found is None:
             raise LocalizationNotFound(localization_id)
         raise LocalizationConflict(localization_id)
     return expected_revision + 1
