@@ -134,24 +134,28 @@ bearer_scheme = HTTPBearer(
 BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 
 
-async def current_principal(
-    request: Request, credentials: BearerDep, settings: SettingsDep, db: DbDep
-) -> keys.Principal:
+async def current_principal(request: Request, credentials: BearerDep) -> keys.Principal:
     """Who is calling: 401 without a valid key. A key this process checked within
     ``INVISIBLE_MAP_KEY_CACHE_S`` is known from memory, on the event loop; otherwise it is read
     on a thread, in its own short transaction (no connection is held while an upload's body
-    streams in)."""
+    streams in).
+
+    Every ``/v1`` request solves this dependency, so it takes the settings and the database from
+    the app's state itself rather than through ``SettingsDep`` and ``DbDep``: each dependency
+    FastAPI solves costs the request CPU on the event loop."""
     if credentials is None:
         raise unauthorized("missing API key: send Authorization: Bearer <key>")
-    principals: PrincipalCache = request.app.state.principals
+    state = request.app.state
+    principals: PrincipalCache = state.principals
     principal = principals.cached(credentials.credentials)
+    db: Database = state.db
     if principal is None:
         principal = await run_in_threadpool(
-            _authenticate, db, principals, credentials.credentials, settings.admin_key
+            _authenticate, db, principals, credentials.credentials, state.settings.admin_key
         )
     if principal is None:
         raise unauthorized("unknown, revoked or expired API key", invalid_token=True)
-    usage: KeyUsage = request.app.state.key_usage
+    usage: KeyUsage = state.key_usage
     if principal.key_id is not None and usage.due(principal.key_id):
         await run_in_threadpool(_touch, db, principal.key_id)
     return principal
@@ -194,16 +198,17 @@ AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
 # (app.api.route_class says why that must not happen).
 
 
-async def valid_map_state(map_id: int, request: Request, db: DbDep) -> MapState:
+async def valid_map_state(map_id: int, request: Request) -> MapState:
     """The map ``map_id`` with its current version and newest job, or 404: from this process's
     memory when it is fresh (``app.services.maps.MapStates``, on the event loop), else read on a
-    thread."""
+    thread. (The database from the app's state, not ``DbDep``: one dependency less to solve on
+    the hot read path.)"""
     if not 1 <= map_id <= MAX_ID:
         raise not_found(f"map {map_id}")
     states: MapStates = request.app.state.map_states
     state = states.fresh(map_id)
     if state is None:
-        state = await run_in_threadpool(states.load, db, map_id)
+        state = await run_in_threadpool(states.load, request.app.state.db, map_id)
     return state
 
 

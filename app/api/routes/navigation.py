@@ -99,16 +99,12 @@ def list_pois(
         },
     ),
 )
-async def plan(
-    state: MapStateDep,
-    body: RouteRequest,
-    request: Request,
-    db: DbDep,
-) -> Response:
+async def plan(state: MapStateDep, body: RouteRequest, request: Request) -> Response:
     version = current_version(state)
     cache: VersionCache = request.app.state.version_cache
     graph = kept_path_graph(cache, version)
     if graph is None:
+        db: Database = request.app.state.db
         graph = await run_in_threadpool(_read_path_graph, cache, db, version)
     route = planned_route(
         graph,
