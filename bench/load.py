@@ -115,7 +115,7 @@ REPLAYS: dict[str, list[str]] = {
 
 #: How often a phone polls its upload's job, s (as the app does).
 JOB_POLL_S = 1.0
-#: An uploader's walk between uploads, s (uniform).
+#: An uploader's walk between uploads, s (uniform; ``--walk-s``).
 WALK_S = (1.0, 3.0)
 #: Attempts of one upload (the same Idempotency-Key) when it gets no answer.
 UPLOAD_ATTEMPTS = 3
@@ -191,6 +191,7 @@ class Plan:
     start_at: float  # time.time() at which the window opens (set by ``generate``)
     duration_s: float
     pace_s: float
+    walk_s: tuple[float, float]
     wait_for_map: bool
     timeout_s: float
     phones: list[Phone]
@@ -291,7 +292,7 @@ class Load:
                 await self.sleep(1.0)
             if accepted is not None and self.plan.wait_for_map:
                 await self._watch_job(http, accepted)
-            await self.sleep(rng.uniform(*WALK_S))
+            await self.sleep(rng.uniform(*self.plan.walk_s))
 
     async def _watch_job(self, http: httpx.AsyncClient, accepted: Accepted) -> None:
         """Poll the job once a second until it ends (or the window closes); download the map
@@ -735,6 +736,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
                 start_at=0.0,
                 duration_s=args.duration_s,
                 pace_s=args.pace_s,
+                walk_s=tuple(args.walk_s),
                 wait_for_map=not args.no_wait,
                 timeout_s=args.timeout_s,
                 phones=dealt[k::processes],
@@ -908,10 +910,12 @@ def totals_table(outcome: Outcome, args: argparse.Namespace) -> str:
 
 
 def report(outcome: Outcome, args: argparse.Namespace) -> str:
+    low_s, high_s = args.walk_s
+    walk = f"walk {low_s:g}–{high_s:g} s"
     uploaders = (
-        "upload, poll the job once a second until the map is built, download it, walk 1–3 s"
+        f"upload, poll the job once a second until the map is built, download it, {walk}"
         if not args.no_wait
-        else "upload, walk 1–3 s (without waiting for the map)"
+        else f"upload, {walk} (without waiting for the map)"
     )
     pace = f"once every {args.pace_s:g} s" if args.pace_s > 0 else "back to back"
     lines = [
@@ -964,6 +968,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="a navigator's request period, s; 0: back to back (1)",
     )
     parser.add_argument(
+        "--walk-s",
+        type=float,
+        nargs=2,
+        metavar=("LOW", "HIGH"),
+        default=list(WALK_S),
+        help="an uploader's walk between one map and its next upload, s, uniform (1 3; a real "
+        "mapping walk takes minutes)",
+    )
+    parser.add_argument(
         "--no-wait",
         action="store_true",
         help="uploaders do not wait for their map between uploads (the queue grows)",
@@ -991,6 +1004,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.uploaders < 0 or args.navigators < 0 or args.uploaders + args.navigators == 0:
         parser.error("--uploaders and --navigators must be ≥ 0, and not both 0")
+    if not 0 <= args.walk_s[0] <= args.walk_s[1]:
+        parser.error("--walk-s LOW HIGH needs 0 ≤ LOW ≤ HIGH")
 
     backends = ["sqlite"] if args.sqlite else ["postgresql"] if args.postgres else []
     backends = backends or ["sqlite", "postgresql"]
