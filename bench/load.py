@@ -16,8 +16,10 @@ key through ``POST /v1/keys``, and its own HTTP connection):
   (chosen at random; half of the uploads gzip-compressed; a new ``Idempotency-Key`` for each
   upload, the same one for its retries after a timeout or a broken connection, as the app does),
   watches its job once a second (``GET /v1/jobs/{id}``) until the map is built, downloads the map
-  (``GET /v1/maps/{id}/app-map``), then walks again for 1–3 s (a real walk takes minutes: this
-  population uploads far more often than any building would) and uploads its next session. Each
+  (``GET /v1/maps/{id}/app-map``), then walks again for 1–3 s (``--walk-s``; a real walk takes
+  minutes: this population uploads far more often than any building would) and uploads its
+  next session. The window opens with each uploader somewhere along a walk (its first upload
+  comes uniformly within the longest walk), not with all of them uploading at once. Each
   uploader has at most one job in the queue, so the queue stays bounded (≤ ``--uploaders``) and
   the upload rate is whatever the 2 workers sustain. With ``--no-wait`` an uploader does not wait
   for its map, only walks 1–3 s between uploads: the queue then grows during the window (the
@@ -257,6 +259,8 @@ class Load:
     async def uploader(self, http: httpx.AsyncClient, phone: Phone) -> None:
         rng = random.Random(f"{self.plan.run_id}-{phone.index}")
         uploads = 0
+        # The window opens with each phone somewhere along its walk, not all at its end.
+        await self.sleep(rng.uniform(0, self.plan.walk_s[1]))
         while self.open():
             raw, compressed = rng.choice(self.upload_bodies)
             gzipped = rng.random() < 0.5
