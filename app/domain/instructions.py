@@ -44,14 +44,16 @@ from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
 from app.domain.path_graph import STAIRS, WALK, PathGraph
 from app.domain.routing import (
+    ROUNDED_DECIMALS,
     Endpoint,
     NodeEnd,
     PoiEnd,
+    Point3,
     PositionEnd,
     Route,
     Step,
     TagEnd,
-    node_points_and_junctions,
+    node_lookups,
     plan_walk,
     search_pois,
     signed_turn_deg,
@@ -167,8 +169,9 @@ def guidance_steps(
 ) -> list[Step]:
     """The spoken steps of ``route`` (see the module docstring)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    kinds, junction = _segment_kinds(pg, xyz, route.nodes)
-    floors = _point_floors(pg, xyz)
+    points = _points(xyz)
+    kinds, junction = _segment_kinds(pg, points, route.nodes)
+    floors = _point_floors(pg, points)
     steps: list[Step] = []
     heading: FloatArray | None = None
     first_walk = True
@@ -212,7 +215,7 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
     """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
     whether each point is a junction)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    kinds, junction = _segment_kinds(pg, xyz, route.nodes)
+    kinds, junction = _segment_kinds(pg, _points(xyz), route.nodes)
     stretches = []
     i = 0
     while i < len(kinds):
@@ -425,32 +428,51 @@ def _side(heading: FloatArray | None, end: FloatArray, thing_m: FloatArray | Non
 
 
 def _segment_kinds(
-    pg: PathGraph, xyz: FloatArray, nodes: Sequence[int]
+    pg: PathGraph, points: Sequence[Point3], nodes: Sequence[int]
 ) -> tuple[list[str], list[bool]]:
-    """(kind of each polyline segment, whether each point is a junction)."""
-    adjacency = pg.graph.adj
-    points, junctions = node_points_and_junctions(pg)
-    node_m = np.array([points[n] for n in nodes], dtype=np.float64).reshape(-1, 3)
-    node_at: dict[tuple[float, ...], int] = {
-        tuple(p): n for p, n in zip(np.round(node_m, 9).tolist(), nodes, strict=True)
-    }
-    at = [node_at.get(tuple(p)) for p in np.round(xyz, 9).tolist()]
+    """(kind of each polyline segment, whether each point is a junction): a point is the route
+    node at its position (rounded to ``ROUNDED_DECIMALS``; the last such node if several)."""
+    lookups = node_lookups(pg)
+    rounded = lookups.rounded_of_point
+    point_of_node = lookups.point_of_node
+    node_at = {rounded[point_of_node[n]]: n for n in nodes}
+    at = [node_at.get(rounded.get(p) or _rounded(p)) for p in points]
+    junctions = lookups.junctions
     junction = [n is not None and n in junctions for n in at]
+    kind_between = lookups.kind_between
     kinds = []
     for a, b in itertools.pairwise(at):
-        if a is not None and b is not None and b in adjacency[a]:
-            kinds.append(str(adjacency[a][b]["kind"]))
-        else:
-            kinds.append(WALK)
+        kind = kind_between[a].get(b) if a is not None and b is not None else None
+        kinds.append(WALK if kind is None else kind)
     return kinds, junction
 
 
-def _point_floors(pg: PathGraph, xyz: FloatArray) -> list[int]:
+def _rounded(point: Point3) -> Point3:
+    """``point`` rounded as :class:`app.domain.routing.NodeLookups` rounds the nodes' positions."""
+    x, y, z = np.round(np.asarray(point, dtype=np.float64), ROUNDED_DECIMALS).tolist()
+    return (x, y, z)
+
+
+def _point_floors(pg: PathGraph, points: Sequence[Point3]) -> list[int]:
     """The floor of each polyline point: the level nearest its height."""
     if not pg.floor_levels_m:
-        return [0] * len(xyz)
+        return [0] * len(points)
+    lookups = node_lookups(pg)
+    if lookups.floor_levels_m != pg.floor_levels_m:
+        return _floors_of_heights(pg, [p[1] for p in points])
+    known = lookups.floor_of_height
+    floors = []
+    for p in points:
+        floor = known.get(p[1])
+        if floor is None:  # a point off the graph's nodes (a position on an edge)
+            return _floors_of_heights(pg, [p[1] for p in points])
+        floors.append(floor)
+    return floors
+
+
+def _floors_of_heights(pg: PathGraph, heights_m: list[float]) -> list[int]:
     levels = np.asarray(pg.floor_levels_m, dtype=np.float64)
-    return [int(f) for f in assign_floors(xyz[:, 1], levels)]
+    return [int(f) for f in assign_floors(np.asarray(heights_m, dtype=np.float64), levels)]
 
 
 def _step(
@@ -495,6 +517,11 @@ def _xyz(xz: FloatArray | None) -> tuple[float, float, float]:
     if xz is None:
         return (0.0, 0.0, 0.0)
     return (float(xz[0]), 0.0, float(xz[1]))
+
+
+def _points(xyz: FloatArray) -> list[Point3]:
+    """(N, 3) points as N (x, y, z) tuples of floats."""
+    return [(x, y, z) for x, y, z in xyz.tolist()]
 
 
 def _point(values: FloatArray) -> tuple[float, float, float]:

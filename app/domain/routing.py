@@ -57,13 +57,14 @@ import math
 import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal, TypeAlias
+from typing import Any, Literal, TypeAlias
 
 import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
+from app.domain.floors import assign_floors
 from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker
 from app.domain.shortest_path import Neighbours, bidirectional_dijkstra, neighbour_lists
@@ -322,8 +323,37 @@ def turn_instruction(turn_deg: float) -> str | None:
 def node_points_and_junctions(pg: PathGraph) -> tuple[dict[int, Point3], frozenset[int]]:
     """(each node's ``position_m`` as floats (map frame, m), the nodes of kind ``"junction"``),
     made once per graph (a graph must not change once routed on); do not modify them."""
-    index = _edge_index(pg)
-    return index.point_of_node, index.junctions
+    lookups = node_lookups(pg)
+    return lookups.point_of_node, lookups.junctions
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class NodeLookups:
+    """What the steps of a route look up about the graph's nodes and edges, made once per graph
+    (:func:`node_lookups`; a graph must not change once routed on); do not modify them.
+
+    ``point_of_node``: node → ``position_m`` as floats (map frame, m). ``junctions``: the nodes of
+    kind ``"junction"``. ``kind_between``: node → {neighbour → the kind of the edge between them}.
+    ``rounded_of_point``: a node's ``position_m`` → the same rounded to ``ROUNDED_DECIMALS``
+    (``np.round``). ``floor_of_height``: a node's height (y, m) → the index of the nearest of
+    ``floor_levels_m`` (:func:`app.domain.floors.assign_floors`), the levels it was made for.
+    """
+
+    point_of_node: dict[int, Point3]
+    junctions: frozenset[int]
+    kind_between: dict[int, dict[int, str]]
+    rounded_of_point: dict[Point3, Point3]
+    floor_levels_m: tuple[float, ...]
+    floor_of_height: dict[float, int]
+
+
+#: Decimals a polyline point is rounded to when it is matched to a node (steps), m.
+ROUNDED_DECIMALS = 9
+
+
+def node_lookups(pg: PathGraph) -> NodeLookups:
+    """The :class:`NodeLookups` of ``pg``, made once per graph with routing's index."""
+    return _edge_index(pg).lookups
 
 
 def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M) -> list[int]:
@@ -429,11 +459,9 @@ class _EdgeIndex:
     node_floor: npt.NDArray[np.int64]  # (N,)
     floors: npt.NDArray[np.int64]  # (F,) floor indices that have nodes
     floor_height_m: FloatArray  # (F,) their heights, m
-    point_of_node: dict[int, Point3]  # node → position_m as floats, map frame
     floor_of_node: dict[int, int]  # node → floor
-    junctions: frozenset[int]  # nodes of kind "junction"
     neighbours: Neighbours  # for the search (:func:`app.domain.shortest_path.neighbour_lists`)
-    kind_between: dict[int, dict[int, str]]  # node → {neighbour → the edge's kind}
+    lookups: NodeLookups  # node positions, junctions, edge kinds (for the polyline and steps)
 
 
 _INDEX_CACHE: dict[int, _EdgeIndex] = {}
@@ -488,13 +516,9 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
     )
     return _EdgeIndex(
         graph=G,
-        point_of_node={n: _point(d["position_m"]) for n, d in nodes},
         floor_of_node={n: int(d["floor"]) for n, d in nodes},
-        junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
         neighbours=neighbour_lists(G),
-        kind_between={
-            v: {w: str(d["kind"]) for w, d in around.items()} for v, around in G.adjacency()
-        },
+        lookups=_node_lookups(pg, nodes),
         n_nodes=G.number_of_nodes(),
         n_neighbours=_neighbour_count(G),
         edge_u=node_ids[rows_u],
@@ -507,6 +531,24 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
         node_floor=node_floor,
         floors=floors,
         floor_height_m=floor_height_m,
+    )
+
+
+def _node_lookups(pg: PathGraph, nodes: list[tuple[int, dict[str, Any]]]) -> NodeLookups:
+    points = [_point(d["position_m"]) for _, d in nodes]
+    xyz = np.array(points, dtype=np.float64).reshape(-1, 3)
+    rounded = np.round(xyz, ROUNDED_DECIMALS).tolist()
+    levels_m = tuple(pg.floor_levels_m)
+    floors = assign_floors(xyz[:, 1], np.asarray(levels_m, dtype=np.float64)).tolist()
+    return NodeLookups(
+        point_of_node={n: p for (n, _), p in zip(nodes, points, strict=True)},
+        junctions=frozenset(n for n, d in nodes if d.get("kind") == JUNCTION),
+        kind_between={
+            v: {w: str(d["kind"]) for w, d in around.items()} for v, around in pg.graph.adjacency()
+        },
+        rounded_of_point={p: _point(r) for p, r in zip(points, rounded, strict=True)},
+        floor_levels_m=levels_m,
+        floor_of_height={p[1]: int(f) for p, f in zip(points, floors, strict=True)},
     )
 
 
@@ -604,8 +646,8 @@ def _shortest_walk(
         kinds.append(WALK)
     if b.edge is not None and len(nodes) > 1 and set(nodes[-2:]) == set(b.edge):
         nodes = nodes[:-1]  # came in by the far end
-    point_of_node, floor_of_node = index.point_of_node, index.floor_of_node
-    kind_between = index.kind_between
+    point_of_node, floor_of_node = index.lookups.point_of_node, index.floor_of_node
+    kind_between = index.lookups.kind_between
     for i, n in enumerate(nodes):
         points.append(point_of_node[n])
         floors.append(floor_of_node[n])
