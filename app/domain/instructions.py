@@ -43,6 +43,8 @@ import numpy as np
 from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
 from app.domain.path_graph import STAIRS, WALK, PathGraph
+from app.domain.path_graph.geometry import douglas_peucker_end_legs
+from app.domain.polyline import distances_along_m, point_along
 from app.domain.routing import (
     ROUNDED_DECIMALS,
     Endpoint,
@@ -57,7 +59,6 @@ from app.domain.routing import (
     plan_walk,
     search_pois,
     signed_turn_deg,
-    simplify_xz,
 )
 
 #: Douglas–Peucker tolerance of the legs, m (the skeleton's branches are already straight).
@@ -173,7 +174,7 @@ def guidance_steps(
     kinds, junction = _segment_kinds(pg, points, route.nodes)
     floors = _point_floors(pg, points)
     steps: list[Step] = []
-    heading: FloatArray | None = None
+    heading: tuple[float, float] | None = None
     first_walk = True
     i = 0
     while i < len(kinds):
@@ -183,7 +184,13 @@ def guidance_steps(
         if kinds[i] == WALK:
             facing = heading_rad if first_walk else None
             heading = _walk_steps(
-                xyz[i : j + 2], junction[i : j + 2], floors[i], facing, style, steps
+                xyz[i : j + 2],
+                points[i : j + 2],
+                junction[i : j + 2],
+                floors[i],
+                facing,
+                style,
+                steps,
             )
             first_walk = False
         else:
@@ -329,31 +336,40 @@ def heading_direction(heading_rad: float) -> FloatArray:
 
 def _walk_steps(
     xyz: FloatArray,
+    points: Sequence[Point3],
     junction: Sequence[bool],
     floor: int,
     heading_rad: float | None,
     style: GuidanceStyle,
     steps: list[Step],
-) -> FloatArray | None:
-    """Append the steps of a walked stretch (N, 3); return its final x–z heading."""
-    walked_m = walked_distances_m(xyz)
-    kept = simplify_xz(xyz, LEG_TOLERANCE_M)
-    first_dir = _direction(xyz[kept[0]], xyz[kept[1]]) if len(kept) > 1 else None
+) -> tuple[float, float] | None:
+    """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``; return
+    its final x–z heading."""
+    walked = distances_along_m(points)
+    first_dir = last_dir = None
+    if len(points) > 1:
+        xs, zs = [p[0] for p in points], [p[2] for p in points]
+        first_end, last_start = douglas_peucker_end_legs(xs, zs, LEG_TOLERANCE_M)
+        first_dir = _direction(points[0], points[first_end])
+        last_dir = _direction(points[last_start], points[-1])
     if heading_rad is not None and first_dir is not None:
-        bearing = signed_turn_deg(_xyz(heading_direction(heading_rad)), _xyz(first_dir))
+        facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction
+        bearing = signed_turn_deg(facing, _xyz(first_dir))
         if abs(bearing) >= FACING_OK_DEG:
             words = turn_words(bearing, style)
             if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
                 words = f"{words} {round(abs(bearing))}°"
-            steps.append(_step(f"{words} to face the way", xyz[0], "face", 0.0, bearing, floor))
-    announced = [d for d in decision_points(xyz, junction, walked_m=walked_m) if is_announced(d)]
+            steps.append(_step(f"{words} to face the way", points[0], "face", 0.0, bearing, floor))
+    decisions = decision_points(xyz, junction, walked_m=np.array(walked))
     from_m, from_i = 0.0, 0
-    for d in announced:
+    for d in decisions:
+        if not is_announced(d):
+            continue
         leg_m = d.along_m - from_m
         steps.append(
             _step(
                 f"go straight {distance_words(leg_m, style.units)}",
-                xyz[from_i],
+                points[from_i],
                 "go",
                 leg_m,
                 floor=floor,
@@ -361,25 +377,23 @@ def _walk_steps(
         )
         words = turn_words(d.turn_deg, style, at_junction=d.at_junction)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
-            at = _point_at(xyz, walked_m, d.along_m - ANNOUNCE_BEFORE_M)
+            at = point_along(points, walked, d.along_m - ANNOUNCE_BEFORE_M)
             ahead = distance_words(ANNOUNCE_BEFORE_M, style.units)
             steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, d.turn_deg, floor))
-        steps.append(_step(words, xyz[d.index], "turn", 0.0, d.turn_deg, floor))
+        steps.append(_step(words, points[d.index], "turn", 0.0, d.turn_deg, floor))
         from_m, from_i = d.along_m, d.index
-    rest_m = float(walked_m[-1] - from_m)
+    rest_m = walked[-1] - from_m
     if rest_m >= 0.5:
         steps.append(
             _step(
                 f"go straight {distance_words(rest_m, style.units)}",
-                xyz[from_i],
+                points[from_i],
                 "go",
                 rest_m,
                 floor=floor,
             )
         )
-    if len(kept) > 1:
-        return _direction(xyz[kept[-2]], xyz[kept[-1]])
-    return None
+    return last_dir
 
 
 def _floor_change(
@@ -413,13 +427,13 @@ def _floor_change(
     )
 
 
-def _side(heading: FloatArray | None, end: FloatArray, thing_m: FloatArray | None) -> str:
+def _side(heading: tuple[float, float] | None, end: FloatArray, thing_m: FloatArray | None) -> str:
     if thing_m is None:
         return ""
     offset = (np.asarray(thing_m) - end)[[0, 2]]
     if float(np.linalg.norm(offset)) < SIDE_MIN_M or heading is None:
         return ""
-    bearing = signed_turn_deg(_xyz(heading), _xyz(offset))
+    bearing = signed_turn_deg(_xyz(heading), (float(offset[0]), 0.0, float(offset[1])))
     if abs(bearing) < 30:
         return "ahead"
     if abs(bearing) > TURN_AROUND_MIN_DEG:
@@ -477,7 +491,7 @@ def _floors_of_heights(pg: PathGraph, heights_m: list[float]) -> list[int]:
 
 def _step(
     instruction: str,
-    at_m: FloatArray,
+    at_m: Point3,
     kind: Literal["go", "turn", "announce", "face"],
     distance_m: float,
     turn_deg: float | None = None,
@@ -485,19 +499,12 @@ def _step(
 ) -> Step:
     return Step(
         instruction=instruction,
-        position_m=_point(at_m),
+        position_m=at_m,
         kind=kind,
         distance_m=float(distance_m),
         turn_deg=turn_deg,
         floor=floor,
     )
-
-
-def _point_at(xyz: FloatArray, walked_m: FloatArray, along_m: float) -> FloatArray:
-    k = min(max(int(np.searchsorted(walked_m, along_m)) - 1, 0), len(xyz) - 2)
-    span = float(walked_m[k + 1] - walked_m[k])
-    t = 0.0 if span == 0 else (along_m - float(walked_m[k])) / span
-    return np.asarray(xyz[k] + t * (xyz[k + 1] - xyz[k]), dtype=np.float64)
 
 
 def _points_at(xz: FloatArray, walked_m: FloatArray, along_m: FloatArray) -> FloatArray:
@@ -507,16 +514,19 @@ def _points_at(xz: FloatArray, walked_m: FloatArray, along_m: FloatArray) -> Flo
     )
 
 
-def _direction(a: FloatArray, b: FloatArray) -> FloatArray | None:
-    d = (b - a)[[0, 2]]
+def _direction(a: Point3, b: Point3) -> tuple[float, float] | None:
+    """The x–z unit vector from a to b (None if they are one above the other): ``d / |d|`` with
+    ``np.linalg.norm``, which may round |d| differently from ``math.hypot``."""
+    d = np.array([b[0] - a[0], b[2] - a[2]])
     norm = float(np.linalg.norm(d))
-    return None if norm == 0 else np.asarray(d / norm, dtype=np.float64)
+    if norm == 0:
+        return None
+    dx, dz = d.tolist()
+    return (dx / norm, dz / norm)
 
 
-def _xyz(xz: FloatArray | None) -> tuple[float, float, float]:
-    if xz is None:
-        return (0.0, 0.0, 0.0)
-    return (float(xz[0]), 0.0, float(xz[1]))
+def _xyz(xz: tuple[float, float]) -> Point3:
+    return (xz[0], 0.0, xz[1])
 
 
 def _points(xyz: FloatArray) -> list[Point3]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import networkx as nx
 import numpy as np
@@ -75,32 +76,65 @@ def _douglas_peucker_small_2d(points: list[list[float]], tolerance_m: float) -> 
     kept: list[int] = []
     xs = [p[0] for p in points]
     ys = [p[1] for p in points]
-    sqrt = math.sqrt
     stack = [(0, len(points) - 1)]
     while stack:
         s, e = stack.pop()
         if e - s < 2:
             continue
-        ax, ay = xs[s], ys[s]
-        dx, dy = xs[e] - ax, ys[e] - ay
-        length2 = dx * dx + dy * dy
-        best_k, best_m = -1, -1.0
-        for k in range(s + 1, e):
-            px, py = xs[k], ys[k]
-            t = ((px - ax) * dx + (py - ay) * dy) / length2 if length2 > 0 else 0.0
-            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
-            qx = px - (ax + t * dx)
-            qy = py - (ay + t * dy)
-            distance_m = sqrt(qx * qx + qy * qy)
-            if distance_m != distance_m:  # NaN: numpy's argmax picks the first, never kept
-                best_k, best_m = k, distance_m
-                break
-            if distance_m > best_m or best_k < 0:
-                best_k, best_m = k, distance_m
-        if best_m > tolerance_m:
-            kept.append(best_k)
-            stack += [(s, best_k), (best_k, e)]
+        k, distance_m = _farthest_2d(xs, ys, s, e)
+        if distance_m > tolerance_m:
+            kept.append(k)
+            stack += [(s, k), (k, e)]
     return kept
+
+
+def douglas_peucker_end_legs(
+    xs: Sequence[float], ys: Sequence[float], tolerance_m: float
+) -> tuple[int, int]:
+    """(the second, the second-to-last) of the indices :func:`douglas_peucker` keeps of M ≥ 2
+    2-D points ``xs``, ``ys``: where the first kept leg ends and the last one starts. Only the
+    splits that lead to them are made, with the distances :func:`douglas_peucker` computes, so
+    they are the points it keeps."""
+    last = len(xs) - 1
+    first_end, last_start = last, 0
+    if last >= 2:
+        k, distance_m = _farthest_2d(xs, ys, 0, last)
+        if distance_m > tolerance_m:
+            first_end = last_start = k
+            while first_end >= 2:  # split (0, first_end): its kept points come first
+                k, distance_m = _farthest_2d(xs, ys, 0, first_end)
+                if not distance_m > tolerance_m:
+                    break
+                first_end = k
+            while last - last_start >= 2:  # split (last_start, last): its kept points come last
+                k, distance_m = _farthest_2d(xs, ys, last_start, last)
+                if not distance_m > tolerance_m:
+                    break
+                last_start = k
+    return first_end, last_start
+
+
+def _farthest_2d(xs: Sequence[float], ys: Sequence[float], s: int, e: int) -> tuple[int, float]:
+    """(index, distance) of the inner point of s…e (e − s ≥ 2) farthest from the segment s–e, the
+    first of equals (a NaN distance is the farthest), as :func:`project_to_segments` and
+    ``np.argmax`` find it."""
+    sqrt = math.sqrt
+    ax, ay = xs[s], ys[s]
+    dx, dy = xs[e] - ax, ys[e] - ay
+    length2 = dx * dx + dy * dy
+    best_k, best_m = -1, -1.0
+    for k in range(s + 1, e):
+        px, py = xs[k], ys[k]
+        t = ((px - ax) * dx + (py - ay) * dy) / length2 if length2 > 0 else 0.0
+        t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+        qx = px - (ax + t * dx)
+        qy = py - (ay + t * dy)
+        distance_m = sqrt(qx * qx + qy * qy)
+        if distance_m != distance_m:  # NaN: numpy's argmax picks the first, never kept
+            return k, distance_m
+        if distance_m > best_m or best_k < 0:
+            best_k, best_m = k, distance_m
+    return best_k, best_m
 
 
 def points_array(values: npt.ArrayLike | None, count: int, name: str) -> FloatArray:
