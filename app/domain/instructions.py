@@ -249,41 +249,72 @@ def decision_points(
     stretch (:func:`walked_distances_m`), when the caller has it already."""
     if walked_m is None:
         walked_m = walked_distances_m(xyz)
-    total_m = float(walked_m[-1]) if len(xyz) else 0.0
-    candidates: list[tuple[int, float]] = []  # (index, turn_deg)
-    inner = np.arange(1, max(len(xyz) - 1, 1))
-    inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
-    if inner.size:
-        xz = xyz[:, [0, 2]]
-        here = xz[inner]
-        before = here - _points_at(xz, walked_m, np.maximum(walked_m[inner] - CHORD_M, 0.0))
-        after = _points_at(xz, walked_m, np.minimum(walked_m[inner] + CHORD_M, total_m)) - here
-        # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up).
-        cross_y = before[:, 1] * after[:, 0] - before[:, 0] * after[:, 1]
-        dot = (before * after).sum(axis=1)
-        turn_deg = np.degrees(np.arctan2(cross_y, dot))
-        moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
-        for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
-            if abs(turn) >= BEAR_MIN_DEG:
-                candidates.append((k, turn))
-    chosen: list[Decision] = []
     walked = walked_m.tolist()
+    chosen: list[tuple[int, float, bool, float]] = []  # (index, turn_deg, at_junction, along_m)
     junctions = [j for j in range(len(xyz)) if junction[j]]
-    for k, turn in sorted(candidates, key=lambda c: -abs(c[1])):
+    for k, turn in sorted(_bends(xyz, walked_m, walked, end_margin_m), key=lambda c: -abs(c[1])):
         index, at_junction, along_m = k, False, walked[k]
         near = [j for j in junctions if abs(walked[j] - along_m) <= JUNCTION_SNAP_M]
         if near:
             index = min(near, key=lambda j: abs(walked[j] - along_m))
             at_junction, along_m = True, walked[index]
         if any(
-            abs(along_m - d.along_m) < MIN_SPACING_M and not (at_junction and d.at_junction)
-            for d in chosen
-        ) or any(index == d.index for d in chosen):
+            (abs(along_m - d_along_m) < MIN_SPACING_M and not (at_junction and d_at_junction))
+            or index == d_index
+            for d_index, _, d_at_junction, d_along_m in chosen
+        ):
             continue
-        chosen.append(
-            Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
-        )
-    return sorted(chosen, key=lambda d: d.along_m)
+        chosen.append((index, turn, at_junction, along_m))
+    return [
+        Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
+        for index, turn, at_junction, along_m in sorted(chosen, key=lambda d: d[3])
+    ]
+
+
+def _bends(
+    xyz: FloatArray, walked_m: FloatArray, walked: list[float], end_margin_m: float
+) -> list[tuple[int, float]]:
+    """(index, turn_deg) of each inner point of the stretch (N, 3) at least ``end_margin_m`` from
+    both ends whose bend, measured over ``CHORD_M`` either side, is at least ``BEAR_MIN_DEG``;
+    ``walked_m`` (N,) and ``walked`` are each point's distance along the stretch."""
+    total_m = walked[-1] if walked else 0.0
+    inner = [
+        k
+        for k in range(1, len(walked) - 1)
+        if walked[k] >= end_margin_m and total_m - walked[k] >= end_margin_m
+    ]
+    if not inner:
+        return []
+    rows = np.array(inner)
+    xs, zs = xyz[:, 0], xyz[:, 2]
+    along_m = walked_m[rows]
+    back_m = np.maximum(along_m - CHORD_M, 0.0)
+    ahead_m = np.minimum(along_m + CHORD_M, total_m)
+    before_x = xs[rows] - np.interp(back_m, walked_m, xs)
+    before_z = zs[rows] - np.interp(back_m, walked_m, zs)
+    after_x = np.interp(ahead_m, walked_m, xs) - xs[rows]
+    after_z = np.interp(ahead_m, walked_m, zs) - zs[rows]
+    # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up). The dot
+    # product adds to 0.0 first, as a sum over an axis does (so 0 keeps its sign, and the angle).
+    cross_y = before_z * after_x - before_x * after_z
+    dot = (0.0 + before_x * after_x) + before_z * after_z
+    turn_deg = np.degrees(np.arctan2(cross_y, dot)).tolist()
+    bends = []
+    for i, k in enumerate(inner):
+        turn = turn_deg[i]
+        if (
+            abs(turn) >= BEAR_MIN_DEG
+            and _moving(before_x, before_z, i)
+            and _moving(after_x, after_z, i)
+        ):
+            bends.append((k, turn))
+    return bends
+
+
+def _moving(xs: FloatArray, zs: FloatArray, i: int) -> bool:
+    """Whether the i-th vector is not zero, as ``np.linalg.norm(…, axis=1) > 0`` finds it."""
+    x, z = float(xs[i]), float(zs[i])
+    return x * x + z * z > 0
 
 
 def walked_distances_m(xyz: FloatArray) -> FloatArray:
@@ -504,13 +535,6 @@ def _step(
         distance_m=float(distance_m),
         turn_deg=turn_deg,
         floor=floor,
-    )
-
-
-def _points_at(xz: FloatArray, walked_m: FloatArray, along_m: FloatArray) -> FloatArray:
-    """(M, 2) the points ``along_m`` (M,) metres along the polyline (N, 2)."""
-    return np.column_stack(
-        [np.interp(along_m, walked_m, xz[:, 0]), np.interp(along_m, walked_m, xz[:, 1])]
     )
 
 

@@ -1,6 +1,6 @@
 """The steps' geometry, made cheap (issue 16), agrees with the straightforward numpy it replaced:
-each polyline point matched to the same node (edge kinds, junctions, floors) — on random graphs
-with coincident nodes."""
+decision points to the bit, and each polyline point matched to the same node (edge kinds,
+junctions, floors) — on random stretches and graphs with coincident nodes."""
 
 from __future__ import annotations
 
@@ -12,7 +12,106 @@ import pytest
 
 from app.domain import instructions
 from app.domain.floors import assign_floors
+from app.domain.instructions import (
+    BEAR_MIN_DEG,
+    CHORD_M,
+    JUNCTION_SNAP_M,
+    MIN_SPACING_M,
+    Decision,
+    decision_points,
+)
 from app.domain.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, PathGraph
+
+# --------------------------------------------------------------------------- decision points
+
+
+def reference_decision_points(
+    xyz: np.ndarray, junction: list[bool], end_margin_m: float
+) -> list[Decision]:
+    """:func:`decision_points` as it was written before it was made cheap."""
+    walked_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    total_m = float(walked_m[-1]) if len(xyz) else 0.0
+    candidates: list[tuple[int, float]] = []
+    inner = np.arange(1, max(len(xyz) - 1, 1))
+    inner = inner[(walked_m[inner] >= end_margin_m) & (total_m - walked_m[inner] >= end_margin_m)]
+    if inner.size:
+        xz = xyz[:, [0, 2]]
+        here = xz[inner]
+
+        def points_at(along_m: np.ndarray) -> np.ndarray:
+            return np.column_stack(
+                [np.interp(along_m, walked_m, xz[:, 0]), np.interp(along_m, walked_m, xz[:, 1])]
+            )
+
+        before = here - points_at(np.maximum(walked_m[inner] - CHORD_M, 0.0))
+        after = points_at(np.minimum(walked_m[inner] + CHORD_M, total_m)) - here
+        cross_y = before[:, 1] * after[:, 0] - before[:, 0] * after[:, 1]
+        dot = (before * after).sum(axis=1)
+        turn_deg = np.degrees(np.arctan2(cross_y, dot))
+        moving = (np.linalg.norm(before, axis=1) > 0) & (np.linalg.norm(after, axis=1) > 0)
+        for k, turn in zip(inner[moving].tolist(), turn_deg[moving].tolist(), strict=True):
+            if abs(turn) >= BEAR_MIN_DEG:
+                candidates.append((k, turn))
+    chosen: list[Decision] = []
+    walked = walked_m.tolist()
+    junctions = [j for j in range(len(xyz)) if junction[j]]
+    for k, turn in sorted(candidates, key=lambda c: -abs(c[1])):
+        index, at_junction, along_m = k, False, walked[k]
+        near = [j for j in junctions if abs(walked[j] - along_m) <= JUNCTION_SNAP_M]
+        if near:
+            index = min(near, key=lambda j: abs(walked[j] - along_m))
+            at_junction, along_m = True, walked[index]
+        if any(
+            abs(along_m - d.along_m) < MIN_SPACING_M and not (at_junction and d.at_junction)
+            for d in chosen
+        ) or any(index == d.index for d in chosen):
+            continue
+        chosen.append(
+            Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
+        )
+    return sorted(chosen, key=lambda d: d.along_m)
+
+
+def stretches() -> list[np.ndarray]:
+    """(N, 3) walks: random turns, grid corners (right angles, equal bends), a point repeated,
+    an out-and-back (turns of 180°), a chord too short to measure, a single point and none."""
+    rng = np.random.default_rng(18)
+    cases = [np.empty((0, 3)), np.zeros((1, 3)), np.zeros((4, 3))]
+    for n in range(2, 60):
+        cases.append(np.cumsum(rng.normal(size=(n, 3)) * [3.0, 0.05, 3.0], axis=0))
+        grid = np.cumsum(rng.integers(-1, 2, size=(n, 3)) * [2.0, 0.0, 2.0], axis=0)
+        cases.append(grid.astype(np.float64))
+    repeated = np.cumsum(rng.normal(size=(30, 3)), axis=0)
+    repeated[10] = repeated[9]
+    cases.append(repeated)
+    line = np.column_stack([np.arange(12.0), np.zeros(12), np.zeros(12)])
+    cases.append(np.concatenate([line, line[::-1][1:]]))
+    # The second point 1 m above the first and 1e-170 m off it in x–z: the chord before it is too
+    # short for its squared length (a bend of −45° that is not a bend).
+    cases.append(np.array([[0.0, 0.0, 0.0], [1e-170, 1.0, 1e-170], [0.0, 1.0, 5.0], [0, 1, 10]]))
+    return cases
+
+
+@pytest.mark.parametrize("end_margin_m", [0.0, 2.0])
+def test_decision_points_are_the_straightforward_ones_to_the_bit(end_margin_m):
+    rng = np.random.default_rng(int(end_margin_m))
+    for xyz in stretches():
+        junction = (rng.random(len(xyz)) < 0.2).tolist()
+        want = reference_decision_points(xyz, junction, end_margin_m)
+        assert decision_points(xyz, junction, end_margin_m=end_margin_m) == want
+
+
+def test_the_reference_stretches_have_decisions_of_every_kind():
+    found = [
+        d
+        for xyz in stretches()
+        for d in reference_decision_points(xyz, [k % 5 == 0 for k in range(len(xyz))], 0.0)
+    ]
+    assert any(d.at_junction for d in found)
+    assert any(abs(d.turn_deg) > 170 for d in found)
+    assert any(d.turn_deg > 0 for d in found)
+    assert any(d.turn_deg < 0 for d in found)
+
 
 # --------------------------------------------------------------------------- points → nodes
 
