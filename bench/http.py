@@ -82,7 +82,7 @@ import time  # noqa: E402
 import uuid  # noqa: E402
 from collections.abc import Iterator  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
-from dataclasses import asdict, dataclass, field  # noqa: E402
+from dataclasses import asdict, dataclass, field, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -93,6 +93,7 @@ from sqlalchemy import create_engine, make_url, text  # noqa: E402
 from app.cli.server_process import ServerProcess  # noqa: E402
 from app.cli.tables import render_markdown_table  # noqa: E402
 from app.client import Client  # noqa: E402
+from app.config import default_api_processes  # noqa: E402
 from app.domain.frames import pose_from_xyz_quat_xyzw  # noqa: E402
 from app.domain.localize import LocalizerState, parse_update, update  # noqa: E402
 from bench import load as load_bench  # noqa: E402
@@ -139,6 +140,8 @@ class Measured:
     p99_ms: float
     failed: int  # non-2xx answers and requests that got none
     server_cpu_s: float = 0.0
+    #: Each busy server process's share of ``server_cpu_s``, the largest first.
+    cpu_shares: list[float] = field(default_factory=list)
     extra_requests: int = 0  # navigation sessions started (walk only)
 
     @property
@@ -341,9 +344,9 @@ def run_wrk(
         str(script),
         target.url,
     ]
-    cpu_before = _group_cpu_s(target.process_group)
+    cpu_before = load_bench.process_cpu_s([target.process_group])
     done = subprocess.run(command, capture_output=True, text=True, check=False)
-    cpu_s = _group_cpu_s(target.process_group) - cpu_before
+    cpu_s, cpu_shares = _cpu_since(target.process_group, cpu_before)
     line = next((ln for ln in done.stdout.splitlines() if ln.startswith("BENCH_RESULT ")), None)
     if done.returncode != 0 or line is None:
         raise RuntimeError(f"wrk failed ({done.returncode}): {done.stdout}\n{done.stderr}")
@@ -359,6 +362,7 @@ def run_wrk(
         p99_ms=result["p99_us"] / 1000,
         failed=bad + socket_errors,
         server_cpu_s=cpu_s,
+        cpu_shares=cpu_shares,
         extra_requests=starts,
     )
 
@@ -426,11 +430,11 @@ async def _python_run(
 
 
 def run_python(target: Target, endpoint: Endpoint, connections: int, duration_s: float) -> Measured:
-    cpu_before = _group_cpu_s(target.process_group)
+    cpu_before = load_bench.process_cpu_s([target.process_group])
     latencies, failed, starts, wall_s = asyncio.run(
         _python_run(target, endpoint, connections, duration_s)
     )
-    cpu_s = _group_cpu_s(target.process_group) - cpu_before
+    cpu_s, cpu_shares = _cpu_since(target.process_group, cpu_before)
     values = np.array(latencies) * 1000 if latencies else np.full(1, np.nan)
     return Measured(
         requests=len(latencies),
@@ -439,12 +443,21 @@ def run_python(target: Target, endpoint: Endpoint, connections: int, duration_s:
         p99_ms=float(np.percentile(values, 99)),
         failed=failed,
         server_cpu_s=cpu_s,
+        cpu_shares=cpu_shares,
         extra_requests=starts,
     )
 
 
-def _group_cpu_s(process_group: int) -> float:
-    return sum(load_bench.process_cpu_s([process_group]).values())
+def _cpu_since(process_group: int, before: dict[int, float]) -> tuple[float, list[float]]:
+    """The process group's CPU time since ``before`` (s), and each process's share of it, the
+    largest first (the busy ones: more than 5% of it)."""
+    spent = {
+        pid: cpu_s - before.get(pid, 0.0)
+        for pid, cpu_s in load_bench.process_cpu_s([process_group]).items()
+    }
+    total_s = sum(spent.values())
+    shares = sorted((s / total_s for s in spent.values() if total_s), reverse=True)
+    return total_s, [share for share in shares if share > 0.05]
 
 
 # --------------------------------------------------------------------------- in process
@@ -574,6 +587,11 @@ class BackendResult:
     computation: Measured | None = None
     healthz_1: Measured | None = None
     route_1: Measured | None = None
+    #: The same server's database again under ``serve``'s default API processes (one per
+    #: core), when that is more than one: their number, /healthz first and last, the rows.
+    all_cores: int = 0
+    all_cores_healthz: list[Measured] = field(default_factory=list)
+    all_cores_rows: list[tuple[Endpoint, Measured]] = field(default_factory=list)
     load_before: tuple[float, float, float] = (0.0, 0.0, 0.0)
     load_after: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -584,6 +602,7 @@ class BackendResult:
     @property
     def failed(self) -> int:
         runs = [*self.healthz, *(m for _, m in self.rows), self.healthz_1, self.route_1]
+        runs += [*self.all_cores_healthz, *(m for _, m in self.all_cores_rows)]
         return sum(m.failed for m in runs if m is not None)
 
 
@@ -639,10 +658,62 @@ def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendRe
                 result.healthz_1 = measure(HEALTHZ, 1)
                 route = next(e for e in endpoints(target) if e.path.endswith("/routes"))
                 result.route_1 = measure(route, 1)
+            chosen = any("api-processes" in arg for arg in args.serve_arg)
+            if args.all_cores and default_api_processes() > 1 and not chosen:
+                result.all_cores = default_api_processes()
+                measure_all_cores(result, url, folder, target, args, use_wrk)
             result.computation = computation_alone(walk, tags, min(3.0, args.duration_s))
             log(f"{backend}: update() in process: {result.computation.per_s:.0f}/s")
     result.load_after = os.getloadavg()
     return result
+
+
+def measured_on_all_cores(endpoint: Endpoint) -> bool:
+    """The rows measured again under serve's default API processes: map GET, route, update."""
+    return (
+        endpoint.walk or endpoint.path.endswith("/routes") or endpoint.name == "GET /v1/maps/{id}"
+    )
+
+
+def measure_all_cores(
+    result: BackendResult,
+    url: str,
+    folder: Path,
+    target: Target,
+    args: argparse.Namespace,
+    use_wrk: bool,
+) -> None:
+    """``serve`` again on the same database with its default API processes (one per core, as a
+    user runs it): /healthz first and last, and the rows :func:`measured_on_all_cores`."""
+    server = ServerProcess(
+        url,
+        workers=WORKERS,
+        env={"INVISIBLE_MAP_DATA_DIR": str(folder), "INVISIBLE_MAP_UPLOADS_PER_MINUTE": "0"},
+        log_path=folder / "server-all-cores.log",
+        api_processes=None,
+    )
+    server.args += list(args.serve_arg)
+    with server:
+        again = replace(target, url=server.url, process_group=server.pid)
+        label = f"{result.backend}, {result.all_cores} API processes"
+
+        def measure(endpoint: Endpoint) -> Measured:
+            warm_up(again, endpoint)
+            measured = (
+                run_wrk(again, endpoint, args.connections, args.duration_s, folder)
+                if use_wrk
+                else run_python(again, endpoint, args.connections, args.duration_s)
+            )
+            log(
+                f"{label}: {endpoint.name}: {measured.per_s:.0f}/s, p50 {measured.p50_ms:.2f} "
+                f"ms, p99 {measured.p99_ms:.2f} ms, {measured.failed} failed"
+            )
+            return measured
+
+        result.all_cores_healthz.append(measure(HEALTHZ))
+        for endpoint in filter(measured_on_all_cores, endpoints(again)):
+            result.all_cores_rows.append((endpoint, measure(endpoint)))
+        result.all_cores_healthz.append(measure(HEALTHZ))
 
 
 # --------------------------------------------------------------------------- the report
@@ -650,6 +721,68 @@ def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendRe
 
 def _verdict(ok: bool | None) -> str:
     return "—" if ok is None else ("pass" if ok else "**FAIL**")
+
+
+def target_of(
+    endpoint: Endpoint, m: Measured, ratio: float, computation: Measured
+) -> tuple[str, bool | None]:
+    """The row's target as the table words it, and whether it is met (None: no target)."""
+    if endpoint.walk:
+        share = m.per_s / computation.per_s if computation.per_s else 0.0
+        return f"≥ 60% of update() alone: {share:.0%}", share >= 0.60
+    if endpoint.min_ratio is not None:
+        return f"≥ {endpoint.min_ratio:.0%} of /healthz", ratio >= endpoint.min_ratio
+    return "—", None
+
+
+def _shares(m: Measured) -> str:
+    return " / ".join(f"{share:.0%}" for share in m.cpu_shares) or "—"
+
+
+def all_cores_table(result: BackendResult) -> str:
+    """The rows measured under serve's default API processes, against that server's /healthz
+    and against ``update()`` alone in one process."""
+    computation = result.computation
+    assert computation is not None
+    floor = float(np.mean([m.per_s for m in result.all_cores_healthz]))
+    first, last = result.all_cores_healthz
+    rows = [["endpoint", "req/s", "p50 ms", "p99 ms", "÷ /healthz", "server CPU ms/req"]]
+    rows[0] += ["CPU by process", "failed", "target", "pass"]
+    rows.append(
+        [
+            f"GET /healthz (first / last run: {first.per_s:,.0f} / {last.per_s:,.0f})",
+            f"{floor:,.0f}",
+            f"{np.mean([first.p50_ms, last.p50_ms]):.2f}",
+            f"{np.mean([first.p99_ms, last.p99_ms]):.2f}",
+            "1",
+            f"{np.mean([first.cpu_ms_per_request, last.cpu_ms_per_request]):.2f}",
+            _shares(last),
+            str(first.failed + last.failed),
+            "(the floor)",
+            "—",
+        ]
+    )
+    for endpoint, m in result.all_cores_rows:
+        ratio = m.per_s / floor if floor else 0.0
+        target, ok = target_of(endpoint, m, ratio, computation)
+        rows.append(
+            [
+                endpoint.name,
+                f"{m.per_s:,.0f}",
+                f"{m.p50_ms:.2f}",
+                f"{m.p99_ms:.2f}",
+                f"{ratio:.1%}",
+                f"{m.cpu_ms_per_request:.2f}",
+                _shares(m),
+                str(m.failed),
+                target,
+                _verdict(ok),
+            ]
+        )
+    return (
+        f"The same database under `serve`'s default: {result.all_cores} API processes (one per "
+        "core), the rows that use them:\n\n" + render_markdown_table(rows)
+    )
 
 
 def table(result: BackendResult) -> str:
@@ -700,14 +833,7 @@ def table(result: BackendResult) -> str:
     assert computation is not None
     for endpoint, m in result.rows:
         ratio = m.per_s / floor if floor else 0.0
-        if endpoint.walk:
-            share = m.per_s / computation.per_s if computation.per_s else 0.0
-            target, ok = f"≥ 60% of update() alone: {share:.0%}", share >= 0.60
-        elif endpoint.min_ratio is not None:
-            target, ok = f"≥ {endpoint.min_ratio:.0%} of /healthz", ratio >= endpoint.min_ratio
-        else:
-            target, ok = "—", None
-        row(endpoint.name, m, f"{ratio:.1%}", target, ok)
+        row(endpoint.name, m, f"{ratio:.1%}", *target_of(endpoint, m, ratio, computation))
     row(
         "update() alone, in process (same documents)",
         computation,
@@ -734,6 +860,8 @@ def table(result: BackendResult) -> str:
             "(Nagle's algorithm holds the body back until the headers are acknowledged). Every "
             "figure above includes it."
         )
+    if result.all_cores_rows:
+        notes.append(all_cores_table(result))
     return "\n\n".join([render_markdown_table(rows), *notes])
 
 
@@ -789,6 +917,11 @@ def as_json(result: BackendResult) -> dict[str, Any]:
         "update_alone": measured(result.computation),
         "healthz_1_connection": measured(result.healthz_1),
         "route_1_connection": measured(result.route_1),
+        "all_cores": {
+            "api_processes": result.all_cores,
+            "healthz": [measured(m) for m in result.all_cores_healthz],
+            "endpoints": {e.name: measured(m) for e, m in result.all_cores_rows},
+        },
     }
 
 
@@ -877,6 +1010,12 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="an extra argument of `invisible-map serve` (repeatable; e.g. "
         "--serve-arg=--api-processes=2)",
+    )
+    parser.add_argument(
+        "--no-all-cores",
+        dest="all_cores",
+        action="store_false",
+        help="skip the second pass under serve's default API processes (one per core)",
     )
     parser.add_argument(
         "--load",
