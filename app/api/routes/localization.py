@@ -148,7 +148,8 @@ async def post_update(
     request: Request,
 ) -> Response:
     localization_id = valid_id(localization_id, "localization session")
-    document: dict[str, Any] = body.model_dump()
+    # (what parse_update reads; the model's lists hold the parsed JSON as it came)
+    document: dict[str, Any] = {"poses": body.poses, "tag_data": body.tag_data}
     # Read, compute and write on one thread of the pool: one hop off the event loop.
     estimate = await to_thread.run_sync(
         functools.partial(apply_update, request, localization_id, document, principal)
