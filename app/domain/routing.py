@@ -22,12 +22,12 @@ Design decisions:
   joined to the graph at the nearest point on a walk edge of its floor (the floor whose height is
   nearest, then the nearest edge in x–z), so the route starts where the person is, not at a node.
 - **Shortest path.** networkx's bidirectional Dijkstra on ``length_m``, step for step over each
-  node's neighbours listed once per graph (:mod:`app.domain.shortest_path`: the same path on
-  equal-length alternatives), the avoided kinds hidden (no copy of the graph per query). A position
-  on an edge is handled without adding nodes to the shared graph: the search starts from the
-  nearer end ``s`` of the edge with all costs shifted by the distance to it, and the edge itself
-  costs ``L − 2·d(P, s)`` (≥ 0), which is exactly the shifted cost of leaving through the far end;
-  the same holds at the goal. Start and goal on the same edge go straight along it.
+  node's neighbours listed once per graph and set of avoided kinds (:mod:`app.domain.shortest_path`:
+  the same path on equal-length alternatives; no copy of the graph per query). A position on an
+  edge is handled without adding nodes to the shared graph: the search starts from the nearer end
+  ``s`` of the edge with all costs shifted by the distance to it, and the edge itself costs
+  ``L − 2·d(P, s)`` (≥ 0), which is exactly the shifted cost of leaving through the far end; the
+  same holds at the goal. Start and goal on the same edge go straight along it.
 - **The polyline** is the path as walked: graph node positions plus the snapped start and goal, and
   ``length_m`` is the sum of its segment lengths (3-D, m).
 - **Steps** are computed on a simplified copy of each walked stretch (Douglas–Peucker in x–z,
@@ -74,6 +74,13 @@ FloatArray: TypeAlias = npt.NDArray[np.float64]
 
 #: Kinds of edge a route may avoid.
 AVOIDABLE = frozenset({STAIRS, ELEVATOR})
+#: Every set of kinds a route may avoid (the subsets of ``AVOIDABLE``).
+AVOID_SETS: tuple[frozenset[str], ...] = (
+    frozenset(),
+    frozenset({STAIRS}),
+    frozenset({ELEVATOR}),
+    AVOIDABLE,
+)
 
 #: Douglas–Peucker tolerance for the instruction polyline, m: about half a corridor's width, so
 #: odometry wobble and the back-and-forth of a walked corridor give no turns (at 0.3 m a 78 m route
@@ -460,7 +467,7 @@ class _EdgeIndex:
     floors: npt.NDArray[np.int64]  # (F,) floor indices that have nodes
     floor_height_m: FloatArray  # (F,) their heights, m
     floor_of_node: dict[int, int]  # node → floor
-    neighbours: Neighbours  # for the search (:func:`app.domain.shortest_path.neighbour_lists`)
+    neighbours: dict[frozenset[str], Neighbours]  # for the search, per set in AVOID_SETS
     lookups: NodeLookups  # node positions, junctions, edge kinds (for the polyline and steps)
 
 
@@ -517,7 +524,7 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
     return _EdgeIndex(
         graph=G,
         floor_of_node={n: int(d["floor"]) for n, d in nodes},
-        neighbours=neighbour_lists(G),
+        neighbours={avoid: neighbour_lists(G, avoid=avoid) for avoid in AVOID_SETS},
         lookups=_node_lookups(pg, nodes),
         n_nodes=G.number_of_nodes(),
         n_neighbours=_neighbour_count(G),
@@ -631,7 +638,7 @@ def _shortest_walk(
             changed_costs.setdefault(u, {})[v] = cost
             changed_costs.setdefault(v, {})[u] = cost
     nodes = bidirectional_dijkstra(
-        index.neighbours, source, target, avoid=avoid, changed_costs=changed_costs
+        index.neighbours[avoid], source, target, changed_costs=changed_costs
     )
     if nodes is None:
         return None

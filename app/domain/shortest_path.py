@@ -1,15 +1,15 @@
 """networkx's bidirectional Dijkstra over a path graph's adjacency made once (issue 16).
 
-    neighbours = neighbour_lists(G)                          # once per graph
-    path = bidirectional_dijkstra(neighbours, 3, 17, avoid=frozenset({"stairs"}))
+    no_stairs = neighbour_lists(G, avoid=frozenset({"stairs"}))   # once per graph
+    path = bidirectional_dijkstra(no_stairs, 3, 17)
     # [3, 4, 9, 17], or None when 17 cannot be reached
 
 It is ``networkx.bidirectional_dijkstra(G, source, target, weight=…)`` (networkx 3.x) step for step
 — the same alternation of directions, the same heap entries ``(distance, counter, node)``, the
 neighbours in ``G.adj`` order — so on equal-length alternatives it returns the same path. What it
 saves is networkx's dispatch and a Python weight call per edge: the weight is the edge's
-``length_m``, an edge whose ``kind`` is in ``avoid`` is hidden, and ``changed_costs`` gives the
-edges whose cost a route end on them changes (:mod:`app.domain.routing`).
+``length_m``, the edges of an avoided kind are left out of the lists, and ``changed_costs`` gives
+the edges whose cost a route end on them changes (:mod:`app.domain.routing`).
 """
 
 from __future__ import annotations
@@ -21,18 +21,21 @@ from typing import TypeAlias
 
 import networkx as nx
 
-#: node → its neighbours in ``G.adj`` order, each (neighbour, ``length_m`` as a float, ``kind``).
-Neighbours: TypeAlias = dict[int, tuple[tuple[int, float, str], ...]]
+#: node → its neighbours in ``G.adj`` order, each (neighbour, the edge's ``length_m`` as a float).
+Neighbours: TypeAlias = dict[int, tuple[tuple[int, float], ...]]
 #: node → {neighbour → the cost of the edge between them, in place of its ``length_m``}; an edge
 #: is listed from both ends.
 ChangedCosts: TypeAlias = Mapping[int, Mapping[int, float]]
 
 
-def neighbour_lists(G: nx.Graph[int]) -> Neighbours:
-    """Each node's neighbours in ``G.adj`` order with the edge's length and kind (made once per
-    graph: a change to the graph is not seen by lists made before it)."""
+def neighbour_lists(G: nx.Graph[int], *, avoid: frozenset[str] = frozenset()) -> Neighbours:
+    """Each node's neighbours in ``G.adj`` order with the edge's length, but for edges whose
+    ``kind`` is in ``avoid`` (made once per graph: a change to the graph is not seen by lists made
+    before it)."""
     return {
-        v: tuple((w, float(data["length_m"]), data["kind"]) for w, data in around.items())
+        v: tuple(
+            (w, float(data["length_m"])) for w, data in around.items() if data["kind"] not in avoid
+        )
         for v, around in G.adjacency()
     }
 
@@ -42,12 +45,11 @@ def bidirectional_dijkstra(
     source: int,
     target: int,
     *,
-    avoid: frozenset[str] = frozenset(),
     changed_costs: ChangedCosts | None = None,
 ) -> list[int] | None:
-    """The nodes of a shortest path from ``source`` to ``target`` (both in ``neighbours``) that uses
-    no edge whose kind is in ``avoid``, as networkx's ``bidirectional_dijkstra`` finds it; None when
-    there is none. Raises ValueError on a negative cost, as networkx does."""
+    """The nodes of a shortest path from ``source`` to ``target`` (both in ``neighbours``) along
+    the listed edges, as networkx's ``bidirectional_dijkstra`` finds it; None when there is none.
+    Raises ValueError on a negative cost, as networkx does."""
     if source == target:
         return [source]
     changed = changed_costs or {}
@@ -63,33 +65,35 @@ def bidirectional_dijkstra(
     direction = 1
     while fringe[0] and fringe[1]:
         direction = 1 - direction
-        dist, _, v = heappop(fringe[direction])
-        done, other_done = dists[direction], dists[1 - direction]
+        heap = fringe[direction]
+        dist, _, v = heappop(heap)
+        done = dists[direction]
         if v in done:
             continue  # the shortest path to v was found already
         done[v] = dist
-        if v in other_done:  # v scanned from both sides: the best meeting node is known
+        if v in dists[1 - direction]:  # v scanned from both sides: the best meeting node is known
             assert meetnode is not None
             return _joined(preds, meetnode)
         reached, other_reached = seen[direction], seen[1 - direction]
         pred = preds[direction]
         changed_here = changed.get(v)
-        for w, length_m, kind in neighbours[v]:
-            if kind in avoid:
-                continue
-            cost = length_m
+        for w, length_m in neighbours[v]:
             if changed_here is not None and w in changed_here:
-                cost = changed_here[w]
-            vw_length = dist + cost
+                vw_length = dist + changed_here[w]
+            else:
+                vw_length = dist + length_m
             if w in done:
                 if vw_length < done[w]:
                     raise ValueError("Contradictory paths found: negative weights?")
-            elif w not in reached or vw_length < reached[w]:
+                continue
+            reached_w = reached.get(w)
+            if reached_w is None or vw_length < reached_w:
                 reached[w] = vw_length
-                heappush(fringe[direction], (vw_length, next(c), w))
+                heappush(heap, (vw_length, next(c), w))
                 pred[w] = v
-                if w in other_reached:
-                    through_w = vw_length + other_reached[w]
+                other_w = other_reached.get(w)
+                if other_w is not None:
+                    through_w = vw_length + other_w
                     if finaldist is None or finaldist > through_w:
                         finaldist, meetnode = through_w, w
     return None
