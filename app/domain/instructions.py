@@ -44,11 +44,12 @@ from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
 from app.domain.path_graph import STAIRS, WALK, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker_end_legs
-from app.domain.polyline import distances_along_m, point_along
+from app.domain.polyline import distances_along_m, point_along, xyz_array
 from app.domain.routing import (
     ROUNDED_DECIMALS,
     Endpoint,
     NodeEnd,
+    NodeLookups,
     PoiEnd,
     Point3,
     PositionEnd,
@@ -130,9 +131,12 @@ def plan_guided_route(
     of :func:`app.domain.routing.plan_walk`: routing's own steps are not made)."""
     route = plan_walk(pg, start, goal, avoid=avoid)
     name, thing_m = _goal(pg, goal)
-    steps = guidance_steps(
+    points = route.polyline_m  # (x, y, z) tuples of floats, as routing makes them
+    steps = _guidance_steps(
         pg,
-        route,
+        route.nodes,
+        xyz_array(points),
+        points,
         goal_name=name,
         goal_thing_m=thing_m,
         heading_rad=heading_rad,
@@ -170,9 +174,36 @@ def guidance_steps(
 ) -> list[Step]:
     """The spoken steps of ``route`` (see the module docstring)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    points = _points(xyz)
-    kinds, junction = _segment_kinds(pg, points, route.nodes)
-    floors = _point_floors(pg, points)
+    return _guidance_steps(
+        pg,
+        route.nodes,
+        xyz,
+        _points(xyz),
+        goal_name=goal_name,
+        goal_thing_m=goal_thing_m,
+        heading_rad=heading_rad,
+        style=style,
+        floor_labels=floor_labels,
+    )
+
+
+def _guidance_steps(
+    pg: PathGraph,
+    nodes: Sequence[int],
+    xyz: FloatArray,
+    points: Sequence[Point3],
+    *,
+    goal_name: str,
+    goal_thing_m: FloatArray | None,
+    heading_rad: float | None,
+    style: GuidanceStyle,
+    floor_labels: Sequence[str] | None,
+) -> list[Step]:
+    """:func:`guidance_steps` of the route through ``nodes`` whose polyline is (N, 3) ``xyz``,
+    the same as ``points``."""
+    lookups = node_lookups(pg)
+    kinds, junction = _segment_kinds(lookups, points, nodes)
+    floors = _point_floors(pg, lookups, points)
     steps: list[Step] = []
     heading: tuple[float, float] | None = None
     first_walk = True
@@ -222,7 +253,7 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
     """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
     whether each point is a junction)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    kinds, junction = _segment_kinds(pg, _points(xyz), route.nodes)
+    kinds, junction = _segment_kinds(node_lookups(pg), _points(xyz), route.nodes)
     stretches = []
     i = 0
     while i < len(kinds):
@@ -473,15 +504,18 @@ def _side(heading: tuple[float, float] | None, end: FloatArray, thing_m: FloatAr
 
 
 def _segment_kinds(
-    pg: PathGraph, points: Sequence[Point3], nodes: Sequence[int]
+    lookups: NodeLookups, points: Sequence[Point3], nodes: Sequence[int]
 ) -> tuple[list[str], list[bool]]:
     """(kind of each polyline segment, whether each point is a junction): a point is the route
     node at its position (rounded to ``ROUNDED_DECIMALS``; the last such node if several)."""
-    lookups = node_lookups(pg)
-    rounded = lookups.rounded_of_point
-    point_of_node = lookups.point_of_node
-    node_at = {rounded[point_of_node[n]]: n for n in nodes}
-    at = [node_at.get(rounded.get(p) or _rounded(p)) for p in points]
+    place_of_node, place_of_point = lookups.place_of_node, lookups.place_of_point
+    node_at = {place_of_node[n]: n for n in nodes}
+    at = []
+    for p in points:
+        place = place_of_point.get(p)
+        if place is None:  # not a node's position (a position on an edge): rounded, maybe one
+            place = lookups.place_of_rounded.get(_rounded(p))
+        at.append(node_at.get(place) if place is not None else None)
     junctions = lookups.junctions
     junction = [n is not None and n in junctions for n in at]
     kind_between = lookups.kind_between
@@ -498,11 +532,10 @@ def _rounded(point: Point3) -> Point3:
     return (x, y, z)
 
 
-def _point_floors(pg: PathGraph, points: Sequence[Point3]) -> list[int]:
+def _point_floors(pg: PathGraph, lookups: NodeLookups, points: Sequence[Point3]) -> list[int]:
     """The floor of each polyline point: the level nearest its height."""
     if not pg.floor_levels_m:
         return [0] * len(points)
-    lookups = node_lookups(pg)
     if lookups.floor_levels_m != pg.floor_levels_m:
         return _floors_of_heights(pg, [p[1] for p in points])
     known = lookups.floor_of_height

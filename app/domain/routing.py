@@ -67,6 +67,7 @@ from app.domain.errors import InvisibleMapError
 from app.domain.floors import assign_floors
 from app.domain.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker
+from app.domain.polyline import xyz_array
 from app.domain.shortest_path import Neighbours, bidirectional_dijkstra, neighbour_lists
 
 Point3: TypeAlias = tuple[float, float, float]
@@ -271,7 +272,7 @@ def _planned_walk(
     if walk is None:
         raise _unreachable(index, a, b, avoid)
     points, floors, kinds, nodes = walk
-    xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    xyz = xyz_array(points)
     length_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
     route = Route(
         polyline_m=points,
@@ -341,15 +342,19 @@ class NodeLookups:
 
     ``point_of_node``: node → ``position_m`` as floats (map frame, m). ``junctions``: the nodes of
     kind ``"junction"``. ``kind_between``: node → {neighbour → the kind of the edge between them}.
-    ``rounded_of_point``: a node's ``position_m`` → the same rounded to ``ROUNDED_DECIMALS``
-    (``np.round``). ``floor_of_height``: a node's height (y, m) → the index of the nearest of
-    ``floor_levels_m`` (:func:`app.domain.floors.assign_floors`), the levels it was made for.
+    Places: the nodes' positions rounded to ``ROUNDED_DECIMALS`` (``np.round``), numbered;
+    ``place_of_rounded``: a rounded position → its place, ``place_of_point``: a node's
+    ``position_m`` → its place, ``place_of_node``: node → its place. ``floor_of_height``: a node's
+    height (y, m) → the index of the nearest of ``floor_levels_m``
+    (:func:`app.domain.floors.assign_floors`), the levels it was made for.
     """
 
     point_of_node: dict[int, Point3]
     junctions: frozenset[int]
     kind_between: dict[int, dict[int, str]]
-    rounded_of_point: dict[Point3, Point3]
+    place_of_rounded: dict[Point3, int]
+    place_of_point: dict[Point3, int]
+    place_of_node: dict[int, int]
     floor_levels_m: tuple[float, ...]
     floor_of_height: dict[float, int]
 
@@ -423,12 +428,12 @@ def _at_node(G: nx.Graph[int], node: int, *, label: str, name: str) -> _Terminal
 def _at_anchor(G: nx.Graph[int], anchor: Anchor, *, label: str, name: str) -> _Terminal:
     if anchor.node not in G:
         raise RouteError(f"{label} is anchored to node {anchor.node}, which is not in the map")
-    at = _at_node(G, anchor.node, label=label, name=name)
+    data = G.nodes[anchor.node]
     return _Terminal(
         label=label,
         name=name,
-        position_m=at.position_m,
-        floor=at.floor,
+        position_m=_point(data["position_m"]),
+        floor=int(data["floor"]),
         node=anchor.node,
         thing_m=_point(anchor.position_m),
     )
@@ -544,7 +549,11 @@ def _build_edge_index(pg: PathGraph) -> _EdgeIndex:
 def _node_lookups(pg: PathGraph, nodes: list[tuple[int, dict[str, Any]]]) -> NodeLookups:
     points = [_point(d["position_m"]) for _, d in nodes]
     xyz = np.array(points, dtype=np.float64).reshape(-1, 3)
-    rounded = np.round(xyz, ROUNDED_DECIMALS).tolist()
+    rounded = [_point(r) for r in np.round(xyz, ROUNDED_DECIMALS).tolist()]
+    place_of_rounded: dict[Point3, int] = {}
+    for r in rounded:
+        place_of_rounded.setdefault(r, len(place_of_rounded))
+    places = [place_of_rounded[r] for r in rounded]
     levels_m = tuple(pg.floor_levels_m)
     floors = assign_floors(xyz[:, 1], np.asarray(levels_m, dtype=np.float64)).tolist()
     return NodeLookups(
@@ -553,7 +562,9 @@ def _node_lookups(pg: PathGraph, nodes: list[tuple[int, dict[str, Any]]]) -> Nod
         kind_between={
             v: {w: str(d["kind"]) for w, d in around.items()} for v, around in pg.graph.adjacency()
         },
-        rounded_of_point={p: _point(r) for p, r in zip(points, rounded, strict=True)},
+        place_of_rounded=place_of_rounded,
+        place_of_point=dict(zip(points, places, strict=True)),
+        place_of_node={n: place for (n, _), place in zip(nodes, places, strict=True)},
         floor_levels_m=levels_m,
         floor_of_height={p[1]: int(f) for p, f in zip(points, floors, strict=True)},
     )
