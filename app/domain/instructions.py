@@ -36,7 +36,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeAlias
 
 import numpy as np
 
@@ -280,26 +280,54 @@ def decision_points(
     stretch (:func:`walked_distances_m`), when the caller has it already."""
     if walked_m is None:
         walked_m = walked_distances_m(xyz)
-    walked = walked_m.tolist()
-    chosen: list[tuple[int, float, bool, float]] = []  # (index, turn_deg, at_junction, along_m)
+    return [
+        Decision(index=index, turn_deg=turn_deg, at_junction=at_junction, along_m=along_m)
+        for index, turn_deg, at_junction, along_m in _decisions(
+            xyz, junction, walked_m, walked_m.tolist(), end_margin_m
+        )
+    ]
+
+
+_DecisionTuple: TypeAlias = tuple[
+    int, float, bool, float
+]  # (index, turn_deg, at_junction, along_m)
+
+
+def _decisions(
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    walked_m: FloatArray,
+    walked: list[float],
+    end_margin_m: float,
+) -> list[_DecisionTuple]:
+    """:func:`decision_points` as tuples, given each point's distance along the stretch both as
+    an array and as a list."""
+    chosen: list[_DecisionTuple] = []
     junctions = [j for j in range(len(xyz)) if junction[j]]
-    for k, turn in sorted(_bends(xyz, walked_m, walked, end_margin_m), key=lambda c: -abs(c[1])):
+    for k, turn_deg in sorted(_bends(xyz, walked_m, walked, end_margin_m), key=_strongest):
         index, at_junction, along_m = k, False, walked[k]
-        near = [j for j in junctions if abs(walked[j] - along_m) <= JUNCTION_SNAP_M]
-        if near:
-            index = min(near, key=lambda j: abs(walked[j] - along_m))
-            at_junction, along_m = True, walked[index]
-        if any(
-            (abs(along_m - d_along_m) < MIN_SPACING_M and not (at_junction and d_at_junction))
-            or index == d_index
+        nearest_m = JUNCTION_SNAP_M
+        for j in junctions:  # the nearest junction within JUNCTION_SNAP_M, the first of equals
+            gap_m = abs(walked[j] - walked[k])
+            if gap_m <= nearest_m and not (at_junction and gap_m == nearest_m):
+                index, at_junction, nearest_m = j, True, gap_m
+        along_m = walked[index]
+        if not any(
+            index == d_index
+            or (abs(along_m - d_along_m) < MIN_SPACING_M and not (at_junction and d_at_junction))
             for d_index, _, d_at_junction, d_along_m in chosen
         ):
-            continue
-        chosen.append((index, turn, at_junction, along_m))
-    return [
-        Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
-        for index, turn, at_junction, along_m in sorted(chosen, key=lambda d: d[3])
-    ]
+            chosen.append((index, turn_deg, at_junction, along_m))
+    chosen.sort(key=_along)
+    return chosen
+
+
+def _strongest(bend: tuple[int, float]) -> float:
+    return -abs(bend[1])
+
+
+def _along(decision: _DecisionTuple) -> float:
+    return decision[3]
 
 
 def _bends(
@@ -307,38 +335,38 @@ def _bends(
 ) -> list[tuple[int, float]]:
     """(index, turn_deg) of each inner point of the stretch (N, 3) at least ``end_margin_m`` from
     both ends whose bend, measured over ``CHORD_M`` either side, is at least ``BEAR_MIN_DEG``;
-    ``walked_m`` (N,) and ``walked`` are each point's distance along the stretch."""
+    ``walked_m`` (N,) and ``walked`` are each point's distance along the stretch (not
+    decreasing, so the points far enough from both ends are the ones from ``first`` to ``last``)."""
     total_m = walked[-1] if walked else 0.0
-    inner = [
-        k
-        for k in range(1, len(walked) - 1)
-        if walked[k] >= end_margin_m and total_m - walked[k] >= end_margin_m
-    ]
-    if not inner:
+    first, last = 1, len(walked) - 2
+    while first <= last and not walked[first] >= end_margin_m:
+        first += 1
+    while last >= first and not total_m - walked[last] >= end_margin_m:
+        last -= 1
+    if first > last:
         return []
-    rows = np.array(inner)
     xs, zs = xyz[:, 0], xyz[:, 2]
-    along_m = walked_m[rows]
+    here_x, here_z = xs[first : last + 1], zs[first : last + 1]
+    along_m = walked_m[first : last + 1]
     back_m = np.maximum(along_m - CHORD_M, 0.0)
     ahead_m = np.minimum(along_m + CHORD_M, total_m)
-    before_x = xs[rows] - np.interp(back_m, walked_m, xs)
-    before_z = zs[rows] - np.interp(back_m, walked_m, zs)
-    after_x = np.interp(ahead_m, walked_m, xs) - xs[rows]
-    after_z = np.interp(ahead_m, walked_m, zs) - zs[rows]
+    before_x = here_x - np.interp(back_m, walked_m, xs)
+    before_z = here_z - np.interp(back_m, walked_m, zs)
+    after_x = np.interp(ahead_m, walked_m, xs) - here_x
+    after_z = np.interp(ahead_m, walked_m, zs) - here_z
     # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up). The dot
     # product adds to 0.0 first, as a sum over an axis does (so 0 keeps its sign, and the angle).
     cross_y = before_z * after_x - before_x * after_z
     dot = (0.0 + before_x * after_x) + before_z * after_z
     turn_deg = np.degrees(np.arctan2(cross_y, dot)).tolist()
     bends = []
-    for i, k in enumerate(inner):
-        turn = turn_deg[i]
+    for i, turn in enumerate(turn_deg):
         if (
             abs(turn) >= BEAR_MIN_DEG
             and _moving(before_x, before_z, i)
             and _moving(after_x, after_z, i)
         ):
-            bends.append((k, turn))
+            bends.append((first + i, turn))
     return bends
 
 
@@ -355,8 +383,12 @@ def walked_distances_m(xyz: FloatArray) -> FloatArray:
 
 def is_announced(decision: Decision) -> bool:
     """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
-    size = abs(decision.turn_deg)
-    return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and decision.at_junction)
+    return _announced(decision.turn_deg, decision.at_junction)
+
+
+def _announced(turn_deg: float, at_junction: bool) -> bool:
+    size = abs(turn_deg)
+    return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and at_junction)
 
 
 def turn_words(turn_deg: float, style: GuidanceStyle, *, at_junction: bool = True) -> str:
@@ -422,12 +454,12 @@ def _walk_steps(
             if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
                 words = f"{words} {round(abs(bearing))}°"
             steps.append(_step(f"{words} to face the way", points[0], "face", 0.0, bearing, floor))
-    decisions = decision_points(xyz, junction, walked_m=np.array(walked))
+    decisions = _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
     from_m, from_i = 0.0, 0
-    for d in decisions:
-        if not is_announced(d):
+    for index, turn_deg, at_junction, along_m in decisions:
+        if not _announced(turn_deg, at_junction):
             continue
-        leg_m = d.along_m - from_m
+        leg_m = along_m - from_m
         steps.append(
             _step(
                 f"go straight {distance_words(leg_m, style.units)}",
@@ -437,13 +469,13 @@ def _walk_steps(
                 floor=floor,
             )
         )
-        words = turn_words(d.turn_deg, style, at_junction=d.at_junction)
+        words = turn_words(turn_deg, style, at_junction=at_junction)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
-            at = point_along(points, walked, d.along_m - ANNOUNCE_BEFORE_M)
+            at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
             ahead = distance_words(ANNOUNCE_BEFORE_M, style.units)
-            steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, d.turn_deg, floor))
-        steps.append(_step(words, points[d.index], "turn", 0.0, d.turn_deg, floor))
-        from_m, from_i = d.along_m, d.index
+            steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, turn_deg, floor))
+        steps.append(_step(words, points[index], "turn", 0.0, turn_deg, floor))
+        from_m, from_i = along_m, index
     rest_m = walked[-1] - from_m
     if rest_m >= 0.5:
         steps.append(
@@ -573,9 +605,10 @@ def _step(
 
 def _direction(a: Point3, b: Point3) -> tuple[float, float] | None:
     """The x–z unit vector from a to b (None if they are one above the other): ``d / |d|`` with
-    ``np.linalg.norm``, which may round |d| differently from ``math.hypot``."""
+    |d| as ``np.linalg.norm(d)`` has it, the square root of a dot product that may round
+    differently from ``dx² + dz²``."""
     d = np.array([b[0] - a[0], b[2] - a[2]])
-    norm = float(np.linalg.norm(d))
+    norm = math.sqrt(d.dot(d))
     if norm == 0:
         return None
     dx, dz = d.tolist()

@@ -195,3 +195,19 @@ def test_a_point_shared_by_two_route_nodes_is_the_later_one():
     want = reference_segment_kinds(pg, np.array(points), [0, 1, 2])
     assert instructions._segment_kinds(node_lookups(pg), points, [0, 1, 2]) == want
     assert want == ([ELEVATOR, ELEVATOR], [False, False, False])
+
+
+# --------------------------------------------------------------------------- directions
+
+
+def test_a_direction_is_the_numpy_unit_vector_to_the_bit():
+    """``d / np.linalg.norm(d)``: the norm is a dot product's square root, which may round
+    differently from ``math.hypot`` or ``sqrt(dx² + dz²)``."""
+    rng = np.random.default_rng(5)
+    for a, b in rng.normal(size=(3000, 2, 3)) * rng.choice([1e-3, 1.0, 50.0], size=(3000, 1, 1)):
+        d = (b - a)[[0, 2]]
+        want = (d / np.linalg.norm(d)).tolist()
+        got = instructions._direction(tuple(a.tolist()), tuple(b.tolist()))
+        assert got is not None
+        assert list(got) == want
+    assert instructions._direction((1.0, 0.0, 2.0), (1.0, 5.0, 2.0)) is None

@@ -117,23 +117,25 @@ def douglas_peucker_end_legs(
 def _farthest_2d(xs: Sequence[float], ys: Sequence[float], s: int, e: int) -> tuple[int, float]:
     """(index, distance) of the inner point of s…e (e − s ≥ 2) farthest from the segment s–e, the
     first of equals (a NaN distance is the farthest), as :func:`project_to_segments` and
-    ``np.argmax`` find it."""
+    ``np.argmax`` find it. A square root is taken only when it may be the largest so far."""
     sqrt = math.sqrt
     ax, ay = xs[s], ys[s]
     dx, dy = xs[e] - ax, ys[e] - ay
     length2 = dx * dx + dy * dy
-    best_k, best_m = -1, -1.0
+    best_k, best_m, best_q2 = -1, -1.0, -1.0
     for k in range(s + 1, e):
         px, py = xs[k], ys[k]
         t = ((px - ax) * dx + (py - ay) * dy) / length2 if length2 > 0 else 0.0
         t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
         qx = px - (ax + t * dx)
         qy = py - (ay + t * dy)
-        distance_m = sqrt(qx * qx + qy * qy)
-        if distance_m != distance_m:  # NaN: numpy's argmax picks the first, never kept
-            return k, distance_m
-        if distance_m > best_m or best_k < 0:
-            best_k, best_m = k, distance_m
+        q2 = qx * qx + qy * qy
+        if q2 > best_q2:  # else its distance is at most the best's
+            distance_m = sqrt(q2)
+            if distance_m > best_m:
+                best_k, best_m, best_q2 = k, distance_m, q2
+        elif q2 != q2:  # NaN: numpy's argmax picks the first, never kept
+            return k, q2
     return best_k, best_m
 
 
