@@ -44,7 +44,7 @@ from app.domain.floors import assign_floors
 from app.domain.frames import FloatArray
 from app.domain.path_graph import STAIRS, WALK, PathGraph
 from app.domain.path_graph.geometry import douglas_peucker_end_legs
-from app.domain.polyline import distances_along_m, point_along, xyz_array
+from app.domain.polyline import distances_along_m, point_along, segment_lengths_m
 from app.domain.routing import (
     ROUNDED_DECIMALS,
     Endpoint,
@@ -56,8 +56,8 @@ from app.domain.routing import (
     Route,
     Step,
     TagEnd,
+    measured_walk,
     node_lookups,
-    plan_walk,
     search_pois,
     signed_turn_deg,
 )
@@ -129,14 +129,16 @@ def plan_guided_route(
 ) -> Route:
     """:func:`app.domain.routing.plan_route` with instructions at decision points only (the walk
     of :func:`app.domain.routing.plan_walk`: routing's own steps are not made)."""
-    route = plan_walk(pg, start, goal, avoid=avoid)
+    walk = measured_walk(pg, start, goal, avoid=avoid)
+    route = walk.route
     name, thing_m = _goal(pg, goal)
-    points = route.polyline_m  # (x, y, z) tuples of floats, as routing makes them
     steps = _guidance_steps(
         pg,
+        walk.lookups,
         route.nodes,
-        xyz_array(points),
-        points,
+        walk.xyz,
+        route.polyline_m,  # (x, y, z) tuples of floats, as routing makes them
+        walk.segment_lengths_m,
         goal_name=name,
         goal_thing_m=thing_m,
         heading_rad=heading_rad,
@@ -174,11 +176,14 @@ def guidance_steps(
 ) -> list[Step]:
     """The spoken steps of ``route`` (see the module docstring)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    points = _points(xyz)
     return _guidance_steps(
         pg,
+        node_lookups(pg),
         route.nodes,
         xyz,
-        _points(xyz),
+        points,
+        segment_lengths_m(points),
         goal_name=goal_name,
         goal_thing_m=goal_thing_m,
         heading_rad=heading_rad,
@@ -189,9 +194,11 @@ def guidance_steps(
 
 def _guidance_steps(
     pg: PathGraph,
+    lookups: NodeLookups,
     nodes: Sequence[int],
     xyz: FloatArray,
     points: Sequence[Point3],
+    lengths_m: Sequence[float],
     *,
     goal_name: str,
     goal_thing_m: FloatArray | None,
@@ -200,23 +207,20 @@ def _guidance_steps(
     floor_labels: Sequence[str] | None,
 ) -> list[Step]:
     """:func:`guidance_steps` of the route through ``nodes`` whose polyline is (N, 3) ``xyz``,
-    the same as ``points``."""
-    lookups = node_lookups(pg)
+    the same as ``points``, with (N − 1) ``lengths_m`` the 3-D length of each segment; ``lookups``
+    are ``pg``'s."""
     kinds, junction = _segment_kinds(lookups, points, nodes)
     floors = _point_floors(pg, lookups, points)
     steps: list[Step] = []
     heading: tuple[float, float] | None = None
     first_walk = True
-    i = 0
-    while i < len(kinds):
-        j = i
-        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
-            j += 1
-        if kinds[i] == WALK:
+    for kind, i, j in _runs(kinds):
+        if kind == WALK:
             facing = heading_rad if first_walk else None
             heading = _walk_steps(
                 xyz[i : j + 2],
                 points[i : j + 2],
+                lengths_m[i : j + 1],
                 junction[i : j + 2],
                 floors[i],
                 facing,
@@ -226,9 +230,8 @@ def _guidance_steps(
             first_walk = False
         else:
             heading = None
-            steps.append(_floor_change(xyz, floors, kinds[i], i, j + 1, style, floor_labels))
-        i = j + 1
-    end = xyz[-1] if len(xyz) else np.zeros(3)
+            steps.append(_floor_change(xyz, floors, kind, i, j + 1, style, floor_labels))
+    end = points[-1] if points else (0.0, 0.0, 0.0)
     side = _side(heading, end, goal_thing_m)
     if steps and steps[-1].kind == "go" and side:
         last = steps[-1]
@@ -239,7 +242,7 @@ def _guidance_steps(
     steps.append(
         Step(
             instruction=arrive,
-            position_m=_point(end),
+            position_m=end,
             kind="arrive",
             distance_m=0.0,
             turn_deg=None,
@@ -254,16 +257,18 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
     whether each point is a junction)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
     kinds, junction = _segment_kinds(node_lookups(pg), _points(xyz), route.nodes)
-    stretches = []
-    i = 0
-    while i < len(kinds):
-        j = i
-        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
-            j += 1
-        if kinds[i] == WALK:
-            stretches.append((xyz[i : j + 2], junction[i : j + 2]))
-        i = j + 1
-    return stretches
+    return [(xyz[i : j + 2], junction[i : j + 2]) for kind, i, j in _runs(kinds) if kind == WALK]
+
+
+def _runs(kinds: Sequence[str]) -> list[tuple[str, int, int]]:
+    """(kind, first, last) of each run of segments of one kind, in order."""
+    runs = []
+    first = 0
+    for kind, run in itertools.groupby(kinds):
+        last = first + len(list(run)) - 1
+        runs.append((kind, first, last))
+        first = last + 1
+    return runs
 
 
 def decision_points(
@@ -359,21 +364,15 @@ def _bends(
     cross_y = before_z * after_x - before_x * after_z
     dot = (0.0 + before_x * after_x) + before_z * after_z
     turn_deg = np.degrees(np.arctan2(cross_y, dot)).tolist()
-    bends = []
-    for i, turn in enumerate(turn_deg):
-        if (
-            abs(turn) >= BEAR_MIN_DEG
-            and _moving(before_x, before_z, i)
-            and _moving(after_x, after_z, i)
-        ):
-            bends.append((first + i, turn))
-    return bends
-
-
-def _moving(xs: FloatArray, zs: FloatArray, i: int) -> bool:
-    """Whether the i-th vector is not zero, as ``np.linalg.norm(…, axis=1) > 0`` finds it."""
-    x, z = float(xs[i]), float(zs[i])
-    return x * x + z * z > 0
+    # A chord too short to have a direction (``np.linalg.norm(…, axis=1) > 0`` is false) bends not.
+    bx, bz, ax, az = before_x.tolist(), before_z.tolist(), after_x.tolist(), after_z.tolist()
+    return [
+        (first + i, turn)
+        for i, turn in enumerate(turn_deg)
+        if abs(turn) >= BEAR_MIN_DEG
+        and bx[i] * bx[i] + bz[i] * bz[i] > 0
+        and ax[i] * ax[i] + az[i] * az[i] > 0
+    ]
 
 
 def walked_distances_m(xyz: FloatArray) -> FloatArray:
@@ -431,15 +430,16 @@ def heading_direction(heading_rad: float) -> FloatArray:
 def _walk_steps(
     xyz: FloatArray,
     points: Sequence[Point3],
+    lengths_m: Sequence[float],
     junction: Sequence[bool],
     floor: int,
     heading_rad: float | None,
     style: GuidanceStyle,
     steps: list[Step],
 ) -> tuple[float, float] | None:
-    """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``; return
-    its final x–z heading."""
-    walked = distances_along_m(points)
+    """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``, whose
+    segments are ``lengths_m`` long; return its final x–z heading."""
+    walked = distances_along_m(lengths_m)
     first_dir = last_dir = None
     if len(points) > 1:
         xs, zs = [p[0] for p in points], [p[2] for p in points]
@@ -521,13 +521,14 @@ def _floor_change(
     )
 
 
-def _side(heading: tuple[float, float] | None, end: FloatArray, thing_m: FloatArray | None) -> str:
+def _side(heading: tuple[float, float] | None, end: Point3, thing_m: FloatArray | None) -> str:
     if thing_m is None:
         return ""
-    offset = (np.asarray(thing_m) - end)[[0, 2]]
-    if float(np.linalg.norm(offset)) < SIDE_MIN_M or heading is None:
+    thing_x, _, thing_z = np.asarray(thing_m, dtype=np.float64).tolist()
+    offset_x, offset_z = thing_x - end[0], thing_z - end[2]
+    if _norm_xz(offset_x, offset_z) < SIDE_MIN_M or heading is None:
         return ""
-    bearing = signed_turn_deg(_xyz(heading), (float(offset[0]), 0.0, float(offset[1])))
+    bearing = signed_turn_deg(_xyz(heading), (offset_x, 0.0, offset_z))
     if abs(bearing) < 30:
         return "ahead"
     if abs(bearing) > TURN_AROUND_MIN_DEG:
@@ -542,19 +543,18 @@ def _segment_kinds(
     node at its position (rounded to ``ROUNDED_DECIMALS``; the last such node if several)."""
     place_of_node, place_of_point = lookups.place_of_node, lookups.place_of_point
     node_at = {place_of_node[n]: n for n in nodes}
-    at = []
-    for p in points:
-        place = place_of_point.get(p)
-        if place is None:  # not a node's position (a position on an edge): rounded, maybe one
-            place = lookups.place_of_rounded.get(_rounded(p))
-        at.append(node_at.get(place) if place is not None else None)
+    places = [place_of_point.get(p, -1) for p in points]  # -1: no node there
+    for i, place in enumerate(places):
+        if place < 0:  # not a node's position (a position on an edge): rounded, maybe one
+            places[i] = lookups.place_of_rounded.get(_rounded(points[i]), -1)
+    at = [node_at.get(place) for place in places]
     junctions = lookups.junctions
-    junction = [n is not None and n in junctions for n in at]
+    junction = [n in junctions for n in at]
     kind_between = lookups.kind_between
-    kinds = []
-    for a, b in itertools.pairwise(at):
-        kind = kind_between[a].get(b) if a is not None and b is not None else None
-        kinds.append(WALK if kind is None else kind)
+    kinds = [
+        WALK if a is None or b is None else kind_between[a].get(b, WALK)
+        for a, b in itertools.pairwise(at)
+    ]
     return kinds, junction
 
 
@@ -571,12 +571,9 @@ def _point_floors(pg: PathGraph, lookups: NodeLookups, points: Sequence[Point3])
     if lookups.floor_levels_m != pg.floor_levels_m:
         return _floors_of_heights(pg, [p[1] for p in points])
     known = lookups.floor_of_height
-    floors = []
-    for p in points:
-        floor = known.get(p[1])
-        if floor is None:  # a point off the graph's nodes (a position on an edge)
-            return _floors_of_heights(pg, [p[1] for p in points])
-        floors.append(floor)
+    floors = [known.get(p[1], -1) for p in points]
+    if -1 in floors:  # a point off the graph's nodes (a position on an edge)
+        return _floors_of_heights(pg, [p[1] for p in points])
     return floors
 
 
@@ -604,15 +601,19 @@ def _step(
 
 
 def _direction(a: Point3, b: Point3) -> tuple[float, float] | None:
-    """The x–z unit vector from a to b (None if they are one above the other): ``d / |d|`` with
-    |d| as ``np.linalg.norm(d)`` has it, the square root of a dot product that may round
-    differently from ``dx² + dz²``."""
-    d = np.array([b[0] - a[0], b[2] - a[2]])
-    norm = math.sqrt(d.dot(d))
+    """The x–z unit vector from a to b (None if they are one above the other)."""
+    dx, dz = b[0] - a[0], b[2] - a[2]
+    norm = _norm_xz(dx, dz)
     if norm == 0:
         return None
-    dx, dz = d.tolist()
     return (dx / norm, dz / norm)
+
+
+def _norm_xz(x: float, z: float) -> float:
+    """``np.linalg.norm([x, z])``: the square root of a dot product, which may round differently
+    from ``math.hypot(x, z)`` or ``sqrt(x² + z²)``."""
+    d = np.array([x, z])
+    return math.sqrt(d.dot(d))
 
 
 def _xyz(xz: tuple[float, float]) -> Point3:

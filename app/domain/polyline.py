@@ -2,10 +2,10 @@
 numpy's cost per call is most of the work (issue 16). Each function does the floating-point
 operations of the numpy expression it stands for, in the same order, so it gives the same bits.
 
-    lengths_m = segment_lengths_m(points)   # np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-    walked_m = distances_along_m(points)    # np.concatenate([[0.0], np.cumsum(lengths_m)])
-    point_along(points, walked_m, 12.5)     # the point 12.5 m along, interpolated
-    xyz = xyz_array(points)                 # np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lengths_m = segment_lengths_m(points)    # np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    walked_m = distances_along_m(lengths_m)  # np.concatenate([[0.0], np.cumsum(lengths_m)])
+    point_along(points, walked_m, 12.5)      # the point 12.5 m along, interpolated
+    xyz = xyz_array(points)                  # np.asarray(points, dtype=np.float64).reshape(-1, 3)
 
 Points are (x, y, z) tuples of floats, map frame, m.
 """
@@ -42,10 +42,10 @@ def segment_lengths_m(points: Sequence[Point3]) -> list[float]:
     return lengths_m
 
 
-def distances_along_m(points: Sequence[Point3]) -> list[float]:
-    """(N,) the distance of each point along the polyline from its first, m (0 for the first;
-    ``np.cumsum`` adds in order)."""
-    return list(itertools.accumulate(segment_lengths_m(points), initial=0.0))
+def distances_along_m(lengths_m: Sequence[float]) -> list[float]:
+    """(N,) the distance of each point of a polyline from its first, m, given the (N − 1) lengths
+    of its segments (0 for the first; ``np.cumsum`` adds in order)."""
+    return list(itertools.accumulate(lengths_m, initial=0.0))
 
 
 def point_along(points: Sequence[Point3], walked_m: Sequence[float], along_m: float) -> Point3:

@@ -237,8 +237,8 @@ def plan_route(
     Raises :class:`UnknownEndpoint`, :class:`AmbiguousEndpoint`, :class:`Unreachable` or
     :class:`RouteError` (see the module docstring).
     """
-    route, (xyz, floors, kinds, goal_end) = _planned_walk(pg, start, goal, avoid)
-    return dataclasses.replace(route, steps=_steps(xyz, floors, kinds, goal_end))
+    walk, (floors, kinds, goal_end) = _planned_walk(pg, start, goal, avoid)
+    return dataclasses.replace(walk.route, steps=_steps(walk.xyz, floors, kinds, goal_end))
 
 
 def plan_walk(
@@ -250,15 +250,38 @@ def plan_walk(
 ) -> Route:
     """:func:`plan_route` without its steps (``steps`` is empty): the walk alone, for a caller
     that words the steps itself (:mod:`app.domain.instructions`). Same refusals."""
-    route, _ = _planned_walk(pg, start, goal, avoid)
-    return route
+    return _planned_walk(pg, start, goal, avoid)[0].route
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MeasuredWalk:
+    """The route of :func:`plan_walk` and what measuring its length made: ``xyz`` (N, 3) its
+    polyline (map frame, m), ``segment_lengths_m`` (N − 1) the 3-D length of each segment, m;
+    ``lookups``: the graph's :class:`NodeLookups` it was planned with."""
+
+    route: Route
+    xyz: FloatArray
+    segment_lengths_m: list[float]
+    lookups: NodeLookups
+
+
+def measured_walk(
+    pg: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str] = frozenset(),
+) -> MeasuredWalk:
+    """:func:`plan_walk` with its polyline as an array and its segments' lengths, so that a caller
+    wording the steps (:mod:`app.domain.instructions`) need not make them again. Same refusals."""
+    return _planned_walk(pg, start, goal, avoid)[0]
 
 
 def _planned_walk(
     pg: PathGraph, start: Endpoint, goal: Endpoint, avoid: frozenset[str]
-) -> tuple[Route, tuple[FloatArray, list[int], list[str], _Terminal]]:
-    """(the route without steps, what its steps are made of: points (N, 3), floor of each point,
-    kind of each segment, the goal's terminal)."""
+) -> tuple[MeasuredWalk, tuple[list[int], list[str], _Terminal]]:
+    """(the walk, its route without steps, and what routing's steps are made of besides its
+    points: the floor of each point, the kind of each segment, the goal's terminal)."""
     avoid = frozenset(avoid)
     bad = avoid - AVOIDABLE
     if bad:
@@ -273,15 +296,19 @@ def _planned_walk(
         raise _unreachable(index, a, b, avoid)
     points, floors, kinds, nodes = walk
     xyz = xyz_array(points)
-    length_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
+    step_m = np.diff(xyz, axis=0)
+    segments_m = np.sqrt(np.add.reduce(step_m * step_m, axis=1))  # np.linalg.norm(…, axis=1)
     route = Route(
         polyline_m=points,
-        length_m=length_m,
+        length_m=float(segments_m.sum()) if len(xyz) > 1 else 0.0,
         floors=_without_repeats(floors),
         nodes=nodes,
         steps=[],
     )
-    return route, (xyz, floors, kinds, b)
+    measured = MeasuredWalk(
+        route=route, xyz=xyz, segment_lengths_m=segments_m.tolist(), lookups=index.lookups
+    )
+    return measured, (floors, kinds, b)
 
 
 def search_pois(pg: PathGraph, query: str) -> list[Anchor]:
@@ -666,11 +693,9 @@ def _shortest_walk(
         nodes = nodes[:-1]  # came in by the far end
     point_of_node, floor_of_node = index.lookups.point_of_node, index.floor_of_node
     kind_between = index.lookups.kind_between
-    for i, n in enumerate(nodes):
-        points.append(point_of_node[n])
-        floors.append(floor_of_node[n])
-        if i > 0:
-            kinds.append(kind_between[nodes[i - 1]][n])
+    points += [point_of_node[n] for n in nodes]
+    floors += [floor_of_node[n] for n in nodes]
+    kinds += [kind_between[u][v] for u, v in itertools.pairwise(nodes)]
     if b.edge is not None:
         points.append(b.position_m)
         floors.append(b.floor)
@@ -867,8 +892,4 @@ def _as_xyz(xz: FloatArray) -> Point3:
 
 
 def _without_repeats(values: Iterable[int]) -> list[int]:
-    out: list[int] = []
-    for v in values:
-        if not out or out[-1] != v:
-            out.append(v)
-    return out
+    return [v for v, _ in itertools.groupby(values)]

@@ -37,7 +37,7 @@ def test_lengths_and_distances_along_are_numpys_to_the_bit():
         points = [(x, y, z) for x, y, z in xyz.tolist()]
         assert segment_lengths_m(points) == lengths_m.tolist()
         walked_m = np.concatenate([[0.0], np.cumsum(lengths_m)])
-        assert distances_along_m(points) == walked_m.tolist()
+        assert distances_along_m(segment_lengths_m(points)) == walked_m.tolist()
 
 
 def numpy_point_along(xyz: np.ndarray, walked_m: np.ndarray, along_m: float) -> np.ndarray:
@@ -54,7 +54,7 @@ def test_a_point_along_is_the_numpy_interpolation_to_the_bit():
         if len(xyz) < 2:
             continue
         points = [(x, y, z) for x, y, z in xyz.tolist()]
-        walked = distances_along_m(points)
+        walked = distances_along_m(segment_lengths_m(points))
         walked_m = np.array(walked)
         alongs = [*walked, -1.0, walked[-1] + 1.0, *rng.uniform(0.0, walked[-1], size=20)]
         for along_m in alongs:
