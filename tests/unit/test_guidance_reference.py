@@ -19,9 +19,12 @@ from app.domain.instructions import (
     MIN_SPACING_M,
     Decision,
     decision_points,
+    guidance_steps,
+    plan_guided_route,
 )
 from app.domain.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, PathGraph
-from app.domain.routing import node_lookups
+from app.domain.routing import TagEnd, node_lookups, plan_walk
+from tests.unit.test_route_answers import recorded_graph
 
 # --------------------------------------------------------------------------- decision points
 
@@ -211,3 +214,24 @@ def test_a_direction_is_the_numpy_unit_vector_to_the_bit():
         assert got is not None
         assert list(got) == want
     assert instructions._direction((1.0, 0.0, 2.0), (1.0, 5.0, 2.0)) is None
+
+
+# --------------------------------------------------------------------------- the two ways in
+
+
+@pytest.mark.parametrize("name", ["floor_2_straight", "floor_2_pois", "simulated_two_floors"])
+def test_steps_of_a_given_route_are_those_planned_with_it(name):
+    """:func:`guidance_steps` measures the route itself; :func:`plan_guided_route` takes the
+    walk's own array and lengths: the steps are the same, to the bit."""
+    pg = recorded_graph(name)
+    tags = sorted(pg.tags)
+    for a, b in list(itertools.permutations(tags, 2))[::17]:
+        planned = plan_guided_route(pg, TagEnd(a), TagEnd(b), heading_rad=0.5)
+        steps = guidance_steps(
+            pg,
+            plan_walk(pg, TagEnd(a), TagEnd(b)),
+            goal_name=f"tag {b}",
+            goal_thing_m=np.asarray(pg.tags[b].position_m),
+            heading_rad=0.5,
+        )
+        assert steps == planned.steps, (a, b)
