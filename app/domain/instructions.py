@@ -293,9 +293,8 @@ def decision_points(
     ]
 
 
-_DecisionTuple: TypeAlias = tuple[
-    int, float, bool, float
-]  # (index, turn_deg, at_junction, along_m)
+#: A decision point as (index, turn_deg, at_junction, along_m): the fields of :class:`Decision`.
+_DecisionTuple: TypeAlias = tuple[int, float, bool, float]
 
 
 def _decisions(
@@ -310,7 +309,7 @@ def _decisions(
     chosen: list[_DecisionTuple] = []
     junctions = [j for j in range(len(xyz)) if junction[j]]
     for k, turn_deg in sorted(_bends(xyz, walked_m, walked, end_margin_m), key=_strongest):
-        index, at_junction, along_m = k, False, walked[k]
+        index, at_junction = k, False
         nearest_m = JUNCTION_SNAP_M
         for j in junctions:  # the nearest junction within JUNCTION_SNAP_M, the first of equals
             gap_m = abs(walked[j] - walked[k])
@@ -447,7 +446,7 @@ def _walk_steps(
         first_dir = _direction(points[0], points[first_end])
         last_dir = _direction(points[last_start], points[-1])
     if heading_rad is not None and first_dir is not None:
-        facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction
+        facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction, x y z
         bearing = signed_turn_deg(facing, _xyz(first_dir))
         if abs(bearing) >= FACING_OK_DEG:
             words = turn_words(bearing, style)
