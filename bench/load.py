@@ -47,8 +47,8 @@ The load generator runs on the same machine as the server, in ``--generator-proc
 processes (asyncio + httpx), at a higher priority than the server (nice
 :data:`GENERATOR_NICE`, where the user may raise it: root), since real phones are other machines
 whose CPU the server does not share; its CPU, priority and event loop's lag are printed: a loop
-that lags adds its lag to every latency. CPU use of the API process, the worker processes, the generator
-and the whole machine come from ``/proc``.
+that lags adds its lag to every latency. CPU use of the API process, the worker processes, the
+generator and the whole machine come from ``/proc``.
 
 Exit status 1 if any answer was a 5xx, any request got no answer, or any session was lost.
 """
