@@ -935,7 +935,16 @@ def run_load(backend: str, args: argparse.Namespace) -> tuple[str, bool]:
     session)."""
     load_argv = ["--postgres-url", args.postgres_url]
     if args.quick:
-        load_argv += ["--duration-s", "10", "--uploaders", "10", "--navigators", "40"]
+        load_argv += [
+            "--duration-s",
+            "10",
+            "--ramp-s",
+            "2",
+            "--uploaders",
+            "10",
+            "--navigators",
+            "40",
+        ]
     load_args = load_bench.build_parser().parse_args(load_argv)
     outcome = load_bench.run_backend("sqlite" if backend == "SQLite" else "postgresql", load_args)
     tallies = outcome.tallies

@@ -34,8 +34,9 @@ key through ``POST /v1/keys``, and its own HTTP connection):
   ``app.domain.localize.session_update_documents``): ``desnat_straight_once`` or
   ``floor_2_straight`` replayed into the floor_2 map, ``occam_room`` into the occam map; the
   first walk starts at a random point of it, and a walk that ends starts a new navigation
-  session. ``--pace-s 0`` sends back to back instead (a closed loop with no think time:
-  latency is then clients / throughput, Little's law).
+  session. Navigators arrive over the window's first ``--ramp-s`` (10) seconds, each at a
+  random moment, not all in its first second. ``--pace-s 0`` sends back to back instead (a
+  closed loop with no think time: latency is then clients / throughput, Little's law).
 
 After the window (no new requests start; those in flight finish), the queue is left to drain
 (``--drain-timeout-s``), then every accepted upload (202) is checked: its job ``succeeded`` and
@@ -118,6 +119,9 @@ REPLAYS: dict[str, list[str]] = {
     "occam_room": ["occam_room"],
 }
 
+#: The navigators' arrival: each starts at random within this many seconds of the window's
+#: opening (``--ramp-s``).
+RAMP_S = 10.0
 #: How often a phone polls its upload's job, s (as the app does).
 JOB_POLL_S = 1.0
 #: An uploader's walk between uploads, s (uniform; ``--walk-s``).
@@ -196,6 +200,7 @@ class Plan:
     start_at: float  # time.time() at which the window opens (set by ``generate``)
     duration_s: float
     pace_s: float
+    ramp_s: float
     walk_s: tuple[float, float]
     wait_for_map: bool
     timeout_s: float
@@ -321,7 +326,8 @@ class Load:
     async def router(self, http: httpx.AsyncClient, phone: Phone) -> None:
         rng = random.Random(f"{self.plan.run_id}-{phone.index}")
         nav = self.plan.maps[phone.map_index]
-        await self.sleep(rng.uniform(0, max(self.plan.pace_s, 0.01)))  # not all in step
+        # not all in step: each phone arrives within the ramp, then keeps its own phase
+        await self.sleep(rng.uniform(0, max(self.plan.ramp_s, self.plan.pace_s, 0.01)))
         await self.call(http, POIS, "GET", f"/v1/maps/{nav.map_id}/pois")
         ends = [{"tag": tag_id} for tag_id in nav.tag_ids]
         ends += [{"poi": name} for name in nav.poi_names]
@@ -342,7 +348,7 @@ class Load:
         nav = self.plan.maps[phone.map_index]
         walk = rng.choice(nav.walks)
         first = rng.randrange(len(walk))  # the first walk starts anywhere along it
-        await self.sleep(rng.uniform(0, max(self.plan.pace_s, 0.01)))
+        await self.sleep(rng.uniform(0, max(self.plan.ramp_s, self.plan.pace_s, 0.01)))
         while self.open():
             response = await self.call(http, START, "POST", f"/v1/maps/{nav.map_id}/localizations")
             if response is None or response.status_code != 201:
@@ -761,6 +767,7 @@ def load_server(deployment: Deployment, args: argparse.Namespace) -> Outcome:
                 start_at=0.0,
                 duration_s=args.duration_s,
                 pace_s=args.pace_s,
+                ramp_s=args.ramp_s,
                 walk_s=tuple(args.walk_s),
                 wait_for_map=not args.no_wait,
                 timeout_s=args.timeout_s,
@@ -952,7 +959,8 @@ def report(outcome: Outcome, args: argparse.Namespace) -> str:
         f"## {outcome.backend}: {outcome.description}",
         "",
         f"{args.duration_s:g} s on loopback; {args.uploaders} uploaders ({uploaders}); "
-        f"{args.navigators} navigators (half route, half localize, each {pace}); "
+        f"{args.navigators} navigators (half route, half localize, each {pace}, arriving "
+        f"within the first {args.ramp_s:g} s); "
         f"{args.generator_processes} generator process(es) on the same machine.",
         "",
         endpoint_table(outcome.tallies),
@@ -998,6 +1006,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a navigator's request period, s; 0: back to back (1)",
     )
     parser.add_argument(
+        "--ramp-s",
+        type=float,
+        default=RAMP_S,
+        help="navigators start at random within the window's first seconds, not all at once "
+        f"(as phones arrive; {RAMP_S:g}; 0: within one pace)",
+    )
+    parser.add_argument(
         "--walk-s",
         type=float,
         nargs=2,
@@ -1034,6 +1049,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.uploaders < 0 or args.navigators < 0 or args.uploaders + args.navigators == 0:
         parser.error("--uploaders and --navigators must be ≥ 0, and not both 0")
+    if args.ramp_s < 0 or args.ramp_s >= args.duration_s:
+        parser.error("--ramp-s must be ≥ 0 and shorter than --duration-s")
     if not 0 <= args.walk_s[0] <= args.walk_s[1]:
         parser.error("--walk-s LOW HIGH needs 0 ≤ LOW ≤ HIGH")
 
