@@ -940,6 +940,9 @@ def run_load(backend: str, args: argparse.Namespace) -> tuple[str, bool]:
             "10",
             "--ramp-s",
             "2",
+            "--walk-s",  # (uploads within the short window)
+            "1",
+            "3",
             "--uploaders",
             "10",
             "--navigators",

@@ -16,13 +16,15 @@ key through ``POST /v1/keys``, and its own HTTP connection):
   (chosen at random; half of the uploads gzip-compressed; a new ``Idempotency-Key`` for each
   upload, the same one for its retries after a timeout or a broken connection, as the app does),
   watches its job once a second (``GET /v1/jobs/{id}``) until the map is built, downloads the map
-  (``GET /v1/maps/{id}/app-map``), then walks again for 1–3 s (``--walk-s``; a real walk takes
-  minutes: this population uploads far more often than any building would) and uploads its
-  next session. The window opens with each uploader somewhere along a walk (its first upload
-  comes uniformly within the longest walk), not with all of them uploading at once. Each
-  uploader has at most one job in the queue, so the queue stays bounded (≤ ``--uploaders``) and
-  the upload rate is whatever the 2 workers sustain. With ``--no-wait`` an uploader does not wait
-  for its map, only walks 1–3 s between uploads: the queue then grows during the window (the
+  (``GET /v1/maps/{id}/app-map``), then walks again for 30–90 s (``--walk-s``; a real mapping
+  walk of a floor takes minutes, so even this population uploads more often than a building
+  would: ~35 sessions a minute) and uploads its next session. The window opens with each
+  uploader somewhere along a walk (its first upload comes uniformly within the longest walk),
+  not with all of them uploading at once. Each uploader has at most one job in the queue, so the
+  queue stays bounded (≤ ``--uploaders``). ``--walk-s 1 3`` is the stress population of earlier
+  runs (100–150 uploads a minute, as fast as the 2 workers build: the queue stays ~45 deep, so
+  upload → map is the queue's length times a build). With ``--no-wait`` an uploader does not
+  wait for its map, only walks between uploads: the queue then grows during the window (the
   workers cannot keep up) and drains after it;
 - a *navigator* uses one of two maps built before the window opens (``floor_2_straight`` and
   ``occam_room``, each with points of interest added where the walk passed given poses). Half
@@ -125,7 +127,7 @@ RAMP_S = 10.0
 #: How often a phone polls its upload's job, s (as the app does).
 JOB_POLL_S = 1.0
 #: An uploader's walk between uploads, s (uniform; ``--walk-s``).
-WALK_S = (1.0, 3.0)
+WALK_S = (30.0, 90.0)
 #: Attempts of one upload (the same Idempotency-Key) when it gets no answer.
 UPLOAD_ATTEMPTS = 3
 #: How often the generator's loop-lag probe wakes, s.
@@ -1018,8 +1020,8 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=2,
         metavar=("LOW", "HIGH"),
         default=list(WALK_S),
-        help="an uploader's walk between one map and its next upload, s, uniform (1 3; a real "
-        "mapping walk takes minutes)",
+        help="an uploader's walk between one map and its next upload, s, uniform (30 90; a real "
+        "mapping walk takes minutes; 1 3: the stress population of earlier runs)",
     )
     parser.add_argument(
         "--no-wait",
