@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
+import gc
 import logging
 import multiprocessing
 import os
@@ -284,8 +285,16 @@ def proxy_options(settings: Settings) -> dict[str, Any]:
 
 
 async def serve_with_threads(server: uvicorn.Server, threads: int, listener: socket.socket) -> None:
-    """Serve on ``listener`` with ``threads`` threads for the routes (``Settings.api_threads``)."""
+    """Serve on ``listener`` with ``threads`` threads for the routes (``Settings.api_threads``).
+
+    Before serving, everything made so far (the modules of numpy, gtsam, FastAPI, SQLAlchemy, …
+    and the app: most of the process's objects) is moved out of the garbage collector's reach
+    (``gc.freeze``): a full collection then looks at what requests made since, ~20,000 objects
+    under ``bench/load.py`` instead of ~200,000. (Such collections still take up to ~100 ms of
+    CPU there, spent on the garbage itself, not on the frozen heap.)"""
     from anyio import to_thread
 
     to_thread.current_default_thread_limiter().total_tokens = threads
+    gc.collect()
+    gc.freeze()
     await server.serve(sockets=[listener])
