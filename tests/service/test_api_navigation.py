@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import text
+from sqlalchemy.exc import DBAPIError
 
 from app.api.routes import localization as localization_route
 from app.config import Settings
@@ -510,6 +511,24 @@ def test_the_narrow_state_statements_compare_and_set(nav):
     with api.db.read() as db_session:  # committed without a transaction around it
         stored = navigation.get_localization(db_session, sid)
     assert (stored.revision, stored.update_count, stored.state) == (1, 1, new_state)
+
+
+def test_the_narrow_statements_raise_driver_errors_as_sqlalchemy_errors(nav, monkeypatch):
+    # They run on the driver's own cursor; its errors must still reach the API as SQLAlchemy's
+    # DBAPIError (which the error handlers turn into 503s), the driver's error kept as ``orig``.
+    api, map_id = nav
+    sid = start_localization(api, map_id)
+    dialect = api.db.backend
+    broken = dict(navigation._STATEMENTS[dialect], read="SELECT no_such_column FROM localization")
+    monkeypatch.setitem(navigation._STATEMENTS, dialect, broken)
+    with api.db.autocommit() as connection:
+        with pytest.raises(DBAPIError) as raised:
+            navigation.read_state(connection, sid)
+        assert "no_such_column" in str(raised.value.orig)
+        assert "no_such_column" in str(raised.value.statement)
+    monkeypatch.undo()
+    with api.db.autocommit() as connection:  # the pool's connections still work
+        assert navigation.read_state(connection, sid).revision == 0
 
 
 def test_an_unbounded_covariance_is_null_in_the_answer_and_the_state(nav, monkeypatch):
