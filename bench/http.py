@@ -607,10 +607,9 @@ class BackendResult:
 
 
 def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendResult:
-    use_wrk = not args.no_wrk and shutil.which("wrk") is not None
     result = BackendResult(
         backend="",
-        client="wrk" if use_wrk else "python (asyncio + httpx)",
+        client="wrk" if uses_wrk(args) else "python (asyncio + httpx)",
         connections=args.connections,
         duration_s=args.duration_s,
         serve_args=list(args.serve_arg),
@@ -620,35 +619,14 @@ def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendRe
         folder = Path(temp)
         with database(database_url, folder) as (backend, url):
             result.backend = backend
-            server = ServerProcess(
-                url,
-                workers=WORKERS,
-                # The benchmark's one device key uploads every map: no per-key upload limit.
-                env={
-                    "INVISIBLE_MAP_DATA_DIR": str(folder),
-                    "INVISIBLE_MAP_UPLOADS_PER_MINUTE": "0",
-                },
-                log_path=folder / "server.log",
-            )
-            server.args += list(args.serve_arg)
-            with server:
+            with bench_server(url, folder, args, log_name="server.log") as server:
                 log(f"{backend}: server up at {server.url}; uploading {args.maps} sessions…")
                 began = time.perf_counter()
                 target, walk, tags = fill(server, args.maps)
                 log(f"{backend}: {args.maps} maps built in {time.perf_counter() - began:.0f} s")
 
                 def measure(endpoint: Endpoint, connections: int) -> Measured:
-                    warm_up(target, endpoint)
-                    if use_wrk:
-                        measured = run_wrk(target, endpoint, connections, args.duration_s, folder)
-                    else:
-                        measured = run_python(target, endpoint, connections, args.duration_s)
-                    log(
-                        f"{backend}: {endpoint.name}, {connections} connection(s): "
-                        f"{measured.per_s:.0f}/s, p50 {measured.p50_ms:.2f} ms, "
-                        f"p99 {measured.p99_ms:.2f} ms, {measured.failed} failed"
-                    )
-                    return measured
+                    return measure_endpoint(target, endpoint, connections, args, folder, backend)
 
                 c = args.connections
                 result.healthz.append(measure(HEALTHZ, c))
@@ -661,7 +639,7 @@ def run_backend(database_url: str | None, args: argparse.Namespace) -> BackendRe
             chosen = any("api-processes" in arg for arg in args.serve_arg)
             if args.all_cores and default_api_processes() > 1 and not chosen:
                 result.all_cores = default_api_processes()
-                measure_all_cores(result, url, folder, target, args, use_wrk)
+                measure_all_cores(result, url, folder, target, args)
             result.computation = computation_alone(walk, tags, min(3.0, args.duration_s))
             log(f"{backend}: update() in process: {result.computation.per_s:.0f}/s")
     result.load_after = os.getloadavg()
@@ -675,40 +653,68 @@ def measured_on_all_cores(endpoint: Endpoint) -> bool:
     )
 
 
-def measure_all_cores(
-    result: BackendResult,
+def uses_wrk(args: argparse.Namespace) -> bool:
+    """Whether the run uses wrk: on PATH and not ``--no-wrk``."""
+    return not args.no_wrk and shutil.which("wrk") is not None
+
+
+def bench_server(
     url: str,
     folder: Path,
-    target: Target,
     args: argparse.Namespace,
-    use_wrk: bool,
-) -> None:
-    """``serve`` again on the same database with its default API processes (one per core, as a
-    user runs it): /healthz first and last, and the rows :func:`measured_on_all_cores`."""
+    *,
+    log_name: str,
+    api_processes: int | None = 1,
+) -> ServerProcess:
+    """``serve --workers 2`` on ``url`` with the ``--serve-arg`` arguments (``api_processes``
+    None: serve's default)."""
     server = ServerProcess(
         url,
         workers=WORKERS,
+        # The benchmark's one device key uploads every map: no per-key upload limit.
         env={"INVISIBLE_MAP_DATA_DIR": str(folder), "INVISIBLE_MAP_UPLOADS_PER_MINUTE": "0"},
-        log_path=folder / "server-all-cores.log",
-        api_processes=None,
+        log_path=folder / log_name,
+        api_processes=api_processes,
     )
     server.args += list(args.serve_arg)
+    return server
+
+
+def measure_endpoint(
+    target: Target,
+    endpoint: Endpoint,
+    connections: int,
+    args: argparse.Namespace,
+    folder: Path,
+    label: str,
+) -> Measured:
+    """``endpoint`` warmed up, then run for ``--duration-s`` with wrk (or the Python client);
+    the figures logged under ``label``."""
+    warm_up(target, endpoint)
+    if uses_wrk(args):
+        measured = run_wrk(target, endpoint, connections, args.duration_s, folder)
+    else:
+        measured = run_python(target, endpoint, connections, args.duration_s)
+    log(
+        f"{label}: {endpoint.name}, {connections} connection(s): "
+        f"{measured.per_s:.0f}/s, p50 {measured.p50_ms:.2f} ms, "
+        f"p99 {measured.p99_ms:.2f} ms, {measured.failed} failed"
+    )
+    return measured
+
+
+def measure_all_cores(
+    result: BackendResult, url: str, folder: Path, target: Target, args: argparse.Namespace
+) -> None:
+    """``serve`` again on the same database with its default API processes (one per core, as a
+    user runs it): /healthz first and last, and the rows :func:`measured_on_all_cores`."""
+    server = bench_server(url, folder, args, log_name="server-all-cores.log", api_processes=None)
     with server:
         again = replace(target, url=server.url, process_group=server.pid)
         label = f"{result.backend}, {result.all_cores} API processes"
 
         def measure(endpoint: Endpoint) -> Measured:
-            warm_up(again, endpoint)
-            measured = (
-                run_wrk(again, endpoint, args.connections, args.duration_s, folder)
-                if use_wrk
-                else run_python(again, endpoint, args.connections, args.duration_s)
-            )
-            log(
-                f"{label}: {endpoint.name}: {measured.per_s:.0f}/s, p50 {measured.p50_ms:.2f} "
-                f"ms, p99 {measured.p99_ms:.2f} ms, {measured.failed} failed"
-            )
-            return measured
+            return measure_endpoint(again, endpoint, args.connections, args, folder, label)
 
         result.all_cores_healthz.append(measure(HEALTHZ))
         for endpoint in filter(measured_on_all_cores, endpoints(again)):
@@ -739,46 +745,60 @@ def _shares(m: Measured) -> str:
     return " / ".join(f"{share:.0%}" for share in m.cpu_shares) or "—"
 
 
-def all_cores_table(result: BackendResult) -> str:
-    """The rows measured under serve's default API processes, against that server's /healthz
-    and against ``update()`` alone in one process."""
-    computation = result.computation
-    assert computation is not None
-    floor = float(np.mean([m.per_s for m in result.all_cores_healthz]))
-    first, last = result.all_cores_healthz
-    rows = [["endpoint", "req/s", "p50 ms", "p99 ms", "÷ /healthz", "server CPU ms/req"]]
-    rows[0] += ["CPU by process", "failed", "target", "pass"]
-    rows.append(
-        [
-            f"GET /healthz (first / last run: {first.per_s:,.0f} / {last.per_s:,.0f})",
-            f"{floor:,.0f}",
-            f"{np.mean([first.p50_ms, last.p50_ms]):.2f}",
-            f"{np.mean([first.p99_ms, last.p99_ms]):.2f}",
-            "1",
-            f"{np.mean([first.cpu_ms_per_request, last.cpu_ms_per_request]):.2f}",
-            _shares(last),
-            str(first.failed + last.failed),
-            "(the floor)",
-            "—",
-        ]
-    )
-    for endpoint, m in result.all_cores_rows:
+def _cells(m: Measured, ratio: str, *, shares: bool) -> list[str]:
+    """A row's figures, from req/s to failed (with each process's CPU share if ``shares``)."""
+    cells = [f"{m.per_s:,.0f}", f"{m.p50_ms:.2f}", f"{m.p99_ms:.2f}", ratio]
+    cells.append(f"{m.cpu_ms_per_request:.2f}" if m.server_cpu_s else "—")
+    if shares:
+        cells.append(_shares(m))
+    return [*cells, str(m.failed)]
+
+
+def _floor_row(healthz: list[Measured], *, shares: bool) -> list[str]:
+    """/healthz's row: the mean of its first and last run."""
+    first, last = healthz
+    return [
+        f"GET /healthz (first / last run: {first.per_s:,.0f} / {last.per_s:,.0f})",
+        f"{np.mean([first.per_s, last.per_s]):,.0f}",
+        f"{np.mean([first.p50_ms, last.p50_ms]):.2f}",
+        f"{np.mean([first.p99_ms, last.p99_ms]):.2f}",
+        "1",
+        f"{np.mean([first.cpu_ms_per_request, last.cpu_ms_per_request]):.2f}",
+        *([_shares(last)] if shares else []),
+        str(first.failed + last.failed),
+        "(the floor)",
+        "—",
+    ]
+
+
+def _endpoint_rows(
+    healthz: list[Measured],
+    measured: list[tuple[Endpoint, Measured]],
+    computation: Measured,
+    *,
+    shares: bool,
+) -> list[list[str]]:
+    """The header, /healthz's row and a row per endpoint, each against its target."""
+    floor = float(np.mean([m.per_s for m in healthz]))
+    header = ["endpoint", "req/s", "p50 ms", "p99 ms", "÷ /healthz", "server CPU ms/req"]
+    header += [*(["CPU by process"] if shares else []), "failed", "target", "pass"]
+    rows = [header, _floor_row(healthz, shares=shares)]
+    for endpoint, m in measured:
         ratio = m.per_s / floor if floor else 0.0
         target, ok = target_of(endpoint, m, ratio, computation)
         rows.append(
-            [
-                endpoint.name,
-                f"{m.per_s:,.0f}",
-                f"{m.p50_ms:.2f}",
-                f"{m.p99_ms:.2f}",
-                f"{ratio:.1%}",
-                f"{m.cpu_ms_per_request:.2f}",
-                _shares(m),
-                str(m.failed),
-                target,
-                _verdict(ok),
-            ]
+            [endpoint.name, *_cells(m, f"{ratio:.1%}", shares=shares), target, _verdict(ok)]
         )
+    return rows
+
+
+def all_cores_table(result: BackendResult) -> str:
+    """The rows measured under serve's default API processes, against that server's /healthz
+    and against ``update()`` alone in one process."""
+    assert result.computation is not None
+    rows = _endpoint_rows(
+        result.all_cores_healthz, result.all_cores_rows, result.computation, shares=True
+    )
     return (
         f"The same database under `serve`'s default: {result.all_cores} API processes (one per "
         "core), the rows that use them:\n\n" + render_markdown_table(rows)
@@ -786,54 +806,13 @@ def all_cores_table(result: BackendResult) -> str:
 
 
 def table(result: BackendResult) -> str:
-    floor = result.healthz_per_s
-    header = [
-        "endpoint",
-        "req/s",
-        "p50 ms",
-        "p99 ms",
-        "÷ /healthz",
-        "server CPU ms/req",
-        "failed",
-        "target",
-        "pass",
-    ]
-    rows = [header]
-
-    def row(name: str, m: Measured, ratio: str, target: str, ok: bool | None) -> None:
-        rows.append(
-            [
-                name,
-                f"{m.per_s:,.0f}",
-                f"{m.p50_ms:.2f}",
-                f"{m.p99_ms:.2f}",
-                ratio,
-                f"{m.cpu_ms_per_request:.2f}" if m.server_cpu_s else "—",
-                str(m.failed),
-                target,
-                _verdict(ok),
-            ]
-        )
-
-    before, after = result.healthz
-    rows.append(
-        [
-            f"GET /healthz (first / last run: {before.per_s:,.0f} / {after.per_s:,.0f})",
-            f"{floor:,.0f}",
-            f"{np.mean([before.p50_ms, after.p50_ms]):.2f}",
-            f"{np.mean([before.p99_ms, after.p99_ms]):.2f}",
-            "1",
-            f"{np.mean([before.cpu_ms_per_request, after.cpu_ms_per_request]):.2f}",
-            str(before.failed + after.failed),
-            "(the floor)",
-            "—",
-        ]
-    )
     computation = result.computation
     assert computation is not None
-    for endpoint, m in result.rows:
-        ratio = m.per_s / floor if floor else 0.0
-        row(endpoint.name, m, f"{ratio:.1%}", *target_of(endpoint, m, ratio, computation))
+    rows = _endpoint_rows(result.healthz, result.rows, computation, shares=False)
+
+    def row(name: str, m: Measured, ratio: str, target: str, ok: bool | None) -> None:
+        rows.append([name, *_cells(m, ratio, shares=False), target, _verdict(ok)])
+
     row(
         "update() alone, in process (same documents)",
         computation,
