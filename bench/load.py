@@ -261,6 +261,11 @@ class Load:
             tally.examples.setdefault(response.status_code, response.text[:200])
         return response
 
+    async def arrive(self, rng: random.Random) -> None:
+        """A navigator's arrival: at random within the ramp (or one pace), so that the phones
+        are not all in step and each keeps its own phase."""
+        await self.sleep(rng.uniform(0, max(self.plan.ramp_s, self.plan.pace_s, 0.01)))
+
     async def paced(self, started: float) -> None:
         """Wait out the rest of this request's period (``pace_s`` after it started)."""
         if self.plan.pace_s > 0:
@@ -328,8 +333,7 @@ class Load:
     async def router(self, http: httpx.AsyncClient, phone: Phone) -> None:
         rng = random.Random(f"{self.plan.run_id}-{phone.index}")
         nav = self.plan.maps[phone.map_index]
-        # not all in step: each phone arrives within the ramp, then keeps its own phase
-        await self.sleep(rng.uniform(0, max(self.plan.ramp_s, self.plan.pace_s, 0.01)))
+        await self.arrive(rng)
         await self.call(http, POIS, "GET", f"/v1/maps/{nav.map_id}/pois")
         ends = [{"tag": tag_id} for tag_id in nav.tag_ids]
         ends += [{"poi": name} for name in nav.poi_names]
@@ -350,7 +354,7 @@ class Load:
         nav = self.plan.maps[phone.map_index]
         walk = rng.choice(nav.walks)
         first = rng.randrange(len(walk))  # the first walk starts anywhere along it
-        await self.sleep(rng.uniform(0, max(self.plan.ramp_s, self.plan.pace_s, 0.01)))
+        await self.arrive(rng)
         while self.open():
             response = await self.call(http, START, "POST", f"/v1/maps/{nav.map_id}/localizations")
             if response is None or response.status_code != 201:
