@@ -355,13 +355,6 @@ def turn_instruction(turn_deg: float) -> str | None:
     return "turn around"
 
 
-def node_points_and_junctions(pg: PathGraph) -> tuple[dict[int, Point3], frozenset[int]]:
-    """(each node's ``position_m`` as floats (map frame, m), the nodes of kind ``"junction"``),
-    made once per graph (a graph must not change once routed on); do not modify them."""
-    lookups = node_lookups(pg)
-    return lookups.point_of_node, lookups.junctions
-
-
 @dataclass(frozen=True, slots=True, kw_only=True)
 class NodeLookups:
     """What the steps of a route look up about the graph's nodes and edges, made once per graph

@@ -10,7 +10,7 @@ import pytest
 
 from app.domain.instructions import plan_guided_route
 from app.domain.path_graph import JUNCTION, NODE, WALK, PathGraph
-from app.domain.routing import NodeEnd, PositionEnd, Unreachable, node_points_and_junctions
+from app.domain.routing import NodeEnd, PositionEnd, Unreachable, node_lookups
 
 
 def square() -> PathGraph:
@@ -27,10 +27,11 @@ def square() -> PathGraph:
 
 def test_the_table_holds_each_node_and_the_junctions():
     pg = square()
-    points, junctions = node_points_and_junctions(pg)
+    lookups = node_lookups(pg)
+    points, junctions = lookups.point_of_node, lookups.junctions
     assert points[2] == (10.0, 0.0, -10.0)
     assert junctions == {0}
-    assert node_points_and_junctions(pg)[0] is points  # made once
+    assert node_lookups(pg).point_of_node is points  # made once
 
 
 def test_a_removed_edge_is_not_walked_on_or_snapped_onto_on_the_next_route():
