@@ -76,6 +76,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     app.state.db = database
     app.state.head_revision = head_revision()
+    app.state.localizer_threads = localization.localizer_threads()  # bound to this loop
     try:
         yield
     finally:

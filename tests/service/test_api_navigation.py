@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 from collections.abc import Iterator
 from types import SimpleNamespace
 from typing import Any
@@ -477,6 +478,46 @@ def test_two_updates_racing_on_one_session_give_one_200_and_one_409(nav, databas
     monkeypatch.setattr(localization_route, "update", real_update)
     again = api.client.post(f"/v1/localizations/{sid}/updates", json=updates[2], headers=ADMIN)
     assert again.status_code == 200, again.text
+
+
+def test_an_api_process_runs_one_update_at_a_time(nav, monkeypatch):
+    # Updates of different sessions sent at once: all answered, their computations one after
+    # another on the process's one localizer thread (several would fight over the GIL).
+    api, map_id = nav
+    sessions = [start_localization(api, map_id) for _ in range(4)]
+    first = desnat_updates()[0]
+    running: list[int] = []
+    most_at_once = 0
+    lock = threading.Lock()
+    real_update = localization_route.update
+
+    def counted_update(*args: Any) -> Any:
+        nonlocal most_at_once
+        with lock:
+            running.append(1)
+            most_at_once = max(most_at_once, len(running))
+        try:
+            time.sleep(0.05)  # long enough for the other requests to arrive meanwhile
+            return real_update(*args)
+        finally:
+            with lock:
+                running.pop()
+
+    monkeypatch.setattr(localization_route, "update", counted_update)
+    answers: list[Any] = []
+
+    def send(sid: int) -> None:
+        answers.append(
+            api.client.post(f"/v1/localizations/{sid}/updates", json=first, headers=ADMIN)
+        )
+
+    threads = [threading.Thread(target=send, args=(sid,)) for sid in sessions]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert [a.status_code for a in answers] == [200] * len(sessions), [a.text for a in answers]
+    assert most_at_once == localization_route.LOCALIZER_THREADS == 1
 
 
 def test_the_narrow_state_statements_compare_and_set(nav):

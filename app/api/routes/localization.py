@@ -6,8 +6,9 @@ The localizer (``app.domain.localize``) is a pure function of (state, update); i
 the ``localization`` row, so any API process can take the next update, and a restart loses
 nothing. An update reads the state (one statement), computes, and writes the new state only if
 the row's revision is still the one it read (one ``UPDATE … WHERE revision = ?``), all on one
-thread off the event loop; a concurrent update of the same session makes the later one a 409
-``concurrent_update`` (send it again). Each process keeps the states it wrote decoded
+thread off the event loop (one update at a time per process: :data:`LOCALIZER_THREADS`); a
+concurrent update of the same session makes the later one a 409 ``concurrent_update`` (send it
+again). Each process keeps the states it wrote decoded
 (:class:`HotStates`) and uses one only while the row is still at its revision. A malformed
 update (an unknown tag, pose ids or timestamps going backwards, a pose that is not a rigid
 transform, a non-finite number) is a 422 naming the field, and the session is left as it was.
@@ -23,7 +24,7 @@ from collections import OrderedDict
 from typing import Annotated, Any
 
 import orjson
-from anyio import to_thread
+from anyio import CapacityLimiter, to_thread
 from fastapi import APIRouter, Body, Request, Response
 
 from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
@@ -45,6 +46,20 @@ from app.storage.keys import Principal
 from app.storage.navigation import LocalizationConflict, LocalizationInfo
 
 router = APIRouter(tags=["localization"], route_class=SessionEndingRoute)
+
+#: Threads of an API process that run localization updates at once; the others wait their turn
+#: on the event loop. One: an update is mostly numpy on small arrays, whose linear algebra lets
+#: go of the GIL and takes it back many times per update, so updates on several threads of one
+#: process hand the GIL back and forth and each costs far more CPU (``bench/http.py``'s update
+#: row, 8 connections, one API process: 2.66 → 1.77 ms of CPU per update, 416 → 559 updates/s,
+#: p99 40 → 23 ms). Processes, not threads, add capacity (``serve --api-processes``).
+LOCALIZER_THREADS = 1
+
+
+def localizer_threads() -> CapacityLimiter:
+    """A new limiter of :data:`LOCALIZER_THREADS` (the lifespan makes one per app and event loop,
+    ``app.state.localizer_threads``)."""
+    return CapacityLimiter(LOCALIZER_THREADS)
 
 
 def _public(info: LocalizationInfo) -> LocalizationPublic:
@@ -152,7 +167,8 @@ async def post_update(
     document: dict[str, Any] = {"poses": body.poses, "tag_data": body.tag_data}
     # Read, compute and write on one thread of the pool: one hop off the event loop.
     estimate = await to_thread.run_sync(
-        functools.partial(apply_update, request, localization_id, document, principal)
+        functools.partial(apply_update, request, localization_id, document, principal),
+        limiter=request.app.state.localizer_threads,
     )
     return Response(content=estimate, media_type="application/json")
 
