@@ -67,9 +67,7 @@ def number_field(entry: Mapping[str, Any], key: str, where: str) -> float:
         raise SessionFormatError(
             f"{where}.{key}", f"expected a number, got {json_type_name(value)}"
         )
-    if not math.isfinite(value):
-        raise SessionFormatError(f"{where}.{key}", f"non-finite number {value}")
-    return float(value)
+    return _finite(value, f"{where}.{key}")
 
 
 def vector_field(entry: Mapping[str, Any], key: str, where: str, length: int) -> FloatArray:
@@ -104,9 +102,20 @@ def number_list(value: Any, where: str, length: int) -> FloatArray:
             raise SessionFormatError(
                 f"{where}[{j}]", f"expected a number, got {json_type_name(item)}"
             )
-        if not math.isfinite(item):
-            raise SessionFormatError(f"{where}[{j}]", f"non-finite number {item}")
+        _finite(item, f"{where}[{j}]")
     return np.asarray(value, dtype=np.float64)
+
+
+def _finite(value: float, where: str) -> float:
+    """``value`` as a finite float (an integer too large for one, such as Python's JSON parser
+    reads from 400 digits, is refused, not an ``OverflowError``)."""
+    try:
+        number = float(value)
+    except OverflowError:
+        raise SessionFormatError(where, "number out of range (beyond ±1.8e308)") from None
+    if not math.isfinite(number):
+        raise SessionFormatError(where, f"non-finite number {value}")
+    return number
 
 
 def rigid_pose(matrix: FloatArray, where: str) -> FloatArray:

@@ -347,6 +347,8 @@ def _broken(kind: str, document: dict[str, Any]) -> dict[str, Any]:
         changed["poses"][0]["timestamp"] = 0.0
     elif kind == "missing pose field":
         del changed["poses"][0]["pose"]
+    elif kind == "400 digits":  # Python's JSON parser reads an int no float holds
+        changed["poses"][1]["pose"][13] = 10**400
     return changed
 
 
@@ -357,6 +359,7 @@ def _broken(kind: str, document: dict[str, Any]) -> dict[str, Any]:
         ("not rigid", "poses[0].pose"),
         ("backwards", "poses[0]"),
         ("missing pose field", "poses[0].pose"),
+        ("400 digits", "poses[1].pose[13]"),
     ],
 )
 def test_malformed_updates_are_refused_and_change_nothing(nav, kind, field):
