@@ -96,6 +96,28 @@ def test_claim_respects_run_after_and_kinds(db: Database) -> None:
     assert job(db, other_kind).state == JobState.RUNNING
 
 
+def test_an_idle_claim_writes_nothing_and_waits_for_no_writer(db: Database) -> None:
+    # Idle workers ask several times a second. With nothing runnable the answer comes from a
+    # read: on SQLite, no write lock is taken from (or waited for behind) the API's writers.
+    future = add_job(db, now=utc_now() + s(3600))  # runnable in an hour: not now
+    before = job_row_snapshot(db, future)
+    answers: list[Lease | None] = []
+    with db.engine.connect() as writer:
+        writer.begin()  # on SQLite, BEGIN IMMEDIATE: another writer holds the write lock
+        writer.exec_driver_sql("SELECT 1")
+        claimer = threading.Thread(
+            target=lambda: answers.append(queue.claim(db, worker_id="idle", lease_s=LEASE_S))
+        )
+        claimer.start()
+        claimer.join(timeout=3)
+        finished_while_locked = not claimer.is_alive()
+        writer.rollback()
+    claimer.join(timeout=30)
+    assert finished_while_locked
+    assert answers == [None]
+    assert job_row_snapshot(db, future) == before
+
+
 def test_concurrent_claimers_never_get_the_same_job(database_url: str) -> None:
     jobs = 60
     claimers = 6
