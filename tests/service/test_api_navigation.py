@@ -349,6 +349,12 @@ def _broken(kind: str, document: dict[str, Any]) -> dict[str, Any]:
         del changed["poses"][0]["pose"]
     elif kind == "400 digits":  # Python's JSON parser reads an int no float holds
         changed["poses"][1]["pose"][13] = 10**400
+    elif kind == "too many poses":  # a backlog goes in several updates
+        first = changed["poses"][0]
+        changed["poses"] = [
+            {**first, "id": first["id"] + i, "timestamp": first["timestamp"] + 0.01 * i}
+            for i in range(localization_route.MAX_UPDATE_POSES + 1)
+        ]
     return changed
 
 
@@ -360,6 +366,7 @@ def _broken(kind: str, document: dict[str, Any]) -> dict[str, Any]:
         ("backwards", "poses[0]"),
         ("missing pose field", "poses[0].pose"),
         ("400 digits", "poses[1].pose[13]"),
+        ("too many poses", "poses"),
     ],
 )
 def test_malformed_updates_are_refused_and_change_nothing(nav, kind, field):

@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from app.domain.errors import SessionFormatError
-from app.domain.localize import LocalizationUpdateError, parse_update, session_update_documents
+from app.domain.localize import (
+    MAX_UPDATE_DETECTIONS,
+    MAX_UPDATE_POSES,
+    LocalizationUpdateError,
+    parse_update,
+    session_update_documents,
+)
 from app.domain.session import load_session
 from app.domain.upload_fields import rigid_pose
 
@@ -101,3 +107,24 @@ def test_a_slightly_skewed_rotation_within_tolerance_is_accepted(documents):
     document = copy.deepcopy(documents[3])
     document["poses"][0]["pose"] = _rotated(document["poses"][0]["pose"], 0.2)
     assert np.array_equal(parse_update(document).session_T_phone, one_by_one(document))
+
+
+def test_an_update_too_large_to_compute_in_a_moment_is_refused_before_it_is_read(documents):
+    # An update's cost grows faster than its size, and an API process computes one at a time.
+    pose = documents[3]["poses"][0]
+    poses = [{**pose, "id": i, "timestamp": 0.1 * i} for i in range(MAX_UPDATE_POSES)]
+    assert parse_update({"poses": poses}).num_poses == MAX_UPDATE_POSES
+    too_many = [*poses, {"id": "not even read"}]
+    with pytest.raises(LocalizationUpdateError) as err:
+        parse_update({"poses": too_many})
+    assert err.value.field == "poses"
+    assert f"{MAX_UPDATE_POSES + 1} poses in one update, at most {MAX_UPDATE_POSES}" in str(
+        err.value
+    )
+
+    detection = next(d for document in documents for frame in document["tag_data"] for d in frame)
+    frames = [[detection] * 50] * (MAX_UPDATE_DETECTIONS // 50) + [detection]  # a bare one
+    with pytest.raises(LocalizationUpdateError) as err:
+        parse_update({"poses": [], "tag_data": frames})
+    assert err.value.field == "tag_data"
+    assert f"{MAX_UPDATE_DETECTIONS + 1} detections" in str(err.value)

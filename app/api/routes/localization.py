@@ -33,6 +33,8 @@ from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import LocalizationEstimate, LocalizationPublic, LocalizationUpdate
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
 from app.domain.localize import (
+    MAX_UPDATE_DETECTIONS,
+    MAX_UPDATE_POSES,
     LocalizationUpdateError,
     LocalizerState,
     parse_update,
@@ -142,8 +144,10 @@ def get(
     description="Folds the new poses and detections into the session (warm-started, a cost per "
     "update that does not grow with the session) and answers the phone's newest pose in the map, "
     "the session-to-map transform with its covariance, the tags used, and the status "
-    "(`not_localized` until the first known tag). 422 names a malformed field and changes "
-    "nothing; 409 when another update of the same session got in first (send it again).",
+    "(`not_localized` until the first known tag). An update holds at most "
+    f"{MAX_UPDATE_POSES:,} poses and {MAX_UPDATE_DETECTIONS} detections (a larger backlog goes "
+    "in several). 422 names a malformed field and changes nothing; 409 when another update of "
+    "the same session got in first (send it again).",
     response_model=LocalizationEstimate,
     responses=error_responses(
         401,

@@ -49,7 +49,13 @@ The package: ``params`` (settings and errors), ``batch`` (the phone's update doc
 
 from __future__ import annotations
 
-from app.domain.localize.batch import UpdateBatch, parse_update, validate_update
+from app.domain.localize.batch import (
+    MAX_UPDATE_DETECTIONS,
+    MAX_UPDATE_POSES,
+    UpdateBatch,
+    parse_update,
+    validate_update,
+)
 from app.domain.localize.params import (
     LocalizationUpdateError,
     LocalizerParams,
@@ -70,6 +76,8 @@ from app.domain.localize.state import (
 )
 
 __all__ = [
+    "MAX_UPDATE_DETECTIONS",
+    "MAX_UPDATE_POSES",
     "LocalizationRejection",
     "LocalizationResult",
     "LocalizationUpdateError",
