@@ -313,7 +313,8 @@ class Client:
         poses: list[dict[str, Any]],
         tag_data: list[list[dict[str, Any]]] | None = None,
     ) -> dict[str, Any]:
-        """Send new odometry poses and tag detections; returns the phone's estimate in the map."""
+        """Send new odometry poses and tag detections (at most 1,000 poses and 200 detections a
+        call: send a backlog in several); returns the phone's estimate in the map."""
         body = {"poses": poses, "tag_data": tag_data or []}
         result: dict[str, Any] = self._json(
             "POST", f"/v1/localizations/{localization_id}/updates", json=body
