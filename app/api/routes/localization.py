@@ -8,10 +8,11 @@ nothing. An update reads the state (one statement), computes, and writes the new
 the row's revision is still the one it read (one ``UPDATE … WHERE revision = ?``), all on one
 thread off the event loop (one update at a time per process: :data:`LOCALIZER_THREADS`); a
 concurrent update of the same session makes the later one a 409 ``concurrent_update`` (send it
-again). Each process keeps the states it wrote decoded
-(:class:`HotStates`) and uses one only while the row is still at its revision. A malformed
-update (an unknown tag, pose ids or timestamps going backwards, a pose that is not a rigid
-transform, a non-finite number) is a 422 naming the field, and the session is left as it was.
+again). Each process keeps the states it wrote decoded (:class:`HotStates`) and uses one only
+while the row is still at its revision. A malformed update (an unknown tag, pose ids or
+timestamps going backwards, a pose that is not a rigid transform, a non-finite number, more
+poses or detections than one update may hold) is a 422 naming the field, and the session is left
+as it was.
 
 Device keys see only the navigation sessions they started (another's is a 404).
 """
