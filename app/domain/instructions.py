@@ -276,15 +276,12 @@ def decision_points(
     junction: Sequence[bool],
     *,
     end_margin_m: float = END_MARGIN_M,
-    walked_m: FloatArray | None = None,
 ) -> list[Decision]:
     """The decision points of a walked stretch (N, 3) whose points ``junction`` flags (module
     step 2): bends of at least ``BEAR_MIN_DEG`` measured over ``CHORD_M`` either side, strongest
     first, none within ``MIN_SPACING_M`` of a stronger one (unless both are junctions), none within
-    ``end_margin_m`` of the stretch's ends. ``walked_m``: (N,) each point's distance along the
-    stretch (:func:`walked_distances_m`), when the caller has it already."""
-    if walked_m is None:
-        walked_m = walked_distances_m(xyz)
+    ``end_margin_m`` of the stretch's ends."""
+    walked_m = walked_distances_m(xyz)
     return [
         Decision(index=index, turn_deg=turn_deg, at_junction=at_junction, along_m=along_m)
         for index, turn_deg, at_junction, along_m in _decisions(
@@ -379,12 +376,8 @@ def walked_distances_m(xyz: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
 
 
-def is_announced(decision: Decision) -> bool:
-    """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
-    return _announced(decision.turn_deg, decision.at_junction)
-
-
 def _announced(turn_deg: float, at_junction: bool) -> bool:
+    """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
     size = abs(turn_deg)
     return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and at_junction)
 
