@@ -7,7 +7,6 @@ import gzip
 import hashlib
 import json
 import threading
-import time
 from collections.abc import Iterator
 
 import pytest
@@ -270,18 +269,16 @@ def test_invalid_gzip_is_400(api: Api, body: bytes, reason: str) -> None:
     assert nothing_stored(api)
 
 
-def test_gzip_bomb_is_413_without_inflating_it(database_url: str) -> None:
+def test_gzip_bomb_is_413(database_url: str) -> None:
+    """Over HTTP; that inflation stops at the limit is shown in test_upload_chunks.py."""
     bomb = gzip.compress(bytes(50 * 2**20), compresslevel=9)  # 50 MiB of zeros in ~50 KiB
     assert len(bomb) < 100_000
     with running_api(database_url, max_session_bytes=2**20) as api:
-        started = time.perf_counter()
         response = api.upload(bomb, headers={"Content-Encoding": "gzip"})
-        elapsed_s = time.perf_counter() - started
 
         assert response.status_code == 413, response.text
         assert response.json()["code"] == "payload_too_large"
         assert "after gunzip" in response.json()["detail"]
-        assert elapsed_s < 2.0  # inflating all 50 MiB and then refusing would take longer
         assert nothing_stored(api)
 
 

@@ -62,3 +62,20 @@ def test_bad_gzip_and_bombs_are_refused_before_parsing(
         decode_body(RawBody(body, gzip=True), max_session_bytes=len(JSON) + 5)
     assert info.value.status_code == status
     assert words in info.value.detail
+
+
+def test_a_bomb_is_refused_after_inflating_no_more_than_the_limit() -> None:
+    """50 MiB of zeros in ~50 KiB: inflation stops one byte past the limit, not at 50 MiB."""
+    bomb = gzip.compress(bytes(50 * 2**20), compresslevel=9)
+    limit_bytes = 2**20
+    chunk_sizes: list[int] = []
+
+    def inflate_all() -> None:
+        for chunk in InflatedChunks(bomb, max_bytes=limit_bytes):
+            chunk_sizes.append(len(chunk))
+
+    with pytest.raises(ApiError) as info:
+        inflate_all()
+    assert info.value.status_code == 413
+    assert f"after gunzip is larger than the limit of {limit_bytes} bytes" in info.value.detail
+    assert limit_bytes - CHUNK_BYTES < sum(chunk_sizes) <= limit_bytes
