@@ -335,7 +335,7 @@ class Load:
         nav = self.plan.maps[phone.map_index]
         await self.arrive(rng)
         await self.call(http, POIS, "GET", f"/v1/maps/{nav.map_id}/pois")
-        ends = [{"tag": tag_id} for tag_id in nav.tag_ids]
+        ends: list[dict[str, int | str]] = [{"tag": tag_id} for tag_id in nav.tag_ids]
         ends += [{"poi": name} for name in nav.poi_names]
         while self.open():
             started = time.perf_counter()

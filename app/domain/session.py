@@ -545,10 +545,22 @@ def parse_detection_rows(
     return rows
 
 
+def count_detections(tag_data: Any) -> int:
+    """How many detections :func:`parse_detection_rows` reads from ``tag_data``, counted without
+    reading them; 0 for what it refuses anyway."""
+    if not isinstance(tag_data, list):
+        return 0
+    return sum(len(frame) for frame in map(_as_frame, tag_data) if isinstance(frame, list))
+
+
+def _as_frame(frame: Any) -> Any:
+    """A bare detection where a frame was expected is taken as a frame of one."""
+    return [frame] if isinstance(frame, Mapping) else frame
+
+
 def _frame_rows(f: int, frame: Any, known_pose_ids: Container[int] | None) -> list[dict[str, Any]]:
     where_frame = f"tag_data[{f}]"
-    if isinstance(frame, Mapping):  # a bare detection where a frame was expected
-        frame = [frame]
+    frame = _as_frame(frame)
     require_list(frame, where_frame)
     rows = []
     for d, detection in enumerate(frame):

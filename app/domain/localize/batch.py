@@ -16,6 +16,7 @@ from app.domain.localize.state import LocalizerState
 from app.domain.session import (
     IntArray,
     TagDetections,
+    count_detections,
     detections_from_rows,
     parse_detection_rows,
 )
@@ -91,7 +92,7 @@ def _parse_update(document: Any) -> UpdateBatch:
             "poses", f"{n} poses in one update, at most {MAX_UPDATE_POSES}: send them in several"
         )
     tag_data = document.get("tag_data", [])
-    detections = _count_detections(tag_data)
+    detections = count_detections(tag_data)
     if detections > MAX_UPDATE_DETECTIONS:
         raise LocalizationUpdateError(
             "tag_data",
@@ -134,14 +135,6 @@ def _parse_update(document: Any) -> UpdateBatch:
         detection_field=tuple(r["where"] for r in rows),
         detections=detections_from_rows(rows, [r["pose_id"] for r in rows]),
     )
-
-
-def _count_detections(tag_data: Any) -> int:
-    """How many detections ``tag_data`` holds, as ``parse_detection_rows`` reads it (a frame is
-    a list of detections, or one bare detection); 0 for what it will refuse anyway."""
-    if not isinstance(tag_data, list):
-        return 0
-    return sum(len(frame) if isinstance(frame, list) else 1 for frame in tag_data)
 
 
 def _maybe_not_rigid(matrices: FloatArray) -> list[int]:
