@@ -28,16 +28,16 @@ import numpy.typing as npt
 from app.domain.earlier_format import EARLIER_FORMAT, convert_earlier_format, is_earlier_format
 from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.frames import (
-    ORTHONORMAL_TOLERANCE,
     PHONE_T_CAMERA_CV,
     FloatArray,
+    orthonormalized_stack,
 )
 from app.domain.json_stream import WINDOW_CHARS, JsonStream
 from app.domain.json_values import gunzip_if_compressed, json_type_name
 from app.domain.upload_fields import (
-    MAX_TRANSLATION_M,
     integer_field,
     matrix16_field,
+    maybe_not_rigid,
     number_field,
     optional_vector_field,
     require_list,
@@ -413,8 +413,7 @@ class _PoseColumns:
         if end <= start or self.error is not None:
             return
         block = self.world_T_phone[start:end]
-        with np.errstate(all="ignore"):
-            flagged = np.flatnonzero(_maybe_not_rigid(block))
+        flagged = np.flatnonzero(maybe_not_rigid(block))
         for k in flagged:
             i = start + int(k)
             try:
@@ -423,7 +422,7 @@ class _PoseColumns:
                 self.error = err
                 self._checked = i
                 return
-        self.world_T_phone[start:end] = _orthonormalized(block)
+        self.world_T_phone[start:end] = orthonormalized_stack(block)
         self._checked = end
 
     def _grow(self) -> None:
@@ -459,39 +458,6 @@ class _PoseColumns:
 
 #: Poses checked for rigidity at once by :class:`_PoseColumns`.
 _RIGIDITY_BLOCK = 4096
-#: The share of a tolerance at which the block test flags a pose for the exact test.
-_MARGIN = 0.99
-
-
-def _maybe_not_rigid(world_T: FloatArray) -> npt.NDArray[np.bool_]:
-    """(n,) for (n, 4, 4) matrices: True where :func:`rigid_pose` may refuse the matrix (every
-    one it refuses is flagged; a few within a hair of a tolerance are flagged as well)."""
-    last_row_defect = np.abs(world_T[:, 3] - (0.0, 0.0, 0.0, 1.0)) - (0.0, 0.0, 0.0, 1e-5)
-    R = world_T[:, :3, :3]
-    largest = np.max(np.abs(R), axis=(1, 2))
-    gram_defect = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
-    flagged = (
-        np.any(last_row_defect > _MARGIN * 1e-3, axis=1)
-        | ~(largest <= 1.0 + _MARGIN * ORTHONORMAL_TOLERANCE)
-        | ~(gram_defect <= _MARGIN * ORTHONORMAL_TOLERANCE)
-        | ~(np.linalg.det(R) > 0)
-        | ~(np.max(np.abs(world_T[:, :3, 3]), axis=1) <= _MARGIN * MAX_TRANSLATION_M)
-    )
-    return np.asarray(flagged, dtype=np.bool_)
-
-
-def _orthonormalized(world_T: FloatArray) -> FloatArray:
-    """(n, 4, 4): each matrix's rotation projected onto SO(3) and its last row (0, 0, 0, 1), as
-    :func:`app.domain.frames.orthonormalized` makes one."""
-    out = world_T.copy()
-    U, _, Vt = np.linalg.svd(world_T[:, :3, :3])
-    sign = np.sign(np.linalg.det(U @ Vt))
-    D = np.zeros((len(out), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = sign
-    out[:, :3, :3] = U @ D @ Vt
-    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
-    return out
 
 
 class PoseIndex:

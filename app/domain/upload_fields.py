@@ -15,9 +15,10 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from app.domain.errors import SessionFormatError
-from app.domain.frames import FloatArray, orthonormalized, rigidity_defect
+from app.domain.frames import ORTHONORMAL_TOLERANCE, FloatArray, orthonormalized, rigidity_defect
 from app.domain.json_values import json_type_name
 
 #: Largest id accepted: integers a JSON number can hold exactly (2^53).
@@ -128,6 +129,23 @@ def rigid_pose(matrix: FloatArray, where: str) -> FloatArray:
             where, f"translation {distance_m:.3g} m is beyond {MAX_TRANSLATION_M:.0f} m"
         )
     return orthonormalized(matrix)
+
+
+def maybe_not_rigid(poses: FloatArray) -> npt.NDArray[np.bool_]:
+    """(N,) for (N, 4, 4) ``poses``: True where :func:`rigid_pose` may refuse the matrix, all at
+    once. Every matrix it refuses is flagged (the same tests with half their tolerances), so one
+    left out surely passes; the flagged ones are checked one by one."""
+    with np.errstate(all="ignore"):  # non-finite or huge entries are named, not computed
+        rotations = poses[:, :3, :3]
+        margin = 0.5 * ORTHONORMAL_TOLERANCE
+        suspect = ~np.all(np.isfinite(poses), axis=(1, 2))
+        suspect |= np.any(np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]) > 0.5e-3, axis=1)
+        suspect |= np.max(np.abs(rotations), axis=(1, 2)) > 1.0 + margin
+        gram = np.swapaxes(rotations, 1, 2) @ rotations
+        suspect |= np.max(np.abs(gram - np.eye(3)), axis=(1, 2)) > margin
+        suspect |= ~(np.linalg.det(np.where(suspect[:, None, None], 1.0, rotations)) > 0)
+        suspect |= np.max(np.abs(poses[:, :3, 3]), axis=1) > 0.5 * MAX_TRANSLATION_M
+    return np.asarray(suspect, dtype=np.bool_)
 
 
 def within_pixels(values: FloatArray, where: str) -> None:

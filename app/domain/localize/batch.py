@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from app.domain.errors import SessionFormatError
-from app.domain.frames import ORTHONORMAL_TOLERANCE, FloatArray
+from app.domain.frames import FloatArray, orthonormalized_stack
 from app.domain.json_values import json_type_name
 from app.domain.localize.params import LocalizationUpdateError
 from app.domain.localize.state import LocalizerState
@@ -21,9 +21,9 @@ from app.domain.session import (
     parse_detection_rows,
 )
 from app.domain.upload_fields import (
-    MAX_TRANSLATION_M,
     integer_field,
     matrix16_field,
+    maybe_not_rigid,
     number_field,
     require_list,
     require_object,
@@ -123,8 +123,8 @@ def _parse_update(document: Any) -> UpdateBatch:
                 f"{where}.timestamp",
                 f"time goes backwards: {timestamp_s[i]} s after {timestamp_s[i - 1]} s",
             )
-    _check_rigid(matrices, _maybe_not_rigid(matrices))
-    session_T_phone = orthonormalized_poses(matrices)
+    _check_rigid(matrices, np.flatnonzero(maybe_not_rigid(matrices)))
+    session_T_phone = orthonormalized_stack(matrices)
 
     rows = parse_detection_rows(tag_data)
     return UpdateBatch(
@@ -137,45 +137,11 @@ def _parse_update(document: Any) -> UpdateBatch:
     )
 
 
-def _maybe_not_rigid(matrices: FloatArray) -> list[int]:
-    """The indices of the (N, 4, 4) ``matrices`` that may fail ``rigid_pose``, all at once (the
-    same tests as ``rigidity_defect`` and ``rigid_pose``, with a margin, so that a matrix left
-    out surely passes; the ones named are checked one by one)."""
-    if not matrices.shape[0]:
-        return []
-    with np.errstate(all="ignore"):  # non-finite or huge entries are named, not computed
-        rotations = matrices[:, :3, :3]
-        margin = 0.5 * ORTHONORMAL_TOLERANCE
-        suspect = ~np.all(np.isfinite(matrices), axis=(1, 2))
-        suspect |= np.any(np.abs(matrices[:, 3] - [0.0, 0.0, 0.0, 1.0]) > 0.5e-3, axis=1)
-        suspect |= np.max(np.abs(rotations), axis=(1, 2)) > 1.0 + margin
-        gram = np.swapaxes(rotations, 1, 2) @ rotations
-        suspect |= np.max(np.abs(gram - np.eye(3)), axis=(1, 2)) > margin
-        suspect |= ~(np.linalg.det(np.where(suspect[:, None, None], 1.0, rotations)) > 0)
-        suspect |= np.max(np.abs(matrices[:, :3, 3]), axis=1) > 0.5 * MAX_TRANSLATION_M
-    return [int(i) for i in np.flatnonzero(suspect)]
-
-
 def _check_rigid(matrices: FloatArray, indices: Iterable[int]) -> None:
     """Raise ``rigid_pose``'s error for the first of ``indices`` whose matrix is no rigid
     transform (``poses[i].pose``)."""
     for i in indices:
         rigid_pose(matrices[i], f"poses[{i}].pose")
-
-
-def orthonormalized_poses(matrices: FloatArray) -> FloatArray:
-    """``orthonormalized`` of each of the (N, 4, 4) ``matrices`` at once (bit for bit the same:
-    numpy runs the same LAPACK call on each 3×3)."""
-    out = matrices.copy()
-    if not matrices.shape[0]:
-        return out
-    U, _, Vt = np.linalg.svd(matrices[:, :3, :3])
-    D = np.zeros((matrices.shape[0], 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = np.sign(np.linalg.det(U @ Vt))
-    out[:, :3, :3] = U @ D @ Vt
-    out[:, 3] = [0.0, 0.0, 0.0, 1.0]
-    return out
 
 
 # --------------------------------------------------------------------------- validation
