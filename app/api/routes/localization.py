@@ -51,11 +51,12 @@ from app.storage.navigation import LocalizationConflict, LocalizationInfo
 router = APIRouter(tags=["localization"], route_class=SessionEndingRoute)
 
 #: Threads of an API process that run localization updates at once; the others wait their turn
-#: on the event loop. One: an update is mostly numpy on small arrays, whose linear algebra lets
-#: go of the GIL and takes it back many times per update, so updates on several threads of one
-#: process hand the GIL back and forth and each costs far more CPU (``bench/http.py``'s update
-#: row, 8 connections, one API process: 2.66 → 1.77 ms of CPU per update, 416 → 559 updates/s,
-#: p99 40 → 23 ms). Processes, not threads, add capacity (``serve --api-processes``).
+#: on the event loop. One: an update is pure Python and numpy that holds the GIL (it lets go
+#: twice, in a stacked SVD and an einsum) and the interpreter makes a thread that holds it give
+#: it up every 5 ms to one that waits, so updates on several threads of one process hand the GIL
+#: back and forth and each costs far more CPU (``bench/http.py``'s update row, 8 connections, one
+#: API process: 2.66 → 1.77 ms of CPU per update, 416 → 559 updates/s, p99 40 → 23 ms).
+#: Processes, not threads, add capacity (``serve --api-processes``).
 LOCALIZER_THREADS = 1
 
 
