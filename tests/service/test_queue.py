@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import func, select
 
 from app.storage import queue
-from app.storage.db import Database
+from app.storage.db import SQLITE_BUSY_TIMEOUT_MS, Database
 from app.storage.orm import Job, JobState, utc_now
 from app.storage.queue import InvalidTransition, JobNotFound, Lease, LeaseLost
 
@@ -109,7 +109,9 @@ def test_an_idle_claim_writes_nothing_and_waits_for_no_writer(db: Database) -> N
             target=lambda: answers.append(queue.claim(db, worker_id="idle", lease_s=LEASE_S))
         )
         claimer.start()
-        claimer.join(timeout=3)
+        # A claim that waited for the lock would wait SQLite's busy timeout (30 s) and then
+        # fail; half of it leaves a slow machine room without letting such a claim pass.
+        claimer.join(timeout=SQLITE_BUSY_TIMEOUT_MS / 2000)
         finished_while_locked = not claimer.is_alive()
         writer.rollback()
     claimer.join(timeout=30)
