@@ -84,7 +84,7 @@ class Settings(BaseSettings):
     #: Threads for the API's ``def`` routes and dependencies (anyio's limiter; its default is
     #: 40): how many requests may be inside a route at once (the rest wait their turn). A
     #: request holds a database connection only while one of its threads runs
-    #: (``app.api.route_class``), so no number of threads can starve the pool. Threads start only
+    #: (``app.web.route_class``), so no number of threads can starve the pool. Threads start only
     #: when needed, so a large number costs nothing until that many requests come at once.
     api_threads: int = Field(default=400, ge=1, le=4096)
     #: How long ``serve`` keeps an idle keep-alive connection open, in seconds (uvicorn's

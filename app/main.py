@@ -18,9 +18,7 @@ from fastapi import Depends, FastAPI
 
 from app.admin.router import router as admin_router
 from app.api.body_limit import BodyLimit
-from app.api.deps import KeyUsage, UploadRate, current_principal
 from app.api.docs_pages import install_docs
-from app.api.errors import install_error_handlers
 from app.api.query_text import refuse_unstorable_query
 from app.api.routes import (
     jobs,
@@ -32,7 +30,6 @@ from app.api.routes import (
     sweeps,
     system,
 )
-from app.api.security import SecurityHeaders
 from app.config import Settings, get_settings
 from app.services.keys import PrincipalCache
 from app.services.maps import MapPages, MapStates
@@ -40,6 +37,9 @@ from app.services.system import WorkerPool, package_version
 from app.services.version_cache import VersionCache
 from app.storage.db import Database, ServerTimeouts
 from app.storage.migrate import head_revision
+from app.web.deps import KeyUsage, UploadRate, current_principal
+from app.web.errors import install_error_handlers
+from app.web.security import SecurityHeaders
 
 DESCRIPTION = """\
 The Invisible Map server: phones upload AprilTag mapping sessions, workers turn them into maps
@@ -50,7 +50,7 @@ its own sessions and their jobs, and reads every map; an *admin* key may do ever
 managing jobs, maps and keys. Errors have one shape: `{"detail", "code", "field"}`.
 """
 
-#: Uploads have their own limits (``max_upload_bytes``, ``max_session_bytes``: app.api.upload).
+#: Uploads have their own limits (``max_upload_bytes``, ``max_session_bytes``: app.web.upload).
 UPLOAD_PATH = "/v1/sessions"
 
 OPENAPI_TAGS = [

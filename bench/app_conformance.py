@@ -9,7 +9,7 @@ allows), and simulated buildings (two floors joined by stairs, loops, dead ends)
 optimized with the default parameters, its path graph built (the corridor skeleton, as the
 worker builds it), and the app-map
 (``GET /v1/maps/{id}/app-map``, the same document as ``invisible-map process --app-map``)
-checked against the model of the app's decoder and route planner (``app.domain.app_model``):
+checked against the model of the app's decoder and route planner (``app.domain.formats.app_model``):
 isolated odometry vertices, and (start vertex, destination) pairs on which the app would crash.
 Totals last; the exit status is 1 if any map has either.
 """
@@ -27,13 +27,13 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from app.domain.app_model import ConformanceReport, check_app_map  # noqa: E402
 from app.domain.errors import InvisibleMapError  # noqa: E402
-from app.domain.map_io import app_map_as_served  # noqa: E402
-from app.domain.session import parse_session, read_json_document  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.skeleton import build_skeleton  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.formats.app_model import ConformanceReport, check_app_map  # noqa: E402
+from app.domain.formats.map_io import app_map_as_served  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.navigation.skeleton import build_skeleton  # noqa: E402
+from app.domain.upload.session import parse_session, read_json_document  # noqa: E402
 
 DATA = REPO / "data"
 #: Simulated buildings: name → config (10 Hz poses).

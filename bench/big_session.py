@@ -14,8 +14,8 @@ optimization, and a running sweep trial; and the worker's peak memory after each
 
 (``-m``: run as a file, ``bench/http.py`` would hide the standard library's ``http``.)
 
-The session is simulated (``app.domain.simulate``) and sent gzipped, as the app sends it. Memory
-is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
+The session is simulated (``app.domain.evaluation.simulate``) and sent gzipped, as the app sends it.
+Memory is the API process's peak resident set (``VmHWM`` of ``/proc/<pid>/status``) before and after
 each request.
 """
 
@@ -45,8 +45,8 @@ from sqlalchemy.orm import Session  # noqa: E402
 
 from app.cli.server_process import ServerProcess  # noqa: E402
 from app.config import Settings  # noqa: E402
-from app.domain.sweep_plan import SweepPlan  # noqa: E402
-from app.domain.tuning import SearchSpace  # noqa: E402
+from app.domain.evaluation.sweep_plan import SweepPlan  # noqa: E402
+from app.domain.evaluation.tuning import SearchSpace  # noqa: E402
 from app.storage import queue, sweeps  # noqa: E402
 from app.storage.db import Database  # noqa: E402
 from app.storage.migrate import upgrade_to_head  # noqa: E402

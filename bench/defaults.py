@@ -27,12 +27,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.ground_truth import load_ground_truth, parse_ground_truth_json  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.session import Session, load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.sweep_plan import SweepPlan  # noqa: E402
-from app.domain.tuning import Axis, SearchSpace, TuningTarget  # noqa: E402
+from app.domain.evaluation.ground_truth import load_ground_truth, parse_ground_truth_json  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.evaluation.sweep_plan import SweepPlan  # noqa: E402
+from app.domain.evaluation.tuning import Axis, SearchSpace, TuningTarget  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
 from bench.tuning import REAL  # noqa: E402  (the real sessions with ground truth)
 from workers.sweep_pool import run_sweep  # noqa: E402
 

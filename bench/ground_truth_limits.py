@@ -26,11 +26,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.cli.tables import render_markdown_table  # noqa: E402
+from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
+from app.domain.evaluation.metrics import compare_tag_sets, ground_truth_metric, umeyama_rigid  # noqa: E402
 from app.domain.frames import FloatArray, rotation_angle_rad  # noqa: E402
-from app.domain.ground_truth import load_ground_truth  # noqa: E402
-from app.domain.metrics import compare_tag_sets, ground_truth_metric, umeyama_rigid  # noqa: E402
-from app.domain.session import load_session  # noqa: E402
-from app.domain.slam import WORLD_UP, optimize_session  # noqa: E402
+from app.domain.mapping.slam import WORLD_UP, optimize_session  # noqa: E402
+from app.domain.upload.session import load_session  # noqa: E402
 from bench.tuning import REAL  # noqa: E402  (the real sessions with ground truth)
 
 DATA = REPO / "data"

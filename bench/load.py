@@ -92,7 +92,7 @@ from app.cli.server_process import ServerProcess, WorkerProcess  # noqa: E402
 from app.cli.tables import render_markdown_table  # noqa: E402
 from app.client import Client  # noqa: E402
 from app.domain.localize import session_update_documents  # noqa: E402
-from app.domain.session import load_session  # noqa: E402
+from app.domain.upload.session import load_session  # noqa: E402
 
 #: Every simulated phone connects from this machine's one address: no cap on connections per
 #: address (``INVISIBLE_MAP_MAX_CONNECTIONS_PER_ADDRESS``), which real phones, each with its own

@@ -6,13 +6,14 @@
 
 Accuracy (``app.domain.localize.update`` in batches of ``--batch`` poses, as a phone would send):
 
-- simulation, phone position error: a building from ``app.domain.simulate``; the map is either the
-  true tags (the localizer alone) or the map optimized from a first walk (``optimize_session``,
-  default ``SlamParams``); then a *second* walk through the same building, with its own route and
-  noise, is replayed in its own session frame (turned and moved off the map frame). At every update
-  once localized, the distance between ``map_T_phone`` and the true phone position, m. An optimized
-  map sits where its own gauge (its first pose) put it, so the truth is first carried onto it by
-  the best-fit rigid transform of the tags (``umeyama_rigid``, as the tag RMSE does).
+- simulation, phone position error: a building from ``app.domain.evaluation.simulate``; the map is
+  either the true tags (the localizer alone) or the map optimized from a first walk
+  (``optimize_session``, default ``SlamParams``); then a *second* walk through the same building,
+  with its own route and noise, is replayed in its own session frame (turned and moved off the map
+  frame). At every update once localized, the distance between ``map_T_phone`` and the true phone
+  position, m. An optimized map sits where its own gauge (its first pose) put it, so the truth is
+  first carried onto it by the best-fit rigid transform of the tags (``umeyama_rigid``, as the tag
+  RMSE does).
 - real, cross-session next-tag prediction: the map optimized from ``floor_2_straight``; the replay
   of ``desnat_straight_once`` (same floor, tags 300–307). At each tag detection, before the update
   that carries it, the distance between the map's tag and where the current estimate puts the
@@ -26,8 +27,8 @@ that did not, which only follow the odometry), with the largest window reached a
 state's size.
 
 The second walk needs the simulator's building without its walk, so this file drives
-``app.domain.simulate``'s steps (``walk_route``, ``drift_odometry``, …) with a building seed
-and a walk seed; ``simulate_session`` ties both to one seed.
+``app.domain.evaluation.simulate``'s steps (``walk_route``, ``drift_odometry``, …) with a building
+seed and a walk seed; ``simulate_session`` ties both to one seed.
 """
 
 from __future__ import annotations
@@ -48,7 +49,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain import simulate as sim_module  # noqa: E402
+from app.domain.evaluation import simulate as sim_module  # noqa: E402
+from app.domain.evaluation.metrics import tag_rmse_m, umeyama_rigid  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.frames import (  # noqa: E402
     PHONE_T_CAMERA_CV,
     FloatArray,
@@ -66,10 +69,8 @@ from app.domain.localize import (  # noqa: E402
     session_update_documents,
     update,
 )
-from app.domain.metrics import tag_rmse_m, umeyama_rigid  # noqa: E402
-from app.domain.session import Session, load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 COST_POSES = (100, 1_000, 10_000)

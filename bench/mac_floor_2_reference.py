@@ -1,7 +1,7 @@
 """Reference corridor graph of floor 2 of the mac building (issue 18), drawn by hand.
 
 Frame: the ground truth's y-up frame (``data/ground_truth/rtabmap_mac_1_2.txt`` as
-``app.domain.ground_truth`` reads it); points are (x, z), m; floor 2 is at y ≈ 0.
+``app.domain.evaluation.ground_truth`` reads it); points are (x, z), m; floor 2 is at y ≈ 0.
 
 How it was drawn: the three sessions that walk floor 2 (floor_2_straight, desnat_straight_once and
 the floor-2 part of straight_209_occam) were optimized with default parameters, each aligned to
@@ -23,9 +23,9 @@ import itertools
 import networkx as nx
 import numpy as np
 
-from app.domain.floors import find_floor_levels
-from app.domain.path_graph import JUNCTION, NODE, WALK, PathGraph
-from app.domain.skeleton import attach_anchor
+from app.domain.navigation.floors import find_floor_levels
+from app.domain.navigation.path_graph import JUNCTION, NODE, WALK, PathGraph
+from app.domain.navigation.skeleton import attach_anchor
 
 # fmt: off
 #: The main corridor, south (tag 300) to north-west (tag 324), (x, z) m.

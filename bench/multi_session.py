@@ -11,7 +11,8 @@
    (``optimize_sessions(reweight=False)``), for comparison.
 2. Build time of the 3-session map against the sum of the three single builds (CPU time, median
    of ``--repeat`` rounds, marginals included, parsing not).
-3. Simulated walks of one building with known truth (``app.domain.simulate_building``: 1,200
+3. Simulated walks of one building with known truth (``app.domain.evaluation.simulate_building``:
+   1,200
    poses = 2 minutes each, every walk in its own world frame): the joint map of the first 1, 2,
    5, 10, 20 walks, its tag RMSE over all its tags and over the first walk's tags, and its build
    time.
@@ -39,14 +40,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from app.cli.tables import render_markdown_table  # noqa: E402
+from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
+from app.domain.evaluation.metrics import ground_truth_metric, joint_shift_metric, tag_rmse_m  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig  # noqa: E402
+from app.domain.evaluation.simulate_building import simulate_building_sessions  # noqa: E402
 from app.domain.frames import FloatArray  # noqa: E402
-from app.domain.ground_truth import load_ground_truth  # noqa: E402
-from app.domain.joint import JointMap, optimize_sessions  # noqa: E402
-from app.domain.metrics import ground_truth_metric, tag_rmse_m  # noqa: E402
-from app.domain.session import Session, load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig  # noqa: E402
-from app.domain.simulate_building import simulate_building_sessions  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.mapping.joint import JointMap, optimize_sessions  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 GROUND_TRUTH = REPO / "data" / "ground_truth" / "rtabmap_mac_1_2.txt"
@@ -159,7 +160,7 @@ def real_sessions(
             f"{part.detections_used} detections used"
         )
     print(f"- shift metric of the joint map over every session's detections: "
-          f"{joint.shift_metric():.4f}")  # fmt: skip
+          f"{joint_shift_metric(joint):.4f}")  # fmt: skip
     print()
 
     per_session = rows[: len(MAC_SESSIONS)]

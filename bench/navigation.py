@@ -6,8 +6,8 @@
    after (corridor skeleton, decision-point instructions), against the hand-drawn reference
    ``bench.mac_floor_2_reference`` (``bench.navigation_quality``).
 2. The same on simulated walkers who step to tags, sway, walk corridors twice with an offset and
-   leave passes that do not meet (``app.domain.simulate.simulate_walk``), against the simulated
-   building's corridors.
+   leave passes that do not meet (``app.domain.evaluation.simulate.simulate_walk``), against the
+   simulated building's corridors.
 3. Build time and size, walked line → skeleton: the real sessions (optimized with default
    parameters) and simulated two-floor walks of 10,000 and 100,000 poses (true trajectory).
 4. Route queries on the floor_2_straight skeleton: p50/p99 over 2,000 queries between random
@@ -34,25 +34,25 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.instructions import plan_guided_route  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.path_graph import (  # noqa: E402
-    JUNCTION,
-    PathGraph,
-    build_path_graph_from_arrays,
-)
-from app.domain.routing import PositionEnd, TagEnd, plan_route  # noqa: E402
-from app.domain.session import load_session  # noqa: E402
-from app.domain.simulate import (  # noqa: E402
+from app.domain.evaluation.simulate import (  # noqa: E402
     SimulationConfig,
     WalkerConfig,
     corridor_graph,
     simulate_session,
     simulate_walk,
 )
-from app.domain.skeleton import build_skeleton_from_arrays  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
-from app.domain.turn_metrics import score_tag_routes  # noqa: E402
+from app.domain.evaluation.turn_metrics import score_tag_routes  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
+from app.domain.navigation.path_graph import (  # noqa: E402
+    JUNCTION,
+    PathGraph,
+    build_path_graph_from_arrays,
+)
+from app.domain.navigation.routing import PositionEnd, TagEnd, plan_route  # noqa: E402
+from app.domain.navigation.skeleton import build_skeleton_from_arrays  # noqa: E402
+from app.domain.upload.session import load_session  # noqa: E402
 from bench.navigation_quality import quality_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"

@@ -23,21 +23,21 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.ground_truth import load_ground_truth  # noqa: E402
-from app.domain.instructions import plan_guided_route  # noqa: E402
-from app.domain.metrics import umeyama_rigid  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.path_graph import (  # noqa: E402
+from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
+from app.domain.evaluation.metrics import umeyama_rigid  # noqa: E402
+from app.domain.evaluation.turn_metrics import RouteScore, agreement, score_tag_routes  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
+from app.domain.navigation.path_graph import (  # noqa: E402
     JUNCTION,
     WALK,
     PathGraph,
     build_path_graph_from_arrays,
 )
-from app.domain.routing import plan_route  # noqa: E402
-from app.domain.session import load_session  # noqa: E402
-from app.domain.skeleton import build_skeleton_from_arrays  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
-from app.domain.turn_metrics import RouteScore, agreement, score_tag_routes  # noqa: E402
+from app.domain.navigation.routing import plan_route  # noqa: E402
+from app.domain.navigation.skeleton import build_skeleton_from_arrays  # noqa: E402
+from app.domain.upload.session import load_session  # noqa: E402
 from bench.mac_floor_2_reference import (  # noqa: E402
     FLOOR_2_Y_M,
     branch_points_xz,

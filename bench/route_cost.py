@@ -4,12 +4,12 @@
     .venv/bin/python -m bench.route_cost --profile    # … and where the time goes (cProfile)
 
 Each map's path graph is built as the worker builds it (the session optimized with default
-parameters, :func:`app.domain.skeleton.build_skeleton`) and read back from its JSON document as
-the API reads it (``path_graph_to_json`` → ``path_graph_from_json``): floor_2_straight and
-occam_room of ``data/sessions``, the demo session with points of interest
+parameters, :func:`app.domain.navigation.skeleton.build_skeleton`) and read back from its JSON
+document as the API reads it (``path_graph_to_json`` → ``path_graph_from_json``): floor_2_straight
+and occam_room of ``data/sessions``, the demo session with points of interest
 (``data/demo/floor_2_pois.json``) and a simulated two-floor building. The graph is then in memory,
-as the API's per-process cache keeps it, and each route is timed as ``planned_route(graph, from,
-to, avoid=…, heading_rad=…, style=…)`` with the arguments the API passes for a request body.
+as the API's per-process cache keeps it, and each route is timed as ``planned_route(graph, from, to,
+avoid=…, heading_rad=…, style=…)`` with the arguments the API passes for a request body.
 
 Rows: tag 300 → tag 320 on floor_2_straight (the HTTP benchmark's route, no heading), and every
 ordered tag pair of each map (with a heading of 30°, as a phone that has localized sends), as
@@ -38,14 +38,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.instructions import DEFAULT_STYLE, GuidanceStyle  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_json  # noqa: E402
-from app.domain.routing import Endpoint, TagEnd  # noqa: E402
-from app.domain.session import load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.skeleton import build_skeleton  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.navigation.instructions import DEFAULT_STYLE, GuidanceStyle  # noqa: E402
+from app.domain.navigation.path_graph import PathGraph, path_graph_from_json, path_graph_to_json  # noqa: E402
+from app.domain.navigation.routing import Endpoint, TagEnd  # noqa: E402
+from app.domain.navigation.skeleton import build_skeleton  # noqa: E402
+from app.domain.upload.session import load_session, parse_session  # noqa: E402
 from app.services.errors import ServiceError  # noqa: E402
 from app.services.navigation import planned_route  # noqa: E402
 

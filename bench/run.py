@@ -13,8 +13,8 @@ Each case runs in a fresh process (so its peak memory is its own) and reports:
   ratio (target ≤ 6);
 - peak MiB: the process's peak resident memory (Python, gtsam and the session included).
 
-Synthetic sessions are building walks from ``app.domain.simulate`` at 10 Hz with tags every
-4–10 m: a 2×1 corridor grid at 1k poses, 3×2 at 10k, 6×4 at 100k; two floors from 10k up.
+Synthetic sessions are building walks from ``app.domain.evaluation.simulate`` at 10 Hz with tags
+every 4–10 m: a 2×1 corridor grid at 1k poses, 3×2 at 10k, 6×4 at 100k; two floors from 10k up.
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.session import load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.slam import linearize_and_solve_ms, optimize_session  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import linearize_and_solve_ms, optimize_session  # noqa: E402
+from app.domain.upload.session import load_session, parse_session  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
 SYNTHETIC_POSES = (1_000, 10_000, 100_000)

@@ -47,7 +47,7 @@ from app.cli.server_process import ServerProcess  # noqa: E402
 from app.cli.tables import render_markdown_table  # noqa: E402
 from app.client import Client  # noqa: E402
 from app.domain.localize import session_update_documents  # noqa: E402
-from app.domain.session import load_session  # noqa: E402
+from app.domain.upload.session import load_session  # noqa: E402
 from app.storage.db import Database  # noqa: E402
 from app.storage.migrate import upgrade_to_head  # noqa: E402
 

@@ -56,14 +56,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from app.cli.tables import render_markdown_table  # noqa: E402
-from app.domain.ground_truth import load_ground_truth  # noqa: E402
-from app.domain.metrics import ground_truth_metric, tag_rmse_m  # noqa: E402
-from app.domain.params import SlamParams  # noqa: E402
-from app.domain.session import Session, load_session, parse_session  # noqa: E402
-from app.domain.simulate import SimulationConfig, simulate_session  # noqa: E402
-from app.domain.slam import optimize_session  # noqa: E402
-from app.domain.sweep_plan import SweepPlan  # noqa: E402
-from app.domain.tuning import (  # noqa: E402
+from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
+from app.domain.evaluation.metrics import ground_truth_metric, tag_rmse_m  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
+from app.domain.evaluation.sweep_plan import SweepPlan  # noqa: E402
+from app.domain.evaluation.tuning import (  # noqa: E402
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
     Axis,
@@ -73,6 +70,9 @@ from app.domain.tuning import (  # noqa: E402
     best_trial,
     sweep_result,
 )
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
 from workers.allocator import jemalloc_path  # noqa: E402
 from workers.sweep_pool import run_sweep  # noqa: E402
 

@@ -47,27 +47,28 @@ from typing import Any, TypeVar
 
 from sqlalchemy.exc import DataError
 
-from app.domain.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.errors import InvisibleMapError
-from app.domain.evaluation import Evaluation, evaluate_map
-from app.domain.joint import JointMap, optimize_sessions
-from app.domain.joint_path_graph import build_joint_path_graph
-from app.domain.json_stream import gunzipped
-from app.domain.map_io import map_from_json, map_to_app_format, map_to_json
-from app.domain.map_result import MapResult
-from app.domain.params import SlamParams
-from app.domain.path_graph import (
+from app.domain.evaluation.metrics import joint_shift_metric
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.table import Evaluation, evaluate_map
+from app.domain.evaluation.tuning import SearchSpace, Trial, TuningTarget, best_trial
+from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_documents
+from app.domain.formats.map_io import map_from_json, map_to_app_format, map_to_json
+from app.domain.mapping.joint import JointMap, optimize_sessions
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.joint_path_graph import build_joint_path_graph
+from app.domain.navigation.path_graph import (
     ELEVATOR,
     JUNCTION,
     STAIRS,
     path_graph_from_json,
     path_graph_to_json,
 )
-from app.domain.session import Session, parse_session_stream, require_tags
-from app.domain.skeleton import build_skeleton
-from app.domain.slam import optimize_session
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import SearchSpace, Trial, TuningTarget, best_trial
+from app.domain.navigation.skeleton import build_skeleton
+from app.domain.upload.json_stream import gunzipped
+from app.domain.upload.session import Session, parse_session_stream, require_tags
 from app.render.map_plot import render_map_png
 from app.storage import blobs, maps, queue
 from app.storage.db import Database, database_fault, first_line
@@ -155,13 +156,13 @@ class JobContext:
     result: MapResult | None = None
     evaluation: Evaluation | None = None
     plot_png: bytes | None = None
-    #: ``app.domain.path_graph.path_graph_to_json`` of the map's path graph
+    #: ``app.domain.navigation.path_graph.path_graph_to_json`` of the map's path graph
     path_graph: dict[str, Any] | None = None
     #: the sessions the map is built from, in order (``SESSION_IDS``; else the job's one)
     session_ids: list[int] = field(default_factory=list)
     #: each of them parsed, when there are several (``session`` is then their joint session)
     sessions: list[Session] = field(default_factory=list)
-    #: the joint optimization of several sessions (``app.domain.joint``)
+    #: the joint optimization of several sessions (``app.domain.mapping.joint``)
     joint: JointMap | None = None
     #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
     auto_tune_trials: int = 0
@@ -397,8 +398,8 @@ def optimize(ctx: JobContext) -> None:
 
 
 def _optimize_joint(ctx: JobContext) -> None:
-    """Several sessions into one map (``app.domain.joint``); a session the others' tags cannot
-    place fails the job with the reason (AlignmentError is an InvisibleMapError)."""
+    """Several sessions into one map (``app.domain.mapping.joint``); a session the others' tags
+    cannot place fails the job with the reason (AlignmentError is an InvisibleMapError)."""
     started_s = time.perf_counter()
     names = [f"session {session_id}" for session_id in ctx.session_ids]
     joint = optimize_sessions(ctx.sessions, _need(ctx.params, "params"), names=names)
@@ -454,8 +455,8 @@ def evaluate(ctx: JobContext) -> None:
     if ctx.joint is not None:  # the shift metric over each session's own detections
         ctx.evaluation = dataclasses.replace(
             ctx.evaluation,
-            shift_pre=ctx.joint.shift_metric(result.tag_poses_pre()),
-            shift_opt=ctx.joint.shift_metric(),
+            shift_pre=joint_shift_metric(ctx.joint, result.tag_poses_pre()),
+            shift_opt=joint_shift_metric(ctx.joint),
         )
     ctx.report(0.5)
     try:
@@ -474,8 +475,9 @@ def evaluate(ctx: JobContext) -> None:
 def path_graph(ctx: JobContext) -> None:
     """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
     into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
-    tags and points of interest attached to it (app.domain.skeleton). A map of several sessions
-    gets the walked paths of all of them, joined where they cross (app.domain.joint_path_graph).
+    tags and points of interest attached to it (app.domain.navigation.skeleton). A map of several
+    sessions gets the walked paths of all of them, joined where they cross
+    (app.domain.navigation.joint_path_graph).
     """
     result = _need(ctx.result, "result")
     graph = (
@@ -506,7 +508,7 @@ def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.Derived
     """What the API would otherwise make of the stored version on every process's first request
     (issue 19, finding 3), made once here from the version as stored (its map document read
     back, the path graph through JSON) so that it equals what the API makes: the app's map file
-    (``app.domain.derived_documents.app_map_bytes``) and the dashboard's overview.
+    (``app.domain.formats.derived_documents.app_map_bytes``) and the dashboard's overview.
     ``document``: the version's map document (``map_to_json`` of the result)."""
     stored = map_from_json(document)  # JSON keeps its floats exactly: no round trip needed
     graph = (

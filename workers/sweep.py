@@ -11,9 +11,9 @@ from __future__ import annotations
 from collections import OrderedDict
 from datetime import datetime
 
-from app.domain.ground_truth import parse_ground_truth_json
-from app.domain.params import SlamParams
-from app.domain.tuning import TuningTarget
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
+from app.domain.evaluation.tuning import TuningTarget
+from app.domain.mapping.params import SlamParams
 from app.storage import queue, sweeps
 from workers.pipeline import JobContext, PermanentJobError, Stage, load_session_upload
 

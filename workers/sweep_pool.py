@@ -19,11 +19,11 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 
 from app.domain.errors import ParameterError
+from app.domain.evaluation.sweep_plan import GRID_CHUNK, SweepPlan
+from app.domain.evaluation.tuning import Trial, TuningTarget, check_objective
 from app.domain.frames import FloatArray
-from app.domain.params import SlamParams
-from app.domain.session import Session
-from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
-from app.domain.tuning import Trial, TuningTarget, check_objective
+from app.domain.mapping.params import SlamParams
+from app.domain.upload.session import Session
 from workers.allocator import preloading_jemalloc
 
 _target: TuningTarget | None = None

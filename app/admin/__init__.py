@@ -8,6 +8,6 @@ JavaScript (live progress by polling, plots drawn by plotly.js served from the a
     app/admin/routing.py       errors as pages, security headers
     app/admin/templating.py    rendering, flash messages
     app/admin/pages/*.py       one module per page
-    app/domain/map_figure.py   what the map page plots (built by the worker: a version's overview)
     app/admin/forms.py         the rebuild form's parameters, the route tester's endpoints
+    app/domain/formats/map_figure.py   what the map page plots (made once per version)
 """

@@ -31,12 +31,12 @@ from fastapi import Depends, Request, Response
 from starlette.datastructures import FormData
 
 from app.admin.signing import Signer, load_or_create_secret
-from app.api.deps import DbDep, SettingsDep
 from app.config import Settings
 from app.storage import admin_logins, keys
 from app.storage.db import Database
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
 from app.storage.orm import Role
+from app.web.deps import DbDep, SettingsDep
 
 LOGIN_COOKIE = "im_admin_login"
 LOGIN_FORM_COOKIE = "im_admin_login_form"

@@ -12,8 +12,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from app.domain.params import SlamParams
-from app.domain.routing import Endpoint, NodeEnd, PoiEnd, PositionEnd, TagEnd
+from app.domain.mapping.params import SlamParams
+from app.domain.navigation.routing import Endpoint, NodeEnd, PoiEnd, PositionEnd, TagEnd
 from app.services.errors import InvalidInput
 from app.services.maps import checked_overrides
 

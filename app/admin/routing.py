@@ -1,6 +1,6 @@
 """The dashboard's route class: errors become pages, every response gets the security headers.
 
-The API answers errors with JSON (``app.api.errors``); a person in a browser should get a page
+The API answers errors with JSON (``app.web.errors``); a person in a browser should get a page
 that says what went wrong, with the same status. :class:`AdminRoute` wraps each dashboard
 endpoint (its dependencies included) so that:
 
@@ -29,10 +29,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
-from app.api.errors import FAULT_ANSWERS, field_path
-from app.api.route_class import SessionEndingRoute
 from app.services.errors import ServiceError, status_and_code
 from app.storage.db import database_fault, first_line
+from app.web.errors import FAULT_ANSWERS, field_path
+from app.web.route_class import SessionEndingRoute
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ TITLE_OF_STATUS = {
 
 class AdminRoute(SessionEndingRoute):
     """An :class:`APIRoute` whose errors are dashboard pages (see the module docstring), and
-    whose transaction ends as its function returns (``app.api.route_class``)."""
+    whose transaction ends as its function returns (``app.web.route_class``)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()

@@ -21,8 +21,8 @@ from fastapi.templating import Jinja2Templates
 
 from app.admin.auth import DashboardUser, admin_state, set_cookie
 from app.admin.nav import NAV
-from app.api.security import COMMON_HEADERS, PAGE_CSP
 from app.services.system import package_version
+from app.web.security import COMMON_HEADERS, PAGE_CSP
 
 TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
 FLASH_COOKIE = "im_admin_flash"
@@ -31,7 +31,7 @@ FLASH_TTL_S = 60
 #: On every dashboard response. Nothing is loaded from another origin; no page may frame these.
 #: Scripts only from our files (no inline script). Styles allow 'unsafe-inline' because plotly.js
 #: styles its plots with inline style rules (its own stylesheet is not in the plotly package).
-#: The dashboard's answers: the server's one policy (``app.api.security``) for its own pages.
+#: The dashboard's answers: the server's one policy (``app.web.security``) for its own pages.
 SECURITY_HEADERS = {**COMMON_HEADERS, "Content-Security-Policy": PAGE_CSP}
 
 

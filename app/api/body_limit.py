@@ -1,5 +1,5 @@
 """A limit on the size of every request body but an upload's (which has its own, larger limits
-and streaming checks in ``app.api.upload``): routes, localization updates, keys, sweeps and the
+and streaming checks in ``app.web.upload``): routes, localization updates, keys, sweeps and the
 dashboard's forms are small, and a body of gigabytes must not be read into memory to find that
 out.
 
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.api.errors import error_response
+from app.web.errors import error_response
 
 
 class BodyLimit:

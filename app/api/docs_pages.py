@@ -17,7 +17,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from app.api.security import page_csp
+from app.web.security import page_csp
 
 #: Where the pages' own scripts, styles and icon are served from.
 ASSETS_PATH = "/docs-assets"
@@ -42,7 +42,7 @@ _INLINE_SCRIPT = re.compile(r"<script>(.*?)</script>", re.S)
 
 
 def with_page_policy(page: HTMLResponse, *, workers: bool = False) -> HTMLResponse:
-    """``page`` with the server's page policy (``app.api.security``), allowing exactly its own
+    """``page`` with the server's page policy (``app.web.security``), allowing exactly its own
     inline scripts."""
     scripts = _INLINE_SCRIPT.findall(bytes(page.body).decode())
     page.headers["Content-Security-Policy"] = page_csp(inline_scripts=scripts, workers=workers)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.domain.errors import ParameterError
-from app.domain.params import SlamParams
+from app.domain.mapping.params import SlamParams
 
 if TYPE_CHECKING:
     from app.config import Settings

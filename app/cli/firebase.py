@@ -5,7 +5,7 @@
 ``DIR`` holds what a lab exports from the Firebase project the app used: the Realtime Database's
 JSON export (``maps/<uid>/<mapId>``, ``unprocessed_maps/…``) and the Storage folder
 ``rawMapData/<uid>/<mapId>.json`` with the pictures (how it is read:
-``app/domain/firebase_export.py``; how each recording is uploaded:
+``app/domain/formats/firebase_export.py``; how each recording is uploaded:
 ``app/services/firebase_import.py``). Every recording is uploaded
 once into the database in ``DATABASE_URL`` (with its owner, typed name and picture), and its map
 is queued for building by the workers. Running it again takes nothing twice. It ends with a
@@ -43,7 +43,7 @@ def add_firebase_commands(commands: Any) -> None:
 
 
 def _import_firebase(args: argparse.Namespace) -> int:
-    from app.domain.firebase_export import FirebaseExportError, read_firebase_export
+    from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
     from app.services.firebase_import import ImportStatus, import_recording
 
     try:

@@ -38,16 +38,16 @@ from app.cli.server import add_server_commands
 from app.cli.tables import render_markdown_table
 from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
-from app.domain.evaluation import Evaluation, evaluate_joint, evaluate_map
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.table import Evaluation, evaluate_joint, evaluate_map
+from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
 from app.domain.frames import FloatArray
-from app.domain.ground_truth import load_ground_truth
-from app.domain.joint import optimize_sessions
-from app.domain.map_io import app_map_as_served, map_to_json, save_json
-from app.domain.map_result import MapResult
-from app.domain.params import SlamParams
-from app.domain.session import Session, load_session
-from app.domain.skeleton import build_skeleton
-from app.domain.slam import optimize_session
+from app.domain.mapping.joint import optimize_sessions
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.skeleton import build_skeleton
+from app.domain.upload.session import Session, load_session
 
 
 def main(argv: Sequence[str] | None = None) -> int:

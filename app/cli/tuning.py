@@ -20,18 +20,18 @@ from tqdm import tqdm
 
 from app.cli.common import add_param_option, slam_params
 from app.domain.errors import ParameterError
-from app.domain.ground_truth import load_ground_truth
-from app.domain.map_io import save_json
-from app.domain.session import load_session, parse_session
-from app.domain.simulate import (
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.simulate import (
     SimulatedSession,
     SimulationConfig,
     simulate_along_trajectory,
     simulate_session,
 )
-from app.domain.slam import optimize_session
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import SearchSpace, TuningTarget, sweep_result
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.tuning import SearchSpace, TuningTarget, sweep_result
+from app.domain.formats.map_io import save_json
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session, parse_session
 from workers.sweep_pool import run_sweep
 
 #: ``--noise`` may set these fields of SimulationConfig.
@@ -250,8 +250,8 @@ def simulate_command(args: argparse.Namespace) -> int:
 
 def _simulate_building(args: argparse.Namespace, noise: dict[str, Any]) -> int:
     from app.cli.common import CommandError
-    from app.domain.ground_truth import ground_truth_to_json
-    from app.domain.simulate_building import simulate_building_sessions
+    from app.domain.evaluation.ground_truth import ground_truth_to_json
+    from app.domain.evaluation.simulate_building import simulate_building_sessions
 
     if args.sessions < 1 or args.sessions > 100:
         raise CommandError(f"--sessions must be 1–100, got {args.sessions}")

@@ -24,12 +24,12 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.patches import Ellipse
 
-from app.domain.floors import assign_floors, find_floor_levels
+from app.domain.evaluation.metrics import umeyama_rigid
 from app.domain.frames import FloatArray
-from app.domain.map_result import MapResult
-from app.domain.metrics import umeyama_rigid
-from app.domain.session import Session
-from app.domain.uncertainty import horizontal_position_ellipse
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.uncertainty import horizontal_position_ellipse
+from app.domain.navigation.floors import assign_floors, find_floor_levels
+from app.domain.upload.session import Session
 
 RAW_COLOUR = "#9e9e9e"
 OPTIMIZED_COLOUR = "#1565c0"

@@ -26,7 +26,7 @@ import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from app.domain.tuning import SearchSpace, Trial, best_trial, shift_gt_correlation
+from app.domain.evaluation.tuning import SearchSpace, Trial, best_trial, shift_gt_correlation
 
 P = ParamSpec("P")
 R = TypeVar("R")

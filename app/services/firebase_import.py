@@ -1,6 +1,6 @@
 """Moving a lab's recorded maps over from Firebase: every recording of an export uploaded once.
 
-    export = read_firebase_export(directory)                    # app.domain.firebase_export
+    export = read_firebase_export(directory)                    # app.domain.formats.firebase_export
     for entry in export.maps:
         outcome = import_recording(db, entry, max_attempts=3, max_session_bytes=…)
         outcome.status        # "taken", "already_there" or "refused"; outcome.reason
@@ -27,9 +27,9 @@ import hashlib
 from dataclasses import dataclass
 
 from app.domain.errors import SessionFormatError
-from app.domain.firebase_export import FirebaseMap
+from app.domain.formats.firebase_export import FirebaseMap
 from app.domain.json_values import gunzip_if_compressed
-from app.domain.session import decode_json_bytes, parse_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import images, sessions
 from app.storage.db import Database
 from app.storage.sessions import (

@@ -100,12 +100,19 @@ class PrincipalCache:
         return active.principal
 
 
+#: The longest name a key may have (the API's schema says the same).
+MAX_KEY_NAME_CHARS = 100
+
+
 def create_checked_key(
     db_session: Session, *, name: str, role: Role, expires_at: datetime | None
 ) -> tuple[keys.KeyInfo, str]:
-    """Store a new key (422 naming the field if it would already have expired, if its expiry
-    is beyond the year 9999 in UTC, or if its name is no storable text); returns it and its
-    secret."""
+    """Store a new key (422 naming the field if its name is empty, longer than
+    ``MAX_KEY_NAME_CHARS`` or no storable text, if it would already have expired or if its expiry
+    is beyond the year 9999 in UTC); returns it and its secret."""
+    if not name or len(name) > MAX_KEY_NAME_CHARS:
+        bound = f"at most {MAX_KEY_NAME_CHARS} characters" if name else "at least 1 character"
+        raise InvalidInput("validation_error", f"name: String should have {bound}", field="name")
     if "\x00" in name or _has_surrogate(name):
         raise InvalidInput(
             "validation_error",

@@ -16,10 +16,10 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.domain.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
-from app.domain.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.errors import ParameterError
-from app.domain.params import SlamParams
+from app.domain.formats.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
+from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
+from app.domain.mapping.params import SlamParams
 from app.services.errors import Conflict, InvalidInput, NotFound
 from app.services.version_cache import VersionCache, size_in_bytes
 from app.storage import images, maps, queue, sessions
@@ -216,7 +216,7 @@ def stored_app_map_gzip(db_session: Session, version: VersionInfo) -> bytes:
 
 def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
     """The app's map file (docs/architecture.md §7) of ``version``, as compact JSON bytes, made
-    from its stored map document (``app.domain.derived_documents.app_map_bytes``: what the
+    from its stored map document (``app.domain.formats.derived_documents.app_map_bytes``: what the
     worker stores with a new version)."""
     return app_map_bytes(
         maps.map_document(db_session, version.map_id, version.number),
@@ -437,6 +437,33 @@ class MapPages:
                 while len(self._pages) > self.max_entries:
                     self._pages.popitem(last=False)
         return content
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MapSessionUse:
+    """One session of a map: whether the current version was made with it, and what it
+    contributed (the version's ``statistics["sessions"]`` entry; None when it has none)."""
+
+    session_id: int
+    in_current_version: bool
+    contribution: dict[str, Any] | None
+
+
+def map_session_uses(info: MapInfo) -> list[MapSessionUse]:
+    """The sessions a map is made of, in order (the first is the map frame)."""
+    used = (info.current.session_ids or [info.session_id]) if info.current else []
+    contributions = {
+        int(item["session_id"]): item
+        for item in (info.current.statistics.get("sessions", []) if info.current else [])
+    }
+    return [
+        MapSessionUse(
+            session_id=session_id,
+            in_current_version=session_id in used,
+            contribution=contributions.get(session_id),
+        )
+        for session_id in info.session_ids
+    ]
 
 
 def image_url(info: MapInfo) -> str | None:

@@ -9,9 +9,9 @@ import json
 
 from sqlalchemy.orm import Session
 
-from app.domain.instructions import DEFAULT_STYLE, GuidanceStyle, plan_guided_route
-from app.domain.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
-from app.domain.routing import (
+from app.domain.navigation.instructions import DEFAULT_STYLE, GuidanceStyle, plan_guided_route
+from app.domain.navigation.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
+from app.domain.navigation.routing import (
     AmbiguousEndpoint,
     Endpoint,
     Route,
@@ -69,9 +69,9 @@ def planned_route(
     heading_rad: float | None = None,
     style: GuidanceStyle = DEFAULT_STYLE,
 ) -> Route:
-    """:func:`app.domain.instructions.plan_guided_route` (instructions at decision points, the
-    first facing ``heading_rad`` when given), its refusals as API errors: an unknown end 404, an
-    unreachable goal 409, an ambiguous name or another bad request 422."""
+    """:func:`app.domain.navigation.instructions.plan_guided_route` (instructions at decision
+    points, the first facing ``heading_rad`` when given), its refusals as API errors: an unknown end
+    404, an unreachable goal 409, an ambiguous name or another bad request 422."""
     try:
         return plan_guided_route(
             graph, start, goal, avoid=avoid, heading_rad=heading_rad, style=style

@@ -11,9 +11,9 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.ground_truth import parse_ground_truth_json
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import SearchSpace, best_trial, check_objective
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.tuning import SearchSpace, best_trial, check_objective
 from app.services.errors import Conflict, InvalidInput
 from app.services.maps import checked_overrides, enqueue_rebuild
 from app.storage import sweeps

@@ -21,8 +21,8 @@ from collections.abc import Iterable
 from sqlalchemy.orm import Session
 
 from app.domain.errors import SessionFormatError
-from app.domain.session import Session as ParsedSession
-from app.domain.session import parse_session_stream
+from app.domain.upload.session import Session as ParsedSession
+from app.domain.upload.session import parse_session_stream
 from app.storage import sessions
 from app.storage.sessions import MAX_MAP_NAME_LENGTH
 

@@ -1,6 +1,7 @@
-"""A version's derived documents made from what is stored (``app.domain.derived_documents``):
-for versions that arrive without them, such as those restored from a backup (the archive does not
-carry them), so that the API serves them as stored instead of building them per process.
+"""A version's derived documents made from what is stored
+(``app.domain.formats.derived_documents``): for versions that arrive without them, such as those
+restored from a backup (the archive does not carry them), so that the API serves them as stored
+instead of building them per process.
 
     add_derived_documents(db_session, version_id)   # in the caller's transaction (an import)
 
@@ -15,10 +16,10 @@ import json
 
 from sqlalchemy.orm import Session
 
-from app.domain.derived_documents import APP_MAP_EXPORT, packed_documents
-from app.domain.map_io import map_from_json
-from app.domain.path_graph import path_graph_from_json
-from app.domain.session import Session as ParsedSession
+from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_documents
+from app.domain.formats.map_io import map_from_json
+from app.domain.navigation.path_graph import path_graph_from_json
+from app.domain.upload.session import Session as ParsedSession
 from app.storage import blobs, maps, sessions
 from app.storage.orm import MapRow, MapVersion
 

@@ -2,13 +2,13 @@
 
 A map belongs to one session. Each successful build job adds a *version* (numbered 1, 2, … per
 map); the newest version is the map's current one. A version keeps our lossless map document
-(``app.domain.map_io.map_to_json``, gzip-compressed), the plot, the parameters, statistics and
-metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable. The bulk data
+(``app.domain.formats.map_io.map_to_json``, gzip-compressed), the plot, the parameters, statistics
+and metrics as JSON, and one ``map_tag`` row per tag so that tag poses are queryable. The bulk data
 (document, plot, path graph) is in content-addressed blobs (``app.storage.blobs``) that a worker
-writes before the small transaction that stores the version (:func:`write_version_bulk`);
-versions stored before the blobs hold it in their row. The worker also stores what is derived
-from a version once (``app.domain.derived_documents``: the app's map file and the dashboard's
-overview) as blobs the version refers to (:class:`DerivedDocuments`); older versions have none.
+writes before the small transaction that stores the version (:func:`write_version_bulk`); versions
+stored before the blobs hold it in their row. The worker also stores what is derived from a version
+once (``app.domain.formats.derived_documents``: the app's map file and the dashboard's overview) as
+blobs the version refers to (:class:`DerivedDocuments`); older versions have none.
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ from typing import Any
 from sqlalchemy import Row, delete, func, select, true
 from sqlalchemy.orm import Session, defer
 
-from app.domain.evaluation import Evaluation
+from app.domain.evaluation.metrics import SHIFT_METRIC_VERSION
+from app.domain.evaluation.table import Evaluation
+from app.domain.formats.map_io import map_to_json
 from app.domain.frames import pose_to_xyz_quat_xyzw
-from app.domain.map_io import map_to_json
-from app.domain.map_result import MapResult
-from app.domain.metrics import SHIFT_METRIC_VERSION
-from app.domain.session import display_name_of
+from app.domain.mapping.map_result import MapResult
+from app.domain.upload.session import display_name_of
 from app.storage import blobs
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
@@ -103,8 +103,8 @@ class MapInfo:
     """A map with its current version (None until the first build succeeds).
 
     name: the upload's ``map_id``; display_name: the name people see (set by an admin, else the
-    name typed in the app: ``app.domain.session.display_name_of(name)``); image_sha256: of the
-    session's picture, None without one.
+    name typed in the app: ``app.domain.upload.session.display_name_of(name)``); image_sha256: of
+    the session's picture, None without one.
     """
 
     id: int
@@ -359,7 +359,7 @@ def store_version(
     """Add the next version of ``map_id`` in the caller's transaction. Its bulk data is
     ``bulk``, written beforehand by :func:`write_version_bulk` (the worker: this transaction
     then writes only small rows), or else ``plot_png`` and ``path_graph``
-    (``app.domain.path_graph.path_graph_to_json`` of it), written here as blobs in this
+    (``app.domain.navigation.path_graph.path_graph_to_json`` of it), written here as blobs in this
     transaction. ``session_ids``: the sessions it was made from, in order; ``sessions``: what
     each contributed (``statistics["sessions"]``). Two builds of one map storing at once take
     their numbers in turn (the map row's lock, held to the commit; PostgreSQL's
@@ -593,7 +593,7 @@ def get_version(db_session: Session, map_id: int, number: int | None = None) -> 
 
 
 def map_document(db_session: Session, map_id: int, number: int | None = None) -> dict[str, Any]:
-    """The version's map document (``app.domain.map_io`` format)."""
+    """The version's map document (``app.domain.formats.map_io`` format)."""
     row = _version_row(db_session, map_id, number)
     packed = version_bytes(db_session, row.map_json_gzip, row.map_json_sha256)
     if packed is None:  # the column was NOT NULL before the blobs; nothing stores none

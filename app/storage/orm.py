@@ -317,7 +317,8 @@ class MapVersion(Base):
     map_json_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
     plot_png: Mapped[bytes | None] = mapped_column(LargeBinary)
     content_sha256: Mapped[str] = mapped_column(String(64))
-    #: ``app.domain.path_graph.path_graph_to_json``, gzip; null for versions built before it
+    #: ``app.domain.navigation.path_graph.path_graph_to_json``, gzip; null for versions built before
+    #: it
     path_graph_gzip: Mapped[bytes | None] = mapped_column(LargeBinary)
     #: the blobs (``blob.sha256``) holding the map document (gzip), the plot and the path graph
     #: (gzip) of versions stored since the ``blob`` table: written before the small transaction
@@ -327,7 +328,7 @@ class MapVersion(Base):
     path_graph_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     #: what the worker derived from the version when it stored it (issue 19, finding 3): the
     #: app's map file (gzip), made by export ``app_map_export``
-    #: (``app.domain.derived_documents.APP_MAP_EXPORT``), and the dashboard's overview (gzip
+    #: (``app.domain.formats.derived_documents.APP_MAP_EXPORT``), and the dashboard's overview (gzip
     #: JSON); null for versions stored before (an import makes them): the API builds them
     app_map_sha256: Mapped[str | None] = mapped_column(ForeignKey("blob.sha256"), index=True)
     app_map_export: Mapped[int | None]
@@ -424,7 +425,7 @@ class Localization(Base):
 
 
 class Sweep(Base):
-    """A hyperparameter sweep of one map's session (``app.domain.tuning``).
+    """A hyperparameter sweep of one map's session (``app.domain.evaluation.tuning``).
 
     Its trials run as ``sweep_trials`` jobs; ``trials_started`` counts the trials handed to jobs
     so far (all of a grid's at once; a sampler's a batch at a time). ``ground_truth`` is the
@@ -451,7 +452,8 @@ class Sweep(Base):
     baseline: Mapped[dict[str, Any] | None] = mapped_column(JSONValue)
     state: Mapped[str] = mapped_column(String(16), default="running")
     #: which definition of the shift metric its trials were scored with
-    #: (``app.domain.metrics.SHIFT_METRIC_VERSION``); sweeps stored before the column are 1
+    #: (``app.domain.evaluation.metrics.SHIFT_METRIC_VERSION``); sweeps stored before the column are
+    #: 1
     shift_metric_version: Mapped[int] = mapped_column(server_default=text("1"))
     #: the sessions of its map when it started, in order, when there were several (the trials
     #: are joint maps of them; ``apply`` rebuilds from them); null for a map of one session

@@ -33,9 +33,9 @@ from sqlalchemy import ColumnElement, LargeBinary, and_, func, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app.domain.json_stream import gunzipped
-from app.domain.session import Session as ParsedSession
-from app.domain.session import parse_session_stream
+from app.domain.upload.json_stream import gunzipped
+from app.domain.upload.session import Session as ParsedSession
+from app.domain.upload.session import parse_session_stream
 from app.storage import maps, queue
 from app.storage.orm import Job, MapRow, MapSession, SessionRow, SessionUpload, utc_now
 from app.storage.rows import info_from_row
@@ -358,7 +358,7 @@ def nth_latest_upload_at(
 ) -> datetime | None:
     """When ``uploaded_by``'s ``n``-th latest session stored after ``since`` was stored (the
     latest is the 1st), or None if it stored fewer than ``n`` since then: the upload rate limit
-    (``app.api.deps.UploadRate``), counted from the table so that it holds across API
+    (``app.web.deps.UploadRate``), counted from the table so that it holds across API
     processes (index ``ix_session_uploaded_by_created_at``)."""
     return db_session.scalar(
         select(SessionRow.created_at)

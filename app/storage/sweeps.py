@@ -22,10 +22,10 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from app.domain.ground_truth import parse_ground_truth_json
-from app.domain.metrics import SHIFT_METRIC_VERSION
-from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
-from app.domain.tuning import SearchSpace, SweepSummary, Trial, summarize
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
+from app.domain.evaluation.metrics import SHIFT_METRIC_VERSION
+from app.domain.evaluation.sweep_plan import GRID_CHUNK, SweepPlan
+from app.domain.evaluation.tuning import SearchSpace, SweepSummary, Trial, summarize
 from app.storage import maps, queue
 from app.storage.orm import Job, JobState, Sweep, SweepTrial, utc_now
 

@@ -16,8 +16,8 @@ from cli_support import assert_one_line_error
 
 from app import cli
 from app.config import Settings
-from app.domain.params import SlamParams
-from app.domain.session import load_session
+from app.domain.mapping.params import SlamParams
+from app.domain.upload.session import load_session
 from workers import allocator
 from workers.allocator import AllocatorError, jemalloc_path, preloading_jemalloc
 from workers.main import start_worker_processes, stop_worker_processes

@@ -18,7 +18,7 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import cli
-from app.domain.session import decode_json_bytes, parse_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import backup, keys, maps, sessions
 from app.storage.db import Database
 from app.storage.migrate import head_revision

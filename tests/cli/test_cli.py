@@ -22,8 +22,8 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import cli
-from app.domain.app_model import check_app_map
-from app.domain.params import SlamParams
+from app.domain.formats.app_model import check_app_map
+from app.domain.mapping.params import SlamParams
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = REPO_ROOT / "data"

@@ -17,12 +17,12 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import cli
-from app.domain.evaluation import evaluate_map
-from app.domain.ground_truth import load_ground_truth
-from app.domain.params import SlamParams
-from app.domain.session import load_session, parse_session
-from app.domain.slam import optimize_session
-from app.domain.tuning import PAPER_GRID_AXES, TuningTarget
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.table import evaluate_map
+from app.domain.evaluation.tuning import PAPER_GRID_AXES, TuningTarget
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session, parse_session
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SESSIONS_DIR = REPO_ROOT / "data" / "sessions"

@@ -6,7 +6,7 @@ route's answer on yet another. When a request kept its database connection from 
 dependencies until its answer was validated, 150 requests at once left every thread waiting for
 a connection while every connection was held by a request waiting for a thread: the API stood
 still for 30 s, then answered 503s. Now a request holds a connection only while one of its
-threads runs (``app.api.route_class``), so this holds with anyio's default of 40 threads too,
+threads runs (``app.web.route_class``), so this holds with anyio's default of 40 threads too,
 which is what the server runs with here.
 
 The load takes longer than clients keep an idle connection (httpx: 5 s), so they reuse

@@ -13,9 +13,9 @@ from app.cli.server_process import ServerProcess, WorkerProcess
 from app.client import ApiError, Client
 from app.domain.frames import rotation_from_quat_xyzw
 from app.domain.localize import session_update_documents
-from app.domain.params import SlamParams
-from app.domain.session import load_session
-from app.domain.slam import optimize_session
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session
 
 pytestmark = [pytest.mark.db, pytest.mark.slow]
 

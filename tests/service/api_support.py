@@ -19,11 +19,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from app.config import Settings
-from app.domain.evaluation import evaluate_map
-from app.domain.params import SlamParams
-from app.domain.path_graph import build_path_graph, path_graph_to_json
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.slam import optimize_session
+from app.domain.evaluation.table import evaluate_map
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.path_graph import build_path_graph, path_graph_to_json
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.main import create_app
 from app.storage import keys, maps, queue, sessions
 from app.storage.db import Database

@@ -14,8 +14,8 @@ from typing import Any, TypeVar
 
 from sqlalchemy import func, select, update
 
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.simulate import SimulationConfig, simulate_session
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import maps, queue
 from app.storage.db import Database
 from app.storage.orm import Job, MapVersion, SessionRow, SessionUpload

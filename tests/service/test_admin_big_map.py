@@ -13,7 +13,7 @@ import pytest
 from admin_support import logged_in
 from api_support import Api, run_next_job, running_api
 
-from app.domain.map_figure import MAX_TRAJECTORY_POINTS, trajectory_rows
+from app.domain.formats.map_figure import MAX_TRAJECTORY_POINTS, trajectory_rows
 from app.storage import sessions
 from tests.service.helpers import simulated_bytes
 

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from app.config import Settings
-from app.domain.tuning import TUNABLE_PARAMS
+from app.domain.evaluation.tuning import TUNABLE_PARAMS
 from app.storage.orm import Job, Sweep
 from workers.main import Worker
 

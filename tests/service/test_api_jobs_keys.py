@@ -267,7 +267,7 @@ def test_every_v1_endpoint_needs_a_valid_key(api: Api) -> None:
             assert response.json()["code"] == "unauthorized"
 
 
-#: Every endpoint a device key may not use (the matrix in app/api/deps.py).
+#: Every endpoint a device key may not use (the matrix in app/web/deps.py).
 ADMIN_ONLY = [
     ("GET", "/v1/jobs"),
     ("POST", "/v1/jobs/1/cancel"),

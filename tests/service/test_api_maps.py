@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from api_support import ADMIN, OCCAM, ONETAG, Api, run_next_job, running_api, session_variant
 
+from app.domain.formats.map_io import map_to_app_format
 from app.domain.frames import pose_to_xyz_quat_xyzw
-from app.domain.map_io import map_to_app_format
-from app.domain.params import SlamParams
-from app.domain.session import load_session
-from app.domain.slam import optimize_session
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session
 from app.storage.orm import Job, MapRow, MapVersion, SessionRow
 
 pytestmark = pytest.mark.db

@@ -14,7 +14,7 @@ import pytest
 
 from app.config import Settings
 from app.domain.localize import session_update_documents
-from app.domain.session import load_session
+from app.domain.upload.session import load_session
 from tests.service.api_support import ADMIN, SESSIONS_DIR, Api, running_api
 from workers.main import Worker
 

@@ -22,7 +22,7 @@ from app.api.routes import localization as localization_route
 from app.config import Settings
 from app.domain.frames import pose_from_xyz_quat_xyzw
 from app.domain.localize import LocalizerState, parse_update, session_update_documents, update
-from app.domain.session import load_session
+from app.domain.upload.session import load_session
 from app.main import create_app
 from app.storage import maps, navigation
 from app.storage.navigation import LocalizationConflict

@@ -14,7 +14,7 @@ from api_support import ADMIN, JSON, OCCAM, ONETAG, Api, bearer, running_api, se
 from sqlalchemy.orm import Session
 
 from app.api.routes.sessions import UPLOAD_EXAMPLE
-from app.domain.session import load_session
+from app.domain.upload.session import load_session
 from app.storage import sessions
 from app.storage.orm import Job, MapRow, SessionRow, SessionUpload
 

@@ -13,7 +13,7 @@ from api_support import ADMIN, OCCAM, ONETAG, Api, run_next_job, running_api
 from sqlalchemy import func, select
 
 from app.config import Settings
-from app.domain.ground_truth import load_ground_truth, parse_ground_truth_json
+from app.domain.evaluation.ground_truth import load_ground_truth, parse_ground_truth_json
 from app.storage import queue
 from app.storage.orm import Job, SweepTrial
 from app.storage.sweeps import SWEEP_TRIALS

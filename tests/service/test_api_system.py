@@ -13,11 +13,11 @@ import pytest
 from api_support import ADMIN, ONETAG, Api, running_api
 from fastapi.testclient import TestClient
 
-from app.api.deps import read_db_session
 from app.config import Settings
 from app.main import create_app
 from app.storage import queue
 from app.storage.migrate import head_revision
+from app.web.deps import read_db_session
 
 pytestmark = pytest.mark.db
 

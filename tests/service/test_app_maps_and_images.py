@@ -17,7 +17,7 @@ from api_support import ADMIN, ONETAG, Api, running_api
 
 from app.cli import program
 from app.config import Settings
-from app.domain.app_model import check_app_map
+from app.domain.formats.app_model import check_app_map
 from app.storage.images import MAX_IMAGE_BYTES
 from app.storage.orm import SessionImage
 from workers.main import Worker

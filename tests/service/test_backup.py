@@ -23,10 +23,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from app.domain.derived_documents import APP_MAP_EXPORT
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import Axis, SearchSpace, Trial
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.tuning import Axis, SearchSpace, Trial
+from app.domain.formats.derived_documents import APP_MAP_EXPORT
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import backup, images, keys, maps, queue, sessions, sweeps
 from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefused
 from app.storage.db import Database

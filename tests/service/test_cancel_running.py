@@ -13,11 +13,11 @@ import pytest
 from api_support import ADMIN, running_api
 
 from app.config import Settings
-from app.domain import slam
-from app.domain.params import SlamParams
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.slam import optimize_session
-from app.domain.tuning import TuningTarget
+from app.domain.evaluation.tuning import TuningTarget
+from app.domain.mapping import slam
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import queue
 from app.storage.db import Database
 from app.storage.orm import JobState

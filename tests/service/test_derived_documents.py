@@ -16,9 +16,9 @@ import pytest
 from admin_support import logged_in
 from api_support import ADMIN, OCCAM, Api, run_next_job, running_api
 
-from app.domain.derived_documents import APP_MAP_EXPORT, overview_document
-from app.domain.map_io import map_from_json
-from app.domain.path_graph import path_graph_from_json
+from app.domain.formats.derived_documents import APP_MAP_EXPORT, overview_document
+from app.domain.formats.map_io import map_from_json
+from app.domain.navigation.path_graph import path_graph_from_json
 from app.services import maps as map_services
 from app.services.uploads import stored_session
 from app.storage import backup, blobs, maps, queue

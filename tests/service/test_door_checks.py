@@ -18,11 +18,11 @@ from api_support import ADMIN, JSON, ONETAG, Api, onetag, running_api
 
 from app.api import access_log
 from app.api.routes import sessions as sessions_route
-from app.api.security import API_CSP, COMMON_HEADERS
-from app.domain.json_stream import JsonStream
+from app.domain.upload.json_stream import JsonStream
 from app.storage import keys
 from app.storage.db import Database
 from app.storage.orm import MapRow, SessionRow
+from app.web.security import API_CSP, COMMON_HEADERS
 
 pytestmark = pytest.mark.db
 

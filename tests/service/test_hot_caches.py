@@ -17,7 +17,6 @@ import pytest
 from api_support import ADMIN, OCCAM, ONETAG, Api, bearer, run_next_job, running_api
 from sqlalchemy import text
 
-from app.api.http import ReadyDocument
 from app.services.keys import PrincipalCache
 from app.services.maps import MapPages, MapStates
 from app.services.version_cache import VersionCache
@@ -25,6 +24,7 @@ from app.storage import queue
 from app.storage.db import Database
 from app.storage.orm import Role
 from app.storage.sessions import BUILD_MAP
+from app.web.http import ReadyDocument
 
 KEY_BOUND_S = 5.0
 MAP_BOUND_S = 2.0

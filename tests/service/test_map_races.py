@@ -12,10 +12,10 @@ from typing import Any
 
 import pytest
 
-from app.domain.evaluation import evaluate_map
-from app.domain.params import SlamParams
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.slam import optimize_session
+from app.domain.evaluation.table import evaluate_map
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.services.errors import status_and_code
 from app.services.maps import delete_map_and_jobs, enqueue_rebuild
 from app.storage import maps

@@ -11,8 +11,8 @@ import pytest
 from admin_support import logged_in
 from api_support import ADMIN, OCCAM, ONETAG, Api, running_api
 
-from app.api import http
 from app.storage import sessions
+from app.web import http
 
 pytestmark = pytest.mark.db
 

@@ -1,4 +1,4 @@
-"""Inflating an upload a bounded chunk at a time (app/api/upload.py): the JSON is never held
+"""Inflating an upload a bounded chunk at a time (app/web/upload.py): the JSON is never held
 whole, the gzip as sent is what is stored, and every fault is the same 400/413 as before."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import zlib
 
 import pytest
 
-from app.api.errors import ApiError
-from app.api.upload import CHUNK_BYTES, InflatedChunks, RawBody, decode_body
+from app.web.errors import ApiError
+from app.web.upload import CHUNK_BYTES, InflatedChunks, RawBody, decode_body
 
 JSON = b'{"map_id": "x", "pose_data": [' + b'{"id": 1, "pose": [0.5]},' * 200_000 + b"{}]}"
 

@@ -21,9 +21,9 @@ from sqlalchemy import select, update
 
 from app.config import Settings
 from app.domain.frames import pose_to_xyz_quat_xyzw
-from app.domain.params import SlamParams
-from app.domain.session import decode_json_bytes, parse_session
-from app.domain.slam import optimize_session
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import maps, queue, sessions
 from app.storage.db import Database
 from app.storage.orm import Job, JobState, MapVersion, WorkerRow, utc_now
@@ -522,8 +522,8 @@ def test_a_walk_that_falls_apart_is_said_on_the_version(
     """The app-map keeps the largest part of a walk that falls apart; the version says so."""
     import networkx as nx
 
-    from app.domain.path_graph import PathGraph
-    from app.domain.skeleton import build_skeleton
+    from app.domain.navigation.path_graph import PathGraph
+    from app.domain.navigation.skeleton import build_skeleton
 
     def cut_in_two(result):  # the real graph with the edges across x = its median removed
         graph = build_skeleton(result)

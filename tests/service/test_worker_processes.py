@@ -272,8 +272,8 @@ def test_kill_9_mid_sweep_every_trial_is_stored_exactly_once(
 ) -> None:
     """A sweep's job whose worker is killed is run again by another worker, and the sweep ends
     with each of its trials stored once (the trials of the dead attempt were never stored)."""
-    from app.domain.sweep_plan import GRID_CHUNK, SweepPlan
-    from app.domain.tuning import Axis, SearchSpace
+    from app.domain.evaluation.sweep_plan import GRID_CHUNK, SweepPlan
+    from app.domain.evaluation.tuning import Axis, SearchSpace
     from app.storage import sweeps
     from app.storage.orm import SweepTrial
 

@@ -1,7 +1,8 @@
 """Conformance: the app-map of every session in data/ and of simulated buildings, read by the model
-of the iPhone app (app.domain.app_model): it decodes, and no (start vertex, tag or waypoint) pair
-traps. Also graphs the builder does not make today (a walk that falls apart, a corridor skeleton
-whose nodes are no poses, no edge at all), so the exporter holds on whatever PathGraph is current.
+of the iPhone app (app.domain.formats.app_model): it decodes, and no (start vertex, tag or waypoint)
+pair traps. Also graphs the builder does not make today (a walk that falls apart, a corridor
+skeleton whose nodes are no poses, no edge at all), so the exporter holds on whatever PathGraph is
+current.
 """
 
 from __future__ import annotations
@@ -15,14 +16,19 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from app.domain.app_model import build_app_graph, check_app_map, decode_app_map, plan_app_route
-from app.domain.map_io import map_to_app_format
-from app.domain.map_result import MapResult
-from app.domain.path_graph import PathGraph, build_path_graph, unique_waypoint_names
-from app.domain.session import parse_session, read_json_document
-from app.domain.simulate import SimulationConfig, simulate_session
-from app.domain.skeleton import build_skeleton
-from app.domain.slam import optimize_session
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
+from app.domain.formats.app_model import (
+    build_app_graph,
+    check_app_map,
+    decode_app_map,
+    plan_app_route,
+)
+from app.domain.formats.map_io import map_to_app_format
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.path_graph import PathGraph, build_path_graph, unique_waypoint_names
+from app.domain.navigation.skeleton import build_skeleton
+from app.domain.upload.session import parse_session, read_json_document
 
 DATA = Path(__file__).parents[2] / "data"
 #: Every session in data/ (the demo's floor_2 with points of interest included).

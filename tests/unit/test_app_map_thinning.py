@@ -9,13 +9,13 @@ from itertools import pairwise
 
 import pytest
 
-from app.domain.map_io import map_to_app_format
-from app.domain.map_result import MapResult
-from app.domain.path_graph import PathGraph, build_path_graph
-from app.domain.path_graph.app_format import MAX_APP_POSES, thinned_rows
-from app.domain.session import parse_session
-from app.domain.simulate import SimulationConfig, simulate_session
-from app.domain.slam import optimize_session
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
+from app.domain.formats.map_io import map_to_app_format
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.path_graph import PathGraph, build_path_graph
+from app.domain.navigation.path_graph.app_format import MAX_APP_POSES, thinned_rows
+from app.domain.upload.session import parse_session
 from tests.unit.test_app_conformance import assert_app_survives
 
 

@@ -1,5 +1,5 @@
-"""The model of the app's decoder and route planner (app.domain.app_model) on hand-made maps:
-each of its rules is shown to fire, so a clean report on our maps means something."""
+"""The model of the app's decoder and route planner (app.domain.formats.app_model) on hand-made
+maps: each of its rules is shown to fire, so a clean report on our maps means something."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import copy
 
 import pytest
 
-from app.domain.app_model import (
+from app.domain.formats.app_model import (
     AppTrap,
     build_app_graph,
     check_app_map,

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.domain.path_graph import geometry
-from app.domain.path_graph.geometry import SMALL_POLYLINE_POINTS, douglas_peucker
+from app.domain.navigation.path_graph import geometry
+from app.domain.navigation.path_graph.geometry import SMALL_POLYLINE_POINTS, douglas_peucker
 
 
 def numpy_douglas_peucker(

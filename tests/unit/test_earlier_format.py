@@ -1,6 +1,6 @@
-"""The app's earlier upload format (app.domain.earlier_format): the three archive sessions are
-read, a current session written in the earlier format reads back to the same arrays, and sessions
-whose frames cannot be pinned down are refused naming the format."""
+"""The app's earlier upload format (app.domain.upload.earlier_format): the three archive sessions
+are read, a current session written in the earlier format reads back to the same arrays, and
+sessions whose frames cannot be pinned down are refused naming the format."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.domain.earlier_format import EARLIER_FORMAT, is_earlier_format
 from app.domain.errors import SessionFormatError
-from app.domain.session import load_session, parse_session, read_json_document
-from app.domain.slam import optimize_session
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.earlier_format import EARLIER_FORMAT, is_earlier_format
+from app.domain.upload.session import load_session, parse_session, read_json_document
 
 ARCHIVE = Path(__file__).parents[2] / "data" / "archive"
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"

@@ -1,5 +1,5 @@
-"""Reading a lab's Firebase export (app.domain.firebase_export) on an export tree built here from
-the sessions in data/, laid out as the app wrote it."""
+"""Reading a lab's Firebase export (app.domain.formats.firebase_export) on an export tree built here
+from the sessions in data/, laid out as the app wrote it."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from app.domain.firebase_export import FirebaseExportError, read_firebase_export
+from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 16 + b"\xff\xd9"

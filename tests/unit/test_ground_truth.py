@@ -13,8 +13,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from app.domain.errors import GroundTruthFormatError
-from app.domain.frames import make_pose, rotation_angle_rad, rotation_from_quat_xyzw
-from app.domain.ground_truth import (
+from app.domain.evaluation.ground_truth import (
     YUP_R_RTABMAP,
     ground_truth_to_json,
     load_ground_truth,
@@ -22,6 +21,7 @@ from app.domain.ground_truth import (
     parse_ground_truth_text,
     parse_rtabmap_export,
 )
+from app.domain.frames import make_pose, rotation_angle_rad, rotation_from_quat_xyzw
 
 GROUND_TRUTH_DIR = Path(__file__).parents[2] / "data" / "ground_truth"
 

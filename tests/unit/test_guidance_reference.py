@@ -10,9 +10,9 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from app.domain import instructions
-from app.domain.floors import assign_floors
-from app.domain.instructions import (
+from app.domain.navigation import instructions
+from app.domain.navigation.floors import assign_floors
+from app.domain.navigation.instructions import (
     BEAR_MIN_DEG,
     CHORD_M,
     JUNCTION_SNAP_M,
@@ -22,8 +22,8 @@ from app.domain.instructions import (
     guidance_steps,
     plan_guided_route,
 )
-from app.domain.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, PathGraph
-from app.domain.routing import TagEnd, node_lookups, plan_walk
+from app.domain.navigation.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, PathGraph
+from app.domain.navigation.routing import TagEnd, node_lookups, plan_walk
 from tests.unit.test_route_answers import recorded_graph
 
 # --------------------------------------------------------------------------- decision points

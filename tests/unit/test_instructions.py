@@ -1,5 +1,5 @@
-"""Instructions at decision points (app.domain.instructions): facing, announcements, spacing,
-junction bears, the arrival's side, stairs, styles."""
+"""Instructions at decision points (app.domain.navigation.instructions): facing, announcements,
+spacing, junction bears, the arrival's side, stairs, styles."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from app.domain.instructions import (
+from app.domain.navigation.instructions import (
     ANNOUNCE_BEFORE_M,
     MIN_SPACING_M,
     GuidanceStyle,
@@ -19,9 +19,9 @@ from app.domain.instructions import (
     heading_direction,
     plan_guided_route,
 )
-from app.domain.path_graph import JUNCTION
-from app.domain.routing import PoiEnd, TagEnd
-from app.domain.skeleton import build_skeleton_from_arrays
+from app.domain.navigation.path_graph import JUNCTION
+from app.domain.navigation.routing import PoiEnd, TagEnd
+from app.domain.navigation.skeleton import build_skeleton_from_arrays
 from tests.unit.walks import walk
 
 

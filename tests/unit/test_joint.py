@@ -1,4 +1,5 @@
-"""Maps of several sessions (app/domain/joint.py): alignment, the joint graph, its evaluation."""
+"""Maps of several sessions (app/domain/mapping/joint.py): alignment, the joint graph, its
+evaluation."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ import numpy as np
 import pytest
 
 from app.domain.errors import InvisibleMapError
-from app.domain.evaluation import evaluate_joint
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.metrics import joint_shift_metric, shift_metric, tag_rmse_m
+from app.domain.evaluation.simulate import SimulationConfig
+from app.domain.evaluation.simulate_building import SimulatedBuilding, simulate_building_sessions
+from app.domain.evaluation.table import evaluate_joint
 from app.domain.frames import FloatArray, make_pose, rotation_about_y
-from app.domain.ground_truth import load_ground_truth
-from app.domain.joint import (
+from app.domain.mapping.joint import (
     AlignmentError,
     align_session,
     optimize_sessions,
@@ -22,12 +26,9 @@ from app.domain.joint import (
     tag_depth_scale,
     yaw_of,
 )
-from app.domain.metrics import shift_metric, tag_rmse_m
-from app.domain.params import SlamParams
-from app.domain.session import Session, load_session, parse_session
-from app.domain.simulate import SimulationConfig
-from app.domain.simulate_building import SimulatedBuilding, simulate_building_sessions
-from app.domain.slam import optimize_session
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import Session, load_session, parse_session
 
 DATA_DIR = Path(__file__).parents[2] / "data"
 
@@ -202,12 +203,12 @@ def test_joint_shift_metric_uses_each_session_in_its_own_frame():
     moved = dataclasses.replace(sessions[1], world_T_phone=MAP_T_WORLD @ sessions[1].world_T_phone)
     again = optimize_sessions([sessions[0], moved], names=["a", "b"])
     # the same map up to LM's tolerance, and the same metric
-    assert again.shift_metric() == pytest.approx(joint.shift_metric(), rel=1e-4)
+    assert joint_shift_metric(again) == pytest.approx(joint_shift_metric(joint), rel=1e-4)
     per_session = [
         shift_metric(s, joint.map.tag_poses(), detection_mask=m)
         for s, m in zip(sessions, joint.session_masks(), strict=True)
     ]
-    assert min(per_session) <= joint.shift_metric() <= max(per_session)
+    assert min(per_session) <= joint_shift_metric(joint) <= max(per_session)
 
 
 def test_evaluate_joint_reports_each_session_and_the_whole():
@@ -231,7 +232,7 @@ def test_evaluate_joint_reports_each_session_and_the_whole():
             "tag_rmse_joint_m",
         }
         assert row["tag_rmse_joint_m"] < row["tag_rmse_alone_m"]
-    assert out["shift_opt"] == pytest.approx(joint.shift_metric())
+    assert out["shift_opt"] == pytest.approx(joint_shift_metric(joint))
 
 
 def test_simulated_joint_error_falls_as_walks_are_added():

@@ -1,4 +1,4 @@
-"""The path graph of a map of several sessions (app/domain/joint_path_graph.py)."""
+"""The path graph of a map of several sessions (app/domain/navigation/joint_path_graph.py)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ from functools import cache
 import networkx as nx
 import numpy as np
 
-from app.domain.joint import JointMap, optimize_sessions
-from app.domain.joint_path_graph import build_joint_path_graph
-from app.domain.map_io import map_to_app_format
-from app.domain.path_graph import JUNCTION, NODE, build_path_graph
-from app.domain.session import parse_session
-from app.domain.simulate import SimulationConfig
-from app.domain.simulate_building import simulate_building_sessions
+from app.domain.evaluation.simulate import SimulationConfig
+from app.domain.evaluation.simulate_building import simulate_building_sessions
+from app.domain.formats.map_io import map_to_app_format
+from app.domain.mapping.joint import JointMap, optimize_sessions
+from app.domain.navigation.joint_path_graph import build_joint_path_graph
+from app.domain.navigation.path_graph import JUNCTION, NODE, build_path_graph
+from app.domain.upload.session import parse_session
 
 
 @cache

@@ -1,5 +1,5 @@
-"""Keyframes (``app/domain/keyframes.py``): which poses the graph holds, how the others are placed,
-and that a map with keyframes is the map with every pose on real sessions."""
+"""Keyframes (``app/domain/mapping/keyframes.py``): which poses the graph holds, how the others are
+placed, and that a map with keyframes is the map with every pose on real sessions."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.metrics import ground_truth_metric, tag_rmse_m, umeyama_rigid
 from app.domain.frames import make_pose, rotation_about_y, so3_exp, so3_log
-from app.domain.ground_truth import load_ground_truth
-from app.domain.keyframes import interpolate_poses, select_keyframes
-from app.domain.metrics import ground_truth_metric, tag_rmse_m, umeyama_rigid
-from app.domain.params import SlamParams
-from app.domain.session import load_session
-from app.domain.slam import optimize_session
+from app.domain.mapping.keyframes import interpolate_poses, select_keyframes
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session
 
 DATA = Path(__file__).parents[2] / "data"
 

@@ -1,10 +1,14 @@
 """The layers of docs/architecture.md §1, checked on the source: who may import whom, and no cycles.
 
-app/domain     pure: numpy, gtsam, networkx; imports nothing else of the project
+app/domain     pure: numpy, gtsam, networkx; imports nothing else of the project; inside it, the
+               paper's stages in order (upload, mapping, navigation, localize | evaluation,
+               formats), none importing a later one
 app/storage    the database: imports the domain only
 app/services   what the API and the dashboard both do: storage and the domain, no web framework
-app/api        routers: services, storage, domain (never the dashboard, the CLI or workers)
-app/admin      dashboard pages: services and the API's plumbing, never its routers
+app/web        the HTTP plumbing both use (dependencies, errors, headers, the route class):
+               services, storage, domain
+app/api        routers: web, services, storage, domain (never the dashboard, the CLI or workers)
+app/admin      dashboard pages: web, services, storage, domain (never the API)
 app/render     PNG plots: the domain only
 workers/       the job loop: storage, domain, render, config (never the API or dashboard)
 app/cli        the command: anything
@@ -25,16 +29,27 @@ FORBIDDEN = {"fastapi", "sqlalchemy", "pydantic", "starlette", "matplotlib", "ht
 
 #: layer → the project modules (by prefix) it must not import.
 FORBIDDEN_PROJECT_IMPORTS = {
-    "app.domain": ("app.storage", "app.services", "app.api", "app.admin", "app.render",
+    "app.domain": ("app.storage", "app.services", "app.web", "app.api", "app.admin", "app.render",
                    "app.cli", "app.config", "app.main", "app.client", "workers"),
-    "app.storage": ("app.services", "app.api", "app.admin", "app.render", "app.cli",
+    "app.storage": ("app.services", "app.web", "app.api", "app.admin", "app.render", "app.cli",
                     "app.main", "workers"),
-    "app.services": ("app.api", "app.admin", "app.cli", "app.main", "workers"),
+    "app.services": ("app.web", "app.api", "app.admin", "app.cli", "app.main", "workers"),
+    "app.web": ("app.api", "app.admin", "app.cli", "app.main", "workers"),
     "app.api": ("app.admin", "app.cli", "app.main", "workers"),
-    "app.admin": ("app.api.routes", "app.cli", "app.main", "workers"),
-    "app.render": ("app.storage", "app.services", "app.api", "app.admin", "app.cli", "workers"),
-    "workers": ("app.api", "app.admin", "app.services", "app.cli", "app.main"),
+    "app.admin": ("app.api", "app.cli", "app.main", "workers"),
+    "app.render": ("app.storage", "app.services", "app.web", "app.api", "app.admin", "app.cli",
+                   "workers"),
+    "workers": ("app.web", "app.api", "app.admin", "app.services", "app.cli", "app.main"),
 }  # fmt: skip
+#: the domain's stages (app/domain/__init__.py) → the stages they must not import: each may import
+#: only the shared modules (errors, frames, json_values) and the stages before it.
+DOMAIN_STAGES = ("upload", "mapping", "navigation", "localize", "evaluation", "formats")
+SIBLINGS = {"localize": {"evaluation"}, "evaluation": {"localize"}}
+FORBIDDEN_STAGE_IMPORTS = {
+    stage: set(DOMAIN_STAGES[i + 1 :]) | SIBLINGS.get(stage, set())
+    for i, stage in enumerate(DOMAIN_STAGES)
+}
+SHARED_DOMAIN_MODULES = {"errors", "frames", "json_values"}
 #: third-party packages a layer must not import.
 FORBIDDEN_PACKAGES = {
     "app.domain": FORBIDDEN,
@@ -108,13 +123,66 @@ def test_no_module_imports_itself_through_others():
     assert list(nx.simple_cycles(graph)) == []
 
 
+def stage_of(module: str) -> str | None:
+    """The domain stage a module belongs to (``app.domain.mapping.slam`` → ``mapping``), None for
+    the shared modules and anything outside the domain."""
+    parts = module.split(".")
+    if parts[:2] != ["app", "domain"] or len(parts) < 3 or parts[2] in SHARED_DOMAIN_MODULES:
+        return None
+    return parts[2]
+
+
+def test_the_domain_holds_only_its_stages_and_shared_modules():
+    top = {path.stem if path.is_file() else path.name for path in DOMAIN.iterdir()}
+    top -= {"__init__", "__pycache__"}
+    assert top == set(DOMAIN_STAGES) | SHARED_DOMAIN_MODULES
+    for stage in DOMAIN_STAGES:
+        init = DOMAIN / stage / "__init__.py"
+        assert ast.get_docstring(ast.parse(init.read_text())), f"{init} says what it is for"
+
+
+def test_each_domain_stage_imports_only_earlier_stages():
+    offences = []
+    for module, path in project_modules().items():
+        stage = stage_of(module)
+        if stage is None:
+            shared = (
+                module.startswith("app.domain.") and module.split(".")[2] in SHARED_DOMAIN_MODULES
+            )
+            if shared:  # the shared modules import no stage at all
+                offences += [f"{module} imports {i}" for i in imports(path) if stage_of(i)]
+            continue
+        for imported in set(imports(path)):
+            if stage_of(imported) in FORBIDDEN_STAGE_IMPORTS[stage]:
+                offences.append(f"{module} imports {imported}")
+    assert sorted(offences) == []
+
+
 @pytest.mark.parametrize(
     ("module", "imported", "allowed"),
     [
-        ("app.domain.slam", "app.storage.maps", False),
+        ("app.domain.mapping.slam", "app.domain.upload.session", True),
+        ("app.domain.upload.session", "app.domain.mapping.slam", False),
+        ("app.domain.mapping.joint", "app.domain.evaluation.metrics", False),
+        ("app.domain.localize.smoother", "app.domain.evaluation.simulate", False),
+        ("app.domain.evaluation.simulate", "app.domain.localize.state", False),
+        ("app.domain.formats.map_io", "app.domain.navigation.path_graph", True),
+        ("app.domain.navigation.routing", "app.domain.frames", True),
+    ],
+)
+def test_the_stage_rules_say_what_the_stages_mean(module: str, imported: str, allowed: bool):
+    stage = stage_of(module)
+    assert stage is not None
+    assert (stage_of(imported) not in FORBIDDEN_STAGE_IMPORTS[stage]) == allowed
+
+
+@pytest.mark.parametrize(
+    ("module", "imported", "allowed"),
+    [
+        ("app.domain.mapping.slam", "app.storage.maps", False),
         ("app.admin.pages.maps", "app.api.routes.maps", False),
         ("app.admin.pages.maps", "app.services.maps", True),
-        ("app.storage.maps", "app.api.deps", False),
+        ("app.storage.maps", "app.web.deps", False),
         ("workers.pipeline", "app.render.map_plot", True),
         ("app.cli.server", "workers.main", True),
     ],

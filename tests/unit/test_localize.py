@@ -16,6 +16,7 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from app.domain.errors import InvisibleMapError, ParameterError
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
 from app.domain.frames import make_pose, rotation_about_y, rotation_angle_rad, se3_inverse
 from app.domain.localize import (
     LocalizationUpdateError,
@@ -29,16 +30,15 @@ from app.domain.localize import (
     session_update_documents,
     update,
 )
-from app.domain.screening import project_tag_corners, screen_detections
-from app.domain.session import Session, load_session, parse_session
-from app.domain.simulate import SimulationConfig, simulate_session
-from app.domain.slam import (
+from app.domain.mapping.screening import project_tag_corners, screen_detections
+from app.domain.mapping.slam import (
     WORLD_UP,
     odometry_sigmas,
     optimize_session,
     tag_covariance_in_tag_frame,
     to_pose3,
 )
+from app.domain.upload.session import Session, load_session, parse_session
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 

@@ -15,6 +15,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
 from app.domain.localize import (
     LocalizationUpdateError,
     LocalizerState,
@@ -22,8 +23,7 @@ from app.domain.localize import (
     session_update_documents,
     update,
 )
-from app.domain.session import parse_session
-from app.domain.simulate import SimulationConfig, simulate_session
+from app.domain.upload.session import parse_session
 from tests.unit.test_session import json_values, node_paths, replaced
 
 # A short simulated walk: its tags are the map, and its updates of 10 poses are real documents.

@@ -18,8 +18,8 @@ from app.domain.localize import (
     parse_update,
     session_update_documents,
 )
-from app.domain.session import load_session
-from app.domain.upload_fields import rigid_pose
+from app.domain.upload.fields import rigid_pose
+from app.domain.upload.session import load_session
 
 WALK = Path(__file__).resolve().parents[2] / "data" / "sessions" / "desnat_straight_once.json"
 

@@ -12,15 +12,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from app.domain.frames import (
-    PHONE_T_CAMERA_CV,
-    FloatArray,
-    make_pose,
-    rotation_about_y,
-    rotation_from_quat_xyzw,
-)
-from app.domain.ground_truth import load_ground_truth
-from app.domain.metrics import (
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.metrics import (
     TagSetComparison,
     compare_tag_sets,
     ground_truth_metric,
@@ -28,7 +21,19 @@ from app.domain.metrics import (
     tag_rmse_m,
     umeyama_rigid,
 )
-from app.domain.session import Session, first_observation_tag_poses, load_session, parse_session
+from app.domain.frames import (
+    PHONE_T_CAMERA_CV,
+    FloatArray,
+    make_pose,
+    rotation_about_y,
+    rotation_from_quat_xyzw,
+)
+from app.domain.upload.session import (
+    Session,
+    first_observation_tag_poses,
+    load_session,
+    parse_session,
+)
 
 DATA_DIR = Path(__file__).parents[2] / "data"
 

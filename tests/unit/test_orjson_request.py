@@ -1,4 +1,4 @@
-"""``OrjsonRequest.json()`` (the API's bodies, ``app.api.route_class``) reads every body as the
+"""``OrjsonRequest.json()`` (the API's bodies, ``app.web.route_class``) reads every body as the
 standard library's parser, which FastAPI uses, does: the same values, down to each float's bits,
 and the same refusals; integers beyond 64 bits, the one documented difference, as floats."""
 
@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from app.api.route_class import OrjsonRequest
+from app.web.route_class import OrjsonRequest
 
 
 def read(body: bytes) -> Any:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.params import DEFAULT_TAG_SIZE_M, SlamParams
+from app.domain.mapping.params import DEFAULT_TAG_SIZE_M, SlamParams
 
 VARIANCES = (
     "tag_position_var_m2",

@@ -19,8 +19,10 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import MapFormatError, ParameterError
-from app.domain.map_io import map_to_app_format
-from app.domain.path_graph import (
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
+from app.domain.formats.map_io import map_to_app_format
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.path_graph import (
     ELEVATOR,
     JUNCTION,
     NODE,
@@ -34,10 +36,8 @@ from app.domain.path_graph import (
     path_graph_to_geojson,
     path_graph_to_json,
 )
-from app.domain.routing import NodeEnd, Unreachable, plan_route
-from app.domain.session import load_session
-from app.domain.simulate import SimulationConfig, simulate_session
-from app.domain.slam import optimize_session
+from app.domain.navigation.routing import NodeEnd, Unreachable, plan_route
+from app.domain.upload.session import load_session
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.domain.path_graph.geometry import (
+from app.domain.navigation.path_graph.geometry import (
     SMALL_POLYLINE_POINTS,
     douglas_peucker,
     douglas_peucker_end_legs,
 )
-from app.domain.polyline import distances_along_m, point_along, segment_lengths_m
+from app.domain.navigation.polyline import distances_along_m, point_along, segment_lengths_m
 
 
 def polylines() -> list[np.ndarray]:

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from app.domain.evaluation import evaluate_map
-from app.domain.ground_truth import load_ground_truth
-from app.domain.session import load_session
-from app.domain.slam import optimize_session
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.table import evaluate_map
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session
 
 DATA = Path(__file__).parents[2] / "data"
 CASES = [

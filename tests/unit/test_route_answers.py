@@ -25,9 +25,9 @@ from typing import Any
 
 import pytest
 
-from app.domain.instructions import GuidanceStyle, plan_guided_route
-from app.domain.path_graph import PathGraph, path_graph_from_json
-from app.domain.routing import (
+from app.domain.navigation.instructions import GuidanceStyle, plan_guided_route
+from app.domain.navigation.path_graph import PathGraph, path_graph_from_json
+from app.domain.navigation.routing import (
     Endpoint,
     NodeEnd,
     PoiEnd,
@@ -225,9 +225,9 @@ def test_a_changed_answer_is_noticed():
 
 def record() -> None:  # pragma: no cover (run by hand, see the module docstring)
     sys.path.insert(0, str(Path(__file__).parents[2]))
-    from app.domain.path_graph import path_graph_to_json
-    from app.domain.simulate import SimulationConfig, WalkerConfig, simulate_walk
-    from app.domain.skeleton import build_skeleton_from_arrays
+    from app.domain.evaluation.simulate import SimulationConfig, WalkerConfig, simulate_walk
+    from app.domain.navigation.path_graph import path_graph_to_json
+    from app.domain.navigation.skeleton import build_skeleton_from_arrays
     from bench.route_cost import DEMO_POIS, SESSIONS, worker_graph_of_session
 
     walk = simulate_walk(
@@ -261,7 +261,7 @@ def record() -> None:  # pragma: no cover (run by hand, see the module docstring
 def add_an_elevator(pg: PathGraph) -> None:  # pragma: no cover (run by hand)
     """An elevator between the floor-0 and floor-1 nodes nearest each other in x–z, farthest from
     the stairs (the simulated building has stairs only)."""
-    from app.domain.path_graph import ELEVATOR, STAIRS
+    from app.domain.navigation.path_graph import ELEVATOR, STAIRS
 
     G = pg.graph
     stairs = [n for u, v, d in G.edges(data=True) if d["kind"] == STAIRS for n in (u, v)]

@@ -8,9 +8,9 @@ import math
 import networkx as nx
 import pytest
 
-from app.domain.instructions import plan_guided_route
-from app.domain.path_graph import JUNCTION, NODE, WALK, PathGraph
-from app.domain.routing import NodeEnd, PositionEnd, Unreachable, node_lookups
+from app.domain.navigation.instructions import plan_guided_route
+from app.domain.navigation.path_graph import JUNCTION, NODE, WALK, PathGraph
+from app.domain.navigation.routing import NodeEnd, PositionEnd, Unreachable, node_lookups
 
 
 def square() -> PathGraph:

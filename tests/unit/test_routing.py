@@ -14,8 +14,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.domain.path_graph import ELEVATOR, JUNCTION, NODE, STAIRS, WALK, Anchor, PathGraph
-from app.domain.routing import (
+from app.domain.navigation.path_graph import (
+    ELEVATOR,
+    JUNCTION,
+    NODE,
+    STAIRS,
+    WALK,
+    Anchor,
+    PathGraph,
+)
+from app.domain.navigation.routing import (
     AmbiguousEndpoint,
     Endpoint,
     NodeEnd,

@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import SessionFormatError
-from app.domain.session import (
+from app.domain.upload.session import (
     NO_TAGS_REASON,
     Session,
     decode_json_bytes,

@@ -15,9 +15,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import SessionFormatError
-from app.domain.json_stream import JsonStream
-from app.domain.session import Session, decode_json_bytes, parse_session, parse_session_stream
-from app.domain.upload_fields import rigid_pose
+from app.domain.upload.fields import rigid_pose
+from app.domain.upload.json_stream import JsonStream
+from app.domain.upload.session import (
+    Session,
+    decode_json_bytes,
+    parse_session,
+    parse_session_stream,
+)
 from tests.unit.test_session import (
     DATA_DIR,
     VALID_PATHS,

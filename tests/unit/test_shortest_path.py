@@ -10,8 +10,8 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from app.domain.path_graph import ELEVATOR, STAIRS, WALK
-from app.domain.shortest_path import bidirectional_dijkstra, neighbour_lists
+from app.domain.navigation.path_graph import ELEVATOR, STAIRS, WALK
+from app.domain.navigation.shortest_path import bidirectional_dijkstra, neighbour_lists
 
 AVOIDS = [frozenset(), frozenset({STAIRS}), frozenset({ELEVATOR}), frozenset({STAIRS, ELEVATOR})]
 

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 
 from app.domain.errors import ParameterError
-from app.domain.frames import PHONE_T_CAMERA_CV, FloatArray, relative_se3, rotation_angle_rad
-from app.domain.ground_truth import parse_ground_truth_json
-from app.domain.session import parse_session
-from app.domain.simulate import (
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
+from app.domain.evaluation.simulate import (
     SimulatedSession,
     SimulationConfig,
     simulate_session,
 )
+from app.domain.frames import PHONE_T_CAMERA_CV, FloatArray, relative_se3, rotation_angle_rad
+from app.domain.upload.session import parse_session
 
 TAG_SIZE_M = 0.173
 

@@ -1,5 +1,6 @@
-"""The corridor skeleton (app.domain.skeleton) on walks built to show each failure of the walked
-line: passes side by side, steps to the wall, sway, passes that do not meet, crossings, floors."""
+"""The corridor skeleton (app.domain.navigation.skeleton) on walks built to show each failure of the
+walked line: passes side by side, steps to the wall, sway, passes that do not meet, crossings,
+floors."""
 
 from __future__ import annotations
 
@@ -12,17 +13,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import ParameterError
-from app.domain.instructions import plan_guided_route
-from app.domain.path_graph import (
+from app.domain.evaluation.turn_metrics import announced_turns, has_turn_around
+from app.domain.navigation.instructions import plan_guided_route
+from app.domain.navigation.path_graph import (
     JUNCTION,
     STAIRS,
     WALK,
     PathGraph,
     build_path_graph_from_arrays,
 )
-from app.domain.routing import TagEnd, plan_route
-from app.domain.skeleton import SkeletonParams, build_skeleton_from_arrays
-from app.domain.turn_metrics import announced_turns, has_turn_around
+from app.domain.navigation.routing import TagEnd, plan_route
+from app.domain.navigation.skeleton import SkeletonParams, build_skeleton_from_arrays
 from tests.unit.walks import PHONE_Y_M, line, walk
 
 

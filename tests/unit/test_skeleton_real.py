@@ -11,14 +11,19 @@ from pathlib import Path
 import networkx as nx
 import pytest
 
-from app.domain.instructions import plan_guided_route
-from app.domain.map_result import MapResult
-from app.domain.path_graph import JUNCTION, WALK
-from app.domain.routing import TagEnd
-from app.domain.session import load_session
-from app.domain.skeleton import build_skeleton
-from app.domain.slam import optimize_session
-from app.domain.turn_metrics import announced_turns, has_turn_around, has_zigzag, turn_sides
+from app.domain.evaluation.turn_metrics import (
+    announced_turns,
+    has_turn_around,
+    has_zigzag,
+    turn_sides,
+)
+from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.slam import optimize_session
+from app.domain.navigation.instructions import plan_guided_route
+from app.domain.navigation.path_graph import JUNCTION, WALK
+from app.domain.navigation.routing import TagEnd
+from app.domain.navigation.skeleton import build_skeleton
+from app.domain.upload.session import load_session
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 REAL = ("occam_room", "floor_2_straight", "straight_209_occam", "desnat_straight_once")

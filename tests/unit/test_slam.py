@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from app.domain.errors import NoTagsRecorded
+from app.domain.evaluation.simulate import SimulationConfig, simulate_session
 from app.domain.frames import make_pose, rotation_about_y, se3_inverse
-from app.domain.params import SlamParams
-from app.domain.session import NO_TAGS_REASON, load_session, parse_session
-from app.domain.simulate import SimulationConfig, simulate_session
-from app.domain.slam import odometry_sigmas, optimize_session, tag_covariance_in_tag_frame
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import odometry_sigmas, optimize_session, tag_covariance_in_tag_frame
+from app.domain.upload.session import NO_TAGS_REASON, load_session, parse_session
 
 DATA = Path(__file__).parents[2] / "data"
 
@@ -229,7 +229,7 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
-    from app.domain import slam
+    from app.domain.mapping import slam
 
     session = load_session(DATA / "sessions" / "occam_room.json")
     params = SlamParams()
@@ -263,7 +263,7 @@ def test_a_trial_graph_is_the_builds_graph_for_every_noise_setting():
     """TrialGraph keeps each kind of factor until one of its fields changes: after any sequence
     of settings, its graph must be the one the build makes (same factors in the same order, the
     same error at any values)."""
-    from app.domain import slam
+    from app.domain.mapping import slam
 
     assert (
         set(slam.ODOMETRY_NOISE_FIELDS + slam.GRAVITY_NOISE_FIELDS + slam.TAG_NOISE_FIELDS)

@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.domain.evaluation import evaluate_map
-from app.domain.ground_truth import load_ground_truth
-from app.domain.params import SlamParams
-from app.domain.session import load_session
-from app.domain.slam import optimize_session
-from app.domain.tuning import PAPER_GRID_AXES, PAPER_GRID_RANGE, TuningTarget
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.table import evaluate_map
+from app.domain.evaluation.tuning import PAPER_GRID_AXES, PAPER_GRID_RANGE, TuningTarget
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import load_session
 
 DATA_DIR = Path(__file__).parents[2] / "data"
 

@@ -13,20 +13,17 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from app.domain import tuning
 from app.domain.errors import ParameterError
-from app.domain.evaluation import evaluate_map
-from app.domain.ground_truth import load_ground_truth
-from app.domain.params import SlamParams
-from app.domain.session import Session, load_session, parse_session
-from app.domain.simulate import (
+from app.domain.evaluation import tuning
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.simulate import (
     SimulationConfig,
     simulate_along_trajectory,
     simulate_session,
 )
-from app.domain.slam import optimize_session
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import (
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.table import evaluate_map
+from app.domain.evaluation.tuning import (
     MAX_TRIALS,
     PAPER_GRID_AXES,
     TRIAL_MAX_ITERATIONS,
@@ -40,6 +37,9 @@ from app.domain.tuning import (
     summarize,
     sweep_result,
 )
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import optimize_session
+from app.domain.upload.session import Session, load_session, parse_session
 from app.render.sweep_plots import heatmap_png, shift_vs_gt_png
 
 DATA_DIR = Path(__file__).parents[2] / "data"

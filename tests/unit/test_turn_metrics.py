@@ -1,9 +1,10 @@
-"""Scoring of announced turns (app.domain.turn_metrics): matching, zigzags, turn-arounds."""
+"""Scoring of announced turns (app.domain.evaluation.turn_metrics): matching, zigzags,
+turn-arounds."""
 
 from __future__ import annotations
 
-from app.domain.routing import Route, Step
-from app.domain.turn_metrics import Turn, has_turn_around, has_zigzag, match_turns
+from app.domain.evaluation.turn_metrics import Turn, has_turn_around, has_zigzag, match_turns
+from app.domain.navigation.routing import Route, Step
 
 
 def turn(x: float, z: float, turn_deg: float, along_m: float = 0.0) -> Turn:

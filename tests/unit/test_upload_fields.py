@@ -1,4 +1,4 @@
-"""The number readers of ``app.domain.upload_fields``: a list of JSON numbers becomes a float64
+"""The number readers of ``app.domain.upload.fields``: a list of JSON numbers becomes a float64
 array; anything else is named, down to the item."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from app.domain.errors import SessionFormatError
-from app.domain.upload_fields import number_field, number_list
+from app.domain.upload.fields import number_field, number_list
 
 
 def item_by_item(value: Any, where: str, length: int) -> np.ndarray:

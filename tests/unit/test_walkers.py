@@ -1,5 +1,5 @@
-"""Simulated walkers that stray as real mappers do (app.domain.simulate.simulate_walk), and the
-turn precision and recall of routes on the corridor skeleton of their walks (issue 18)."""
+"""Simulated walkers that stray as real mappers do (app.domain.evaluation.simulate.simulate_walk),
+and the turn precision and recall of routes on the corridor skeleton of their walks (issue 18)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,17 @@ import numpy as np
 import pytest
 
 from app.domain.errors import ParameterError
-from app.domain.instructions import plan_guided_route
-from app.domain.path_graph import build_path_graph_from_arrays
-from app.domain.routing import plan_route
-from app.domain.simulate import SimulationConfig, WalkerConfig, corridor_graph, simulate_walk
-from app.domain.skeleton import build_skeleton_from_arrays
-from app.domain.turn_metrics import score_tag_routes
+from app.domain.evaluation.simulate import (
+    SimulationConfig,
+    WalkerConfig,
+    corridor_graph,
+    simulate_walk,
+)
+from app.domain.evaluation.turn_metrics import score_tag_routes
+from app.domain.navigation.instructions import plan_guided_route
+from app.domain.navigation.path_graph import build_path_graph_from_arrays
+from app.domain.navigation.routing import plan_route
+from app.domain.navigation.skeleton import build_skeleton_from_arrays
 
 BUILDING = SimulationConfig(num_poses=2)  # only the building and the walker's route are used
 TWO_FLOORS = SimulationConfig(num_poses=2, two_floors=True, blocks=(2, 2))

@@ -15,9 +15,9 @@ from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, ReadDbSessionDep, valid_id
 from app.storage import queue
 from app.storage.orm import JobState
+from app.web.deps import DbDep, ReadDbSessionDep, valid_id
 
 router = admin_router()
 

@@ -6,17 +6,15 @@ from __future__ import annotations
 from datetime import UTC, datetime, time
 
 from fastapi import Request, Response
-from pydantic import ValidationError
 
 from app.admin.auth import CheckedFormDep, DashboardUserDep
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, valid_id
-from app.api.schemas.keys import KeyCreate
 from app.services.errors import InvalidInput, ServiceError
 from app.services.keys import create_checked_key
 from app.storage import admin_logins, keys
 from app.storage.orm import Role
+from app.web.deps import DbDep, valid_id
 
 router = admin_router()
 
@@ -55,8 +53,9 @@ def key_list(request: Request, _user: DashboardUserDep, db: DbDep) -> Response:
     return _keys_page(request, db)
 
 
-def _key_create(form: dict[str, str]) -> KeyCreate:
-    """The form as a :class:`KeyCreate` (the API's schema); InvalidInput with a readable reason."""
+def _key_request(form: dict[str, str]) -> tuple[str, Role, datetime | None]:
+    """The form's name, role and expiry (midnight UTC of the day given); InvalidInput with a
+    readable reason. The name's rules are the API's (``create_checked_key``)."""
     expires = form.get("expires_on", "")
     try:
         expires_at = (
@@ -69,24 +68,22 @@ def _key_create(form: dict[str, str]) -> KeyCreate:
             "validation_error", "Expires on: not a date", field="expires_on"
         ) from err
     try:
-        return KeyCreate(
-            name=form.get("name", ""), role=form.get("role", ""), expires_at=expires_at
-        )
-    except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(part) for part in first["loc"]) or "form"
-        raise InvalidInput("validation_error", f"{where}: {first['msg']}", field=where) from err
+        role = Role(form.get("role", ""))
+    except ValueError as err:
+        roles = " or ".join(repr(r.value) for r in Role)
+        raise InvalidInput(
+            "validation_error", f"role: Input should be {roles}", field="role"
+        ) from err
+    return form.get("name", ""), role, expires_at
 
 
 @router.post("/keys")
 def create_key(request: Request, form: CheckedFormDep, db: DbDep) -> Response:
     submitted = {name: str(value).strip() for name, value in form.items() if isinstance(value, str)}
     try:
-        new = _key_create(submitted)
+        name, role, expires_at = _key_request(submitted)
         with db.transaction() as db_session:
-            created = create_checked_key(
-                db_session, name=new.name, role=new.role, expires_at=new.expires_at
-            )
+            created = create_checked_key(db_session, name=name, role=role, expires_at=expires_at)
     except ServiceError as err:
         return _keys_page(
             request, db, error=err.detail, submitted=submitted, status_code=err.status_code

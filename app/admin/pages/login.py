@@ -28,8 +28,8 @@ from app.admin.auth import (
 )
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, KeyUsage, SettingsDep
 from app.storage import admin_logins, keys
+from app.web.deps import DbDep, KeyUsage, SettingsDep
 
 router = admin_router()
 

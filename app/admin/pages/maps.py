@@ -5,7 +5,7 @@ another map in; maps sharing its tags are offered), a rebuild form, delete, and 
 app's map file and the path graph as GeoJSON).
 
 The plot's data is the version's overview, built once by the worker that stored the version
-(``app.domain.derived_documents``) and read from its blob (tens of kB, not the whole map
+(``app.domain.formats.derived_documents``) and read from its blob (tens of kB, not the whole map
 document); versions stored before have none, and their figure is built from the map document.
 Either way it is kept in the process's version cache (versions never change).
 """
@@ -24,12 +24,10 @@ from app.admin.forms import changed_params, rebuild_fields, rebuild_overrides
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
-from app.api.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
-from app.api.schemas.maps import MapSessionsPublic
-from app.domain.derived_documents import figure_of_overview, overview_document
-from app.domain.map_io import map_from_json
-from app.domain.path_graph import PathGraph
-from app.domain.session import Session as ParsedSession
+from app.domain.formats.derived_documents import figure_of_overview, overview_document
+from app.domain.formats.map_io import map_from_json
+from app.domain.navigation.path_graph import PathGraph
+from app.domain.upload.session import Session as ParsedSession
 from app.services.errors import ServiceError
 from app.services.maps import (
     add_session_to_map,
@@ -37,6 +35,7 @@ from app.services.maps import (
     chosen_version,
     delete_map_and_jobs,
     enqueue_rebuild,
+    map_session_uses,
     merge_maps,
     picture_of_map,
     remove_session_from_map,
@@ -47,6 +46,7 @@ from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
 from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
+from app.web.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
 
 router = admin_router()
 
@@ -157,7 +157,7 @@ def map_page(
         shown_current=info.current.number if info.current else 0,
         rename_error=rename_error.detail if rename_error else None,
         submitted_name=submitted_name,
-        map_sessions=MapSessionsPublic.from_domain(info).data,
+        map_sessions=map_session_uses(info),
         sharing=_maps_sharing_tags(db_session, info),
     )
 

@@ -8,7 +8,7 @@ from fastapi.responses import RedirectResponse
 
 from app.admin.auth import DashboardUserDep
 from app.admin.routing import admin_router
-from app.api.errors import not_found
+from app.web.errors import not_found
 
 router = admin_router()
 

@@ -16,11 +16,11 @@ from sqlalchemy.orm import Session
 from app.admin.auth import DashboardUserDep
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadDbSessionDep, SettingsDep
 from app.config import Settings
 from app.services.system import ALIVE_HEARTBEATS
 from app.storage import queue
 from app.storage.orm import JobState, utc_now
+from app.web.deps import ReadDbSessionDep, SettingsDep
 
 router = admin_router()
 

@@ -17,12 +17,12 @@ from app.admin.pages.maps import version_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import ReadDbSessionDep, valid_id
-from app.domain.map_figure import with_route
-from app.domain.routing import AVOIDABLE, Route
+from app.domain.formats.map_figure import with_route
+from app.domain.navigation.routing import AVOIDABLE, Route
 from app.services.errors import ServiceError
 from app.services.navigation import current_path_graph, planned_route
 from app.storage import maps
+from app.web.deps import ReadDbSessionDep, valid_id
 
 router = admin_router()
 

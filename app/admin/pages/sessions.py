@@ -13,11 +13,11 @@ from app.admin.auth import DashboardUserDep
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
-from app.api.deps import DbDep, ReadDbSessionDep, valid_id
-from app.api.http import raw_upload_response
 from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
 from app.storage import queue, sessions
+from app.web.deps import DbDep, ReadDbSessionDep, valid_id
+from app.web.http import raw_upload_response
 
 router = admin_router()
 

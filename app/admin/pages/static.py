@@ -10,7 +10,7 @@ from pathlib import Path
 from fastapi.responses import FileResponse
 
 from app.admin.routing import admin_router
-from app.api.errors import not_found
+from app.web.errors import not_found
 
 router = admin_router()
 

@@ -32,9 +32,8 @@ from app.admin.forms import REBUILD_PARAMS, changed_params
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router, sentence
 from app.admin.templating import redirect, render
-from app.api.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, valid_id
-from app.domain.sweep_plan import SweepPlan
-from app.domain.tuning import (
+from app.domain.evaluation.sweep_plan import SweepPlan
+from app.domain.evaluation.tuning import (
     PAPER_GRID_AXES,
     PAPER_GRID_RANGE,
     PAPER_GRID_VALUES,
@@ -48,6 +47,7 @@ from app.storage import maps, queue, sweeps
 from app.storage.maps import MapInfo, MapNotFound
 from app.storage.queue import JobInfo, JobNotFound
 from app.storage.sweeps import SweepInfo
+from app.web.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, valid_id
 
 router = admin_router()
 

@@ -14,7 +14,12 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 from sqlalchemy.orm import Session
 
-from app.api.deps import (
+from app.api.schemas.jobs import JobPublic, JobsPublic
+from app.storage import queue
+from app.storage.changes import MAP_CHANGES
+from app.storage.orm import JobState
+from app.storage.queue import JobInfo
+from app.web.deps import (
     AdminPrincipal,
     CurrentPrincipal,
     JobDep,
@@ -22,14 +27,9 @@ from app.api.deps import (
     WriteDbSessionDep,
     valid_id,
 )
-from app.api.errors import error_responses
-from app.api.http import json_response
-from app.api.route_class import SessionEndingRoute
-from app.api.schemas.jobs import JobPublic, JobsPublic
-from app.storage import queue
-from app.storage.changes import MAP_CHANGES
-from app.storage.orm import JobState
-from app.storage.queue import JobInfo
+from app.web.errors import error_responses
+from app.web.http import json_response
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=SessionEndingRoute)
 

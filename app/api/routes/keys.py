@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from app.api.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
-from app.api.errors import error_responses
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyPublic, KeysPublic
 from app.services.keys import create_checked_key
 from app.storage import keys
+from app.web.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.web.errors import error_responses
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(prefix="/keys", tags=["keys"], route_class=SessionEndingRoute)
 

@@ -28,9 +28,6 @@ import orjson
 from anyio import CapacityLimiter, to_thread
 from fastapi import APIRouter, Body, Request, Response
 
-from app.api.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
-from app.api.errors import ApiError, error_responses
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import LocalizationEstimate, LocalizationPublic, LocalizationUpdate
 from app.domain.frames import FloatArray, pose_from_xyz_quat_xyzw
 from app.domain.localize import (
@@ -47,6 +44,9 @@ from app.storage import maps, navigation
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.navigation import LocalizationConflict, LocalizationInfo
+from app.web.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
+from app.web.errors import ApiError, error_responses
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(tags=["localization"], route_class=SessionEndingRoute)
 

@@ -27,26 +27,6 @@ from fastapi import APIRouter, Body, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
-from app.api.deps import (
-    AdminPrincipal,
-    DbDep,
-    MapDep,
-    MapStateDep,
-    ReadDbSessionDep,
-    SettingsDep,
-    WriteDbSessionDep,
-    valid_id,
-)
-from app.api.errors import ApiError, error_responses
-from app.api.http import (
-    JSON_MEDIA_TYPE,
-    AcceptEncoding,
-    IfNoneMatch,
-    ReadyDocument,
-    if_none_match_hits,
-    strong_etag,
-)
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.maps import (
     AddSessionRequest,
     AppMap,
@@ -86,6 +66,26 @@ from app.storage import maps
 from app.storage.db import Database
 from app.storage.maps import MapInfo, VersionInfo
 from app.storage.sessions import AUTO_TUNE_TRIALS
+from app.web.deps import (
+    AdminPrincipal,
+    DbDep,
+    MapDep,
+    MapStateDep,
+    ReadDbSessionDep,
+    SettingsDep,
+    WriteDbSessionDep,
+    valid_id,
+)
+from app.web.errors import ApiError, error_responses
+from app.web.http import (
+    JSON_MEDIA_TYPE,
+    AcceptEncoding,
+    IfNoneMatch,
+    ReadyDocument,
+    if_none_match_hits,
+    strong_etag,
+)
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute)
 

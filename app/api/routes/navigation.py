@@ -14,13 +14,9 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from app.api.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
-from app.api.errors import error_responses
-from app.api.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
-from app.domain.path_graph import PathGraph
-from app.domain.routing import (
+from app.domain.navigation.path_graph import PathGraph
+from app.domain.navigation.routing import (
     search_pois,
 )
 from app.services.maps import current_version
@@ -34,6 +30,10 @@ from app.services.navigation import (
 from app.services.version_cache import VersionCache
 from app.storage.db import Database
 from app.storage.maps import VersionInfo
+from app.web.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
+from app.web.errors import error_responses
+from app.web.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
+from app.web.route_class import SessionEndingRoute
 
 #: The GeoJSON's key in the VersionCache (with the version's id).
 GEOJSON_DOCUMENT = "geojson_document"

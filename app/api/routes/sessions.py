@@ -18,7 +18,15 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Response
 
-from app.api.deps import (
+from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
+from app.domain.upload.session import Session as ParsedSession
+from app.services.maps import image_url, merge_maps, store_session_image
+from app.services.uploads import parse_upload
+from app.storage import keys, maps, sessions
+from app.storage.db import Database
+from app.storage.keys import Principal
+from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
+from app.web.deps import (
     CurrentPrincipal,
     DbDep,
     ImageBodyDep,
@@ -28,18 +36,10 @@ from app.api.deps import (
     UploadBodyDep,
     admin_principal,
 )
-from app.api.errors import ApiError, error_responses, unauthorized
-from app.api.http import raw_upload_response
-from app.api.route_class import SessionEndingRoute
-from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
-from app.api.upload import decode_body
-from app.domain.session import Session as ParsedSession
-from app.services.maps import image_url, merge_maps, store_session_image
-from app.services.uploads import parse_upload
-from app.storage import keys, maps, sessions
-from app.storage.db import Database
-from app.storage.keys import Principal
-from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
+from app.web.errors import ApiError, error_responses, unauthorized
+from app.web.http import raw_upload_response
+from app.web.route_class import SessionEndingRoute
+from app.web.upload import decode_body
 
 router = APIRouter(prefix="/sessions", tags=["sessions"], route_class=SessionEndingRoute)
 

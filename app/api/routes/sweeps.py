@@ -14,16 +14,6 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response
 
-from app.api.deps import (
-    AdminPrincipal,
-    MapDep,
-    ReadDbSessionDep,
-    SettingsDep,
-    WriteDbSessionDep,
-    valid_id,
-)
-from app.api.errors import error_responses
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.maps import RebuildAccepted
 from app.api.schemas.sweeps import SweepAccepted, SweepPublic, SweepRequest, SweepsPublic
 from app.services.maps import checked_overrides
@@ -37,6 +27,16 @@ from app.services.sweeps import (
 )
 from app.storage import sweeps
 from app.storage.sweeps import SweepInfo
+from app.web.deps import (
+    AdminPrincipal,
+    MapDep,
+    ReadDbSessionDep,
+    SettingsDep,
+    WriteDbSessionDep,
+    valid_id,
+)
+from app.web.errors import error_responses
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(tags=["sweeps"], route_class=SessionEndingRoute)
 

@@ -7,16 +7,16 @@ from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.exc import SQLAlchemyError
 
-from app.api.deps import CurrentPrincipal, DbDep, SettingsDep
-from app.api.errors import ApiError, error_responses
-from app.api.http import json_response
-from app.api.route_class import SessionEndingRoute
 from app.api.schemas.system import Health, Info, Ready, WorkerProcesses, WorkerPublic
 from app.services.system import ALIVE_HEARTBEATS, WorkerPool, no_worker_alive, package_version
 from app.storage import migrate, queue
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.orm import JobState
+from app.web.deps import CurrentPrincipal, DbDep, SettingsDep
+from app.web.errors import ApiError, error_responses
+from app.web.http import json_response
+from app.web.route_class import SessionEndingRoute
 
 router = APIRouter(tags=["system"], route_class=SessionEndingRoute)
 

@@ -4,13 +4,12 @@
 ``from_domain`` converts at the edge. Every model carries an example, so that the OpenAPI document
 shows one for every request and response.
 
-One module per router: ``common`` (the error body, example values), ``sessions``, ``jobs``,
-``maps``, ``keys``, ``system``, ``navigation``, ``sweeps``.
+One module per router: ``common`` (example values; the error body is ``app.web.errors.ErrorBody``),
+``sessions``, ``jobs``, ``maps``, ``keys``, ``system``, ``navigation``, ``sweeps``.
 """
 
 from __future__ import annotations
 
-from app.api.schemas.common import ErrorBody
 from app.api.schemas.jobs import JobBrief, JobPublic, JobsPublic
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyPublic, KeysPublic
 from app.api.schemas.maps import (
@@ -38,6 +37,7 @@ from app.api.schemas.sessions import (
     SessionStatisticsPublic,
 )
 from app.api.schemas.system import Health, Info, Ready, WorkerPublic
+from app.web.errors import ErrorBody
 
 __all__ = [
     "AppMap",

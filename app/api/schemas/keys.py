@@ -8,6 +8,7 @@ from typing import Any
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, examples
+from app.services.keys import MAX_KEY_NAME_CHARS
 from app.storage.orm import Role
 
 KEY_EXAMPLE: dict[str, Any] = {
@@ -35,7 +36,7 @@ class KeyCreate(BaseModel):
         },
     )
 
-    name: str = Field(min_length=1, max_length=100)
+    name: str = Field(min_length=1, max_length=MAX_KEY_NAME_CHARS)
     role: Role
     expires_at: AwareDatetime | None = Field(
         default=None, description="with a time zone, in the future"

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
 from app.api.schemas.jobs import JobBrief
-from app.services.maps import image_url
+from app.services.maps import image_url, map_session_uses
 from app.storage.maps import MapInfo, TagPose, VersionInfo
 from app.storage.queue import JobInfo
 
@@ -496,17 +496,5 @@ class MapSessionsPublic(BaseModel):
 
     @classmethod
     def from_domain(cls, info: MapInfo) -> MapSessionsPublic:
-        used = (info.current.session_ids or [info.session_id]) if info.current else []
-        contributions = {
-            int(item["session_id"]): item
-            for item in (info.current.statistics.get("sessions", []) if info.current else [])
-        }
-        data = [
-            MapSessionPublic(
-                session_id=session_id,
-                in_current_version=session_id in used,
-                contribution=contributions.get(session_id),
-            )
-            for session_id in info.session_ids
-        ]
+        data = [MapSessionPublic.model_validate(use) for use in map_session_uses(info)]
         return cls(map_id=info.id, data=data, count=len(data))

@@ -12,9 +12,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from app.domain.instructions import GuidanceStyle
-from app.domain.path_graph import Anchor
-from app.domain.routing import (
+from app.domain.navigation.instructions import GuidanceStyle
+from app.domain.navigation.path_graph import Anchor
+from app.domain.navigation.routing import (
     Endpoint,
     NodeEnd,
     PoiEnd,

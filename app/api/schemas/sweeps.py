@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.domain.tuning import SweepSummary, Trial
+from app.domain.evaluation.tuning import SweepSummary, Trial
 from app.storage.sweeps import SweepInfo
 
 _SPACE_EXAMPLE: dict[str, Any] = {

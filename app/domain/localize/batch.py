@@ -13,14 +13,7 @@ from app.domain.frames import FloatArray, orthonormalized_stack
 from app.domain.json_values import json_type_name
 from app.domain.localize.params import LocalizationUpdateError
 from app.domain.localize.state import LocalizerState
-from app.domain.session import (
-    IntArray,
-    TagDetections,
-    count_detections,
-    detections_from_rows,
-    parse_detection_rows,
-)
-from app.domain.upload_fields import (
+from app.domain.upload.fields import (
     integer_field,
     matrix16_field,
     maybe_not_rigid,
@@ -28,6 +21,13 @@ from app.domain.upload_fields import (
     require_list,
     require_object,
     rigid_pose,
+)
+from app.domain.upload.session import (
+    IntArray,
+    TagDetections,
+    count_detections,
+    detections_from_rows,
+    parse_detection_rows,
 )
 
 # --------------------------------------------------------------------------- the update batch

@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.params import SlamParams
-from app.domain.slam import (
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import (
     pose_sigmas,
 )
 

@@ -18,7 +18,7 @@ from app.domain.localize.params import LocalizerParams
 from app.domain.localize.result import LocalizationResult
 from app.domain.localize.smoother import update
 from app.domain.localize.state import LocalizerState
-from app.domain.session import (
+from app.domain.upload.session import (
     Session,
 )
 

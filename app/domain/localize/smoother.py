@@ -17,17 +17,17 @@ from app.domain.localize.linalg import adjoint, adjoints, symmetric, yaw_only
 from app.domain.localize.params import FALLBACK_PRIOR_SIGMAS, LocalizerParams
 from app.domain.localize.result import LocalizationRejection, LocalizationResult
 from app.domain.localize.state import Keyframe, LocalizerState, WindowDetection
-from app.domain.params import SlamParams
-from app.domain.screening import screen_detections
-from app.domain.session import (
-    IntArray,
-)
-from app.domain.slam import (
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.screening import screen_detections
+from app.domain.mapping.slam import (
     MIN_ODOMETRY_DT_S,
     WORLD_UP,
     pose_sigmas,
     tag_covariance_in_tag_frame,
     to_pose3,
+)
+from app.domain.upload.session import (
+    IntArray,
 )
 
 # --------------------------------------------------------------------------- the update

@@ -13,7 +13,7 @@ import numpy as np
 from app.domain.frames import FloatArray, se3_inverse
 from app.domain.localize.linalg import UPPER_6, symmetric
 from app.domain.localize.params import STATE_VERSION, LocalizerStateError
-from app.domain.session import (
+from app.domain.upload.session import (
     IntArray,
 )
 

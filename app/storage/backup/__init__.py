@@ -25,7 +25,7 @@
 ==================================  ========================================================
 
 What a worker derived from a version (its app-map and dashboard overview,
-``app.domain.derived_documents``) is not in the archive: an import makes it again from the
+``app.domain.formats.derived_documents``) is not in the archive: an import makes it again from the
 version's map document, path graph and session (``app.storage.derived``), in its transaction,
 so a restored version is served as stored, like one a worker built (about 3 s and 100 MiB of
 the importing process per 100,000 poses).

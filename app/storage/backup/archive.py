@@ -99,7 +99,7 @@ class TableSpec:
     #: as a blob again
     blob_refs: Mapping[str, str] = field(default_factory=dict)
     #: columns not exported: what is derived from the row's data (a version's app-map and
-    #: overview, ``app.domain.derived_documents``); an import makes them again
+    #: overview, ``app.domain.formats.derived_documents``); an import makes them again
     #: (``app.storage.derived``)
     derived: tuple[str, ...] = ()
     #: column → table whose ids it holds (the row must be in the archive)

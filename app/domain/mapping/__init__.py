@@ -1,0 +1,10 @@
+"""Mapping: graph SLAM on one walk (docs/architecture.md §3) or on a building's walks together.
+
+params.py       SlamParams: noise and rejection thresholds, each with its unit
+screening.py    which tag detections enter the factor graph, and why the others do not
+keyframes.py    which phone poses the graph holds, and where the others go afterwards
+slam.py         the factor graph and its optimization (every gtsam call of the project)
+joint.py        several walks of one building optimized as one graph
+map_result.py   what an optimization produces: the map, its statistics, its rejections
+uncertainty.py  a tag's horizontal position ellipse from its marginal covariance
+"""

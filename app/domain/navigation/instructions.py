@@ -1,0 +1,624 @@
+"""Turn-by-turn instructions at decision points only (issue 18): what a blind walker hears.
+
+    route = plan_guided_route(pg, TagEnd(300), TagEnd(311), heading_rad=0.4)
+    [s.instruction for s in route.steps]
+    # ['turn right to face the way', 'go straight 23 m', 'in 5 m, turn left', 'turn left',
+    #  'go straight 9 m to tag 311, on your right', 'arrive at tag 311, on your right']
+    plan_guided_route(pg, …, style=GuidanceStyle(units="ft", clock=True))   # "turn to 9 o'clock"
+
+How instructions are chosen (angles in the horizontal x–z plane, + is left, as in routing):
+
+1. **Legs.** Each walked stretch of the route is simplified (Douglas–Peucker, ``LEG_TOLERANCE_M``)
+   into straight legs; on a corridor skeleton these are the corridors' straight segments.
+2. **Decision points.** A bend's turn is the change between the directions over ``CHORD_M``
+   before and after it, so a zig and its zag cancel and a curve taken in small bends adds up;
+   bends closer than ``MIN_SPACING_M`` to a stronger one are the same decision, and a bend near a
+   junction is placed at the junction. A decision is announced as
+   a turn when |turn| ≥ ``TURN_MIN_DEG``; as "bear left/right" when ``BEAR_MIN_DEG`` ≤ |turn| <
+   ``TURN_MIN_DEG`` and it is at a junction (a node where three or more corridors meet); else it is
+   silent. So instructions are at least ``MIN_SPACING_M`` apart except at junctions.
+3. **Announcements.** Before a turn, a leg long enough to keep them ``MIN_SPACING_M`` apart gets
+   "in N m, turn left" ``ANNOUNCE_BEFORE_M`` before the corner.
+4. **First and last steps.** Given the phone's heading (``heading_rad``: the walking direction's
+   angle in the x–z plane, atan2(−x, −z), 0 = facing −z, + turning left), the first step says how
+   to turn to face the way. The last walked step gives the remaining distance and the side of the
+   tag or point of interest ("on your left"), which the arrival repeats.
+5. **Stairs and elevators** say their length and the floor you arrive at, by the building's floor
+   labels when given (``floor_labels``), else numbered from 1.
+
+Distances are rounded to whole units (m, ft or steps of ``STEP_LENGTH_M``), at least 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal, TypeAlias
+
+import numpy as np
+
+from app.domain.frames import FloatArray
+from app.domain.navigation.floors import assign_floors
+from app.domain.navigation.path_graph import STAIRS, WALK, PathGraph
+from app.domain.navigation.path_graph.geometry import douglas_peucker_end_legs
+from app.domain.navigation.polyline import distances_along_m, point_along, segment_lengths_m
+from app.domain.navigation.routing import (
+    ROUNDED_DECIMALS,
+    Endpoint,
+    NodeEnd,
+    NodeLookups,
+    PoiEnd,
+    Point3,
+    PositionEnd,
+    Route,
+    Step,
+    TagEnd,
+    measured_walk,
+    node_lookups,
+    search_pois,
+    signed_turn_deg,
+)
+
+#: Douglas–Peucker tolerance of the legs, m (the skeleton's branches are already straight).
+LEG_TOLERANCE_M = 0.5
+#: Bends closer than this along the route are one decision; instructions are at least this far
+#: apart except at junctions, m.
+MIN_SPACING_M = 5.0
+#: A bend is measured between the directions over this distance before and after it, m.
+CHORD_M = 4.0
+#: No decision this close to either end of a walked stretch (the arrival or the facing step
+#: covers it), m.
+END_MARGIN_M = 2.0
+#: A bend this close to a junction (along the route, m) is at that junction.
+JUNCTION_SNAP_M = 3.0
+#: A decision turning at least this much is a turn, degrees.
+TURN_MIN_DEG = 45.0
+#: … at least this much, at a junction, is "bear left/right", degrees.
+BEAR_MIN_DEG = 30.0
+#: Beyond this, "turn around", degrees.
+TURN_AROUND_MIN_DEG = 150.0
+#: "in N m" is said this far before a turn, m.
+ANNOUNCE_BEFORE_M = 5.0
+#: The first step says nothing about facing when the way is within this of the heading, degrees.
+FACING_OK_DEG = 20.0
+#: A tag this far from the arrival point (horizontally, m) gets a side; nearer, it is "here".
+SIDE_MIN_M = 0.2
+#: One walking step, m (units "steps").
+STEP_LENGTH_M = 0.7
+#: Feet per metre.
+FT_PER_M = 1 / 0.3048
+
+Units = Literal["m", "ft", "steps"]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GuidanceStyle:
+    """How instructions are worded: ``units`` of distances, ``clock`` for clock-face directions
+    ("turn to 9 o'clock") instead of left/right."""
+
+    units: Units = "m"
+    clock: bool = False
+
+
+DEFAULT_STYLE = GuidanceStyle()
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Decision:
+    """A decision point of a route: ``index`` of the polyline point, signed ``turn_deg`` (+ left),
+    ``at_junction``, ``along_m`` (distance along the route from its start, m)."""
+
+    index: int
+    turn_deg: float
+    at_junction: bool
+    along_m: float
+
+
+def plan_guided_route(
+    pg: PathGraph,
+    start: Endpoint,
+    goal: Endpoint,
+    *,
+    avoid: frozenset[str] = frozenset(),
+    heading_rad: float | None = None,
+    style: GuidanceStyle = DEFAULT_STYLE,
+    floor_labels: Sequence[str] | None = None,
+) -> Route:
+    """:func:`app.domain.navigation.routing.plan_route` with instructions at decision points only
+    (the walk of :func:`app.domain.navigation.routing.plan_walk`: routing's own steps are not
+    made)."""
+    walk = measured_walk(pg, start, goal, avoid=avoid)
+    route = walk.route
+    name, thing_m = _goal(pg, goal)
+    steps = _guidance_steps(
+        pg,
+        walk.lookups,
+        route.nodes,
+        walk.xyz,
+        route.polyline_m,  # (x, y, z) tuples of floats, as routing makes them
+        walk.segment_lengths_m,
+        goal_name=name,
+        goal_thing_m=thing_m,
+        heading_rad=heading_rad,
+        style=style,
+        floor_labels=floor_labels,
+    )
+    return dataclasses.replace(route, steps=steps)
+
+
+def _goal(pg: PathGraph, goal: Endpoint) -> tuple[str, FloatArray | None]:
+    match goal:
+        case TagEnd(tag_id=tag):
+            return f"tag {tag}", np.asarray(pg.tags[tag].position_m)
+        case PoiEnd(name=name):
+            found = search_pois(pg, name)  # exact names first; plan_route refused ambiguity
+            if found:
+                return found[0].name, np.asarray(found[0].position_m)
+            return name, None
+        case NodeEnd(node_id=node):
+            return f"node {node}", None
+        case PositionEnd():
+            return "your destination", None
+    return "your destination", None
+
+
+def guidance_steps(
+    pg: PathGraph,
+    route: Route,
+    *,
+    goal_name: str,
+    goal_thing_m: FloatArray | None = None,
+    heading_rad: float | None = None,
+    style: GuidanceStyle = DEFAULT_STYLE,
+    floor_labels: Sequence[str] | None = None,
+) -> list[Step]:
+    """The spoken steps of ``route`` (see the module docstring)."""
+    xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    points = _points(xyz)
+    return _guidance_steps(
+        pg,
+        node_lookups(pg),
+        route.nodes,
+        xyz,
+        points,
+        segment_lengths_m(points),
+        goal_name=goal_name,
+        goal_thing_m=goal_thing_m,
+        heading_rad=heading_rad,
+        style=style,
+        floor_labels=floor_labels,
+    )
+
+
+def _guidance_steps(
+    pg: PathGraph,
+    lookups: NodeLookups,
+    nodes: Sequence[int],
+    xyz: FloatArray,
+    points: Sequence[Point3],
+    lengths_m: Sequence[float],
+    *,
+    goal_name: str,
+    goal_thing_m: FloatArray | None,
+    heading_rad: float | None,
+    style: GuidanceStyle,
+    floor_labels: Sequence[str] | None,
+) -> list[Step]:
+    """:func:`guidance_steps` of the route through ``nodes`` whose polyline is (N, 3) ``xyz``,
+    the same as ``points``, with (N − 1) ``lengths_m`` the 3-D length of each segment; ``lookups``
+    are ``pg``'s."""
+    kinds, junction = _segment_kinds(lookups, points, nodes)
+    floors = _point_floors(pg, lookups, points)
+    steps: list[Step] = []
+    heading: tuple[float, float] | None = None
+    first_walk = True
+    for kind, i, j in _runs(kinds):
+        if kind == WALK:
+            facing = heading_rad if first_walk else None
+            heading = _walk_steps(
+                xyz[i : j + 2],
+                points[i : j + 2],
+                lengths_m[i : j + 1],
+                junction[i : j + 2],
+                floors[i],
+                facing,
+                style,
+                steps,
+            )
+            first_walk = False
+        else:
+            heading = None
+            steps.append(_floor_change(xyz, floors, kind, i, j + 1, style, floor_labels))
+    end = points[-1] if points else (0.0, 0.0, 0.0)
+    side = _side(heading, end, goal_thing_m)
+    if steps and steps[-1].kind == "go" and side:
+        last = steps[-1]
+        steps[-1] = dataclasses.replace(
+            last, instruction=f"{last.instruction} to {goal_name}, {side}"
+        )
+    arrive = f"arrive at {goal_name}" + (f", {side}" if side else "")
+    steps.append(
+        Step(
+            instruction=arrive,
+            position_m=end,
+            kind="arrive",
+            distance_m=0.0,
+            turn_deg=None,
+            floor=floors[-1] if floors else 0,
+        )
+    )
+    return steps
+
+
+def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[bool]]]:
+    """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
+    whether each point is a junction)."""
+    xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
+    kinds, junction = _segment_kinds(node_lookups(pg), _points(xyz), route.nodes)
+    return [(xyz[i : j + 2], junction[i : j + 2]) for kind, i, j in _runs(kinds) if kind == WALK]
+
+
+def _runs(kinds: Sequence[str]) -> list[tuple[str, int, int]]:
+    """(kind, first, last) of each run of segments of one kind, in order."""
+    runs = []
+    first = 0
+    for kind, run in itertools.groupby(kinds):
+        last = first + len(list(run)) - 1
+        runs.append((kind, first, last))
+        first = last + 1
+    return runs
+
+
+def decision_points(
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    *,
+    end_margin_m: float = END_MARGIN_M,
+) -> list[Decision]:
+    """The decision points of a walked stretch (N, 3) whose points ``junction`` flags (module
+    step 2): bends of at least ``BEAR_MIN_DEG`` measured over ``CHORD_M`` either side, strongest
+    first, none within ``MIN_SPACING_M`` of a stronger one (unless both are junctions), none within
+    ``end_margin_m`` of the stretch's ends."""
+    walked_m = walked_distances_m(xyz)
+    return [
+        Decision(index=index, turn_deg=turn_deg, at_junction=at_junction, along_m=along_m)
+        for index, turn_deg, at_junction, along_m in _decisions(
+            xyz, junction, walked_m, walked_m.tolist(), end_margin_m
+        )
+    ]
+
+
+#: A decision point as (index, turn_deg, at_junction, along_m): the fields of :class:`Decision`.
+_DecisionTuple: TypeAlias = tuple[int, float, bool, float]
+
+
+def _decisions(
+    xyz: FloatArray,
+    junction: Sequence[bool],
+    walked_m: FloatArray,
+    walked: list[float],
+    end_margin_m: float,
+) -> list[_DecisionTuple]:
+    """:func:`decision_points` as tuples, given each point's distance along the stretch both as
+    an array and as a list."""
+    chosen: list[_DecisionTuple] = []
+    junctions = [j for j in range(len(xyz)) if junction[j]]
+    for k, turn_deg in sorted(_bends(xyz, walked_m, walked, end_margin_m), key=_strongest):
+        index, at_junction = k, False
+        nearest_m = JUNCTION_SNAP_M
+        for j in junctions:  # the nearest junction within JUNCTION_SNAP_M, the first of equals
+            gap_m = abs(walked[j] - walked[k])
+            if gap_m <= nearest_m and not (at_junction and gap_m == nearest_m):
+                index, at_junction, nearest_m = j, True, gap_m
+        along_m = walked[index]
+        if not any(
+            index == d_index
+            or (abs(along_m - d_along_m) < MIN_SPACING_M and not (at_junction and d_at_junction))
+            for d_index, _, d_at_junction, d_along_m in chosen
+        ):
+            chosen.append((index, turn_deg, at_junction, along_m))
+    chosen.sort(key=_along)
+    return chosen
+
+
+def _strongest(bend: tuple[int, float]) -> float:
+    return -abs(bend[1])
+
+
+def _along(decision: _DecisionTuple) -> float:
+    return decision[3]
+
+
+def _bends(
+    xyz: FloatArray, walked_m: FloatArray, walked: list[float], end_margin_m: float
+) -> list[tuple[int, float]]:
+    """(index, turn_deg) of each inner point of the stretch (N, 3) at least ``end_margin_m`` from
+    both ends whose bend, measured over ``CHORD_M`` either side, is at least ``BEAR_MIN_DEG``;
+    ``walked_m`` (N,) and ``walked`` are each point's distance along the stretch (not
+    decreasing, so the points far enough from both ends are the ones from ``first`` to ``last``)."""
+    total_m = walked[-1] if walked else 0.0
+    first, last = 1, len(walked) - 2
+    while first <= last and not walked[first] >= end_margin_m:
+        first += 1
+    while last >= first and not total_m - walked[last] >= end_margin_m:
+        last -= 1
+    if first > last:
+        return []
+    xs, zs = xyz[:, 0], xyz[:, 2]
+    here_x, here_z = xs[first : last + 1], zs[first : last + 1]
+    along_m = walked_m[first : last + 1]
+    back_m = np.maximum(along_m - CHORD_M, 0.0)
+    ahead_m = np.minimum(along_m + CHORD_M, total_m)
+    before_x = here_x - np.interp(back_m, walked_m, xs)
+    before_z = here_z - np.interp(back_m, walked_m, zs)
+    after_x = np.interp(ahead_m, walked_m, xs) - here_x
+    after_z = np.interp(ahead_m, walked_m, zs) - here_z
+    # Signed angle from ``before`` to ``after``, + left: as signed_turn_deg (y up). The dot
+    # product adds to 0.0 first, as a sum over an axis does (so 0 keeps its sign, and the angle).
+    cross_y = before_z * after_x - before_x * after_z
+    dot = (0.0 + before_x * after_x) + before_z * after_z
+    turn_deg = np.degrees(np.arctan2(cross_y, dot)).tolist()
+    # A chord too short to have a direction (``np.linalg.norm(…, axis=1) > 0`` is false) bends not.
+    bx, bz, ax, az = before_x.tolist(), before_z.tolist(), after_x.tolist(), after_z.tolist()
+    return [
+        (first + i, turn)
+        for i, turn in enumerate(turn_deg)
+        if abs(turn) >= BEAR_MIN_DEG
+        and bx[i] * bx[i] + bz[i] * bz[i] > 0
+        and ax[i] * ax[i] + az[i] * az[i] > 0
+    ]
+
+
+def walked_distances_m(xyz: FloatArray) -> FloatArray:
+    """(N,) the distance of each of the (N, 3) points along the polyline from its first, m."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+
+
+def _announced(turn_deg: float, at_junction: bool) -> bool:
+    """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
+    size = abs(turn_deg)
+    return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and at_junction)
+
+
+def turn_words(turn_deg: float, style: GuidanceStyle, *, at_junction: bool = True) -> str:
+    """ "turn left", "bear right", "turn around", or "turn to 9 o'clock"."""
+    size = abs(turn_deg)
+    if style.clock:
+        return f"turn to {clock_hour(turn_deg)} o'clock"
+    side = "left" if turn_deg > 0 else "right"
+    if size >= TURN_AROUND_MIN_DEG:
+        return "turn around"
+    if size >= TURN_MIN_DEG or not at_junction:
+        return f"turn {side}"
+    return f"bear {side}"
+
+
+def clock_hour(turn_deg: float) -> int:
+    """The clock-face hour of a direction ``turn_deg`` from straight ahead (+ left): 12 ahead,
+    9 left, 3 right, 6 behind."""
+    hour = round(-turn_deg / 30.0) % 12
+    return 12 if hour == 0 else hour
+
+
+def distance_words(distance_m: float, units: Units) -> str:
+    """ "12 m", "39 ft", "17 steps" (whole units, at least 1)."""
+    if units == "ft":
+        return f"{max(1, round(distance_m * FT_PER_M))} ft"
+    if units == "steps":
+        return f"{max(1, round(distance_m / STEP_LENGTH_M))} steps"
+    return f"{max(1, round(distance_m))} m"
+
+
+def heading_direction(heading_rad: float) -> FloatArray:
+    """The x–z unit vector of a heading (0 = facing −z, + counter-clockwise seen from above)."""
+    return np.array([-math.sin(heading_rad), -math.cos(heading_rad)])
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def _walk_steps(
+    xyz: FloatArray,
+    points: Sequence[Point3],
+    lengths_m: Sequence[float],
+    junction: Sequence[bool],
+    floor: int,
+    heading_rad: float | None,
+    style: GuidanceStyle,
+    steps: list[Step],
+) -> tuple[float, float] | None:
+    """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``, whose
+    segments are ``lengths_m`` long; return its final x–z heading."""
+    walked = distances_along_m(lengths_m)
+    first_dir = last_dir = None
+    if len(points) > 1:
+        xs, zs = [p[0] for p in points], [p[2] for p in points]
+        first_end, last_start = douglas_peucker_end_legs(xs, zs, LEG_TOLERANCE_M)
+        first_dir = _direction(points[0], points[first_end])
+        last_dir = _direction(points[last_start], points[-1])
+    if heading_rad is not None and first_dir is not None:
+        facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction, x y z
+        bearing = signed_turn_deg(facing, _xyz(first_dir))
+        if abs(bearing) >= FACING_OK_DEG:
+            words = turn_words(bearing, style)
+            if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
+                words = f"{words} {round(abs(bearing))}°"
+            steps.append(_step(f"{words} to face the way", points[0], "face", 0.0, bearing, floor))
+    decisions = _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
+    from_m, from_i = 0.0, 0
+    for index, turn_deg, at_junction, along_m in decisions:
+        if not _announced(turn_deg, at_junction):
+            continue
+        leg_m = along_m - from_m
+        steps.append(
+            _step(
+                f"go straight {distance_words(leg_m, style.units)}",
+                points[from_i],
+                "go",
+                leg_m,
+                floor=floor,
+            )
+        )
+        words = turn_words(turn_deg, style, at_junction=at_junction)
+        if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
+            at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
+            ahead = distance_words(ANNOUNCE_BEFORE_M, style.units)
+            steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, turn_deg, floor))
+        steps.append(_step(words, points[index], "turn", 0.0, turn_deg, floor))
+        from_m, from_i = along_m, index
+    rest_m = walked[-1] - from_m
+    if rest_m >= 0.5:
+        steps.append(
+            _step(
+                f"go straight {distance_words(rest_m, style.units)}",
+                points[from_i],
+                "go",
+                rest_m,
+                floor=floor,
+            )
+        )
+    return last_dir
+
+
+def _floor_change(
+    xyz: FloatArray,
+    floors: Sequence[int],
+    kind: str,
+    first: int,
+    last: int,
+    style: GuidanceStyle,
+    floor_labels: Sequence[str] | None,
+) -> Step:
+    floor_from, floor_to = floors[first], floors[last]
+    way = "up" if floor_to > floor_from else "down"
+    label = (
+        floor_labels[floor_to]
+        if floor_labels is not None and 0 <= floor_to < len(floor_labels)
+        else str(floor_to + 1)
+    )
+    length_m = float(np.linalg.norm(np.diff(xyz[first : last + 1], axis=0), axis=1).sum())
+    if kind == STAIRS:
+        words = f"take the stairs {way}, {distance_words(length_m, style.units)}, to floor {label}"
+    else:
+        words = f"take the elevator {way} to floor {label}"
+    return Step(
+        instruction=words,
+        position_m=_point(xyz[first]),
+        kind="stairs" if kind == STAIRS else "elevator",
+        distance_m=length_m,
+        turn_deg=None,
+        floor=floor_from,
+    )
+
+
+def _side(heading: tuple[float, float] | None, end: Point3, thing_m: FloatArray | None) -> str:
+    if thing_m is None:
+        return ""
+    thing_x, _, thing_z = np.asarray(thing_m, dtype=np.float64).tolist()
+    offset_x, offset_z = thing_x - end[0], thing_z - end[2]
+    if _norm_xz(offset_x, offset_z) < SIDE_MIN_M or heading is None:
+        return ""
+    bearing = signed_turn_deg(_xyz(heading), (offset_x, 0.0, offset_z))
+    if abs(bearing) < 30:
+        return "ahead"
+    if abs(bearing) > TURN_AROUND_MIN_DEG:
+        return "behind you"
+    return "on your left" if bearing > 0 else "on your right"
+
+
+def _segment_kinds(
+    lookups: NodeLookups, points: Sequence[Point3], nodes: Sequence[int]
+) -> tuple[list[str], list[bool]]:
+    """(kind of each polyline segment, whether each point is a junction): a point is the route
+    node at its position (rounded to ``ROUNDED_DECIMALS``; the last such node if several)."""
+    place_of_node, place_of_point = lookups.place_of_node, lookups.place_of_point
+    node_at = {place_of_node[n]: n for n in nodes}
+    places = [place_of_point.get(p, -1) for p in points]  # -1: no node there
+    for i, place in enumerate(places):
+        if place < 0:  # not a node's position (a position on an edge): rounded, maybe one
+            places[i] = lookups.place_of_rounded.get(_rounded(points[i]), -1)
+    at = [node_at.get(place) for place in places]
+    junctions = lookups.junctions
+    junction = [n in junctions for n in at]
+    kind_between = lookups.kind_between
+    kinds = [
+        WALK if a is None or b is None else kind_between[a].get(b, WALK)
+        for a, b in itertools.pairwise(at)
+    ]
+    return kinds, junction
+
+
+def _rounded(point: Point3) -> Point3:
+    """``point`` rounded as :class:`app.domain.navigation.routing.NodeLookups` rounds the nodes'
+    positions."""
+    x, y, z = np.round(np.asarray(point, dtype=np.float64), ROUNDED_DECIMALS).tolist()
+    return (x, y, z)
+
+
+def _point_floors(pg: PathGraph, lookups: NodeLookups, points: Sequence[Point3]) -> list[int]:
+    """The floor of each polyline point: the level nearest its height."""
+    if not pg.floor_levels_m:
+        return [0] * len(points)
+    if lookups.floor_levels_m != pg.floor_levels_m:
+        return _floors_of_heights(pg, [p[1] for p in points])
+    known = lookups.floor_of_height
+    floors = [known.get(p[1], -1) for p in points]
+    if -1 in floors:  # a point off the graph's nodes (a position on an edge)
+        return _floors_of_heights(pg, [p[1] for p in points])
+    return floors
+
+
+def _floors_of_heights(pg: PathGraph, heights_m: list[float]) -> list[int]:
+    levels = np.asarray(pg.floor_levels_m, dtype=np.float64)
+    return [int(f) for f in assign_floors(np.asarray(heights_m, dtype=np.float64), levels)]
+
+
+def _step(
+    instruction: str,
+    at_m: Point3,
+    kind: Literal["go", "turn", "announce", "face"],
+    distance_m: float,
+    turn_deg: float | None = None,
+    floor: int = 0,
+) -> Step:
+    return Step(
+        instruction=instruction,
+        position_m=at_m,
+        kind=kind,
+        distance_m=float(distance_m),
+        turn_deg=turn_deg,
+        floor=floor,
+    )
+
+
+def _direction(a: Point3, b: Point3) -> tuple[float, float] | None:
+    """The x–z unit vector from a to b (None if they are one above the other)."""
+    dx, dz = b[0] - a[0], b[2] - a[2]
+    norm = _norm_xz(dx, dz)
+    if norm == 0:
+        return None
+    return (dx / norm, dz / norm)
+
+
+def _norm_xz(x: float, z: float) -> float:
+    """``np.linalg.norm([x, z])``: the square root of a dot product, which may round differently
+    from ``math.hypot(x, z)`` or ``sqrt(x² + z²)``."""
+    d = np.array([x, z])
+    return math.sqrt(d.dot(d))
+
+
+def _xyz(xz: tuple[float, float]) -> Point3:
+    return (xz[0], 0.0, xz[1])
+
+
+def _points(xyz: FloatArray) -> list[Point3]:
+    """(N, 3) points as N (x, y, z) tuples of floats."""
+    return [(x, y, z) for x, y, z in xyz.tolist()]
+
+
+def _point(values: FloatArray) -> tuple[float, float, float]:
+    x, y, z = np.asarray(values, dtype=np.float64).tolist()
+    return (x, y, z)

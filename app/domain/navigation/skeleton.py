@@ -1,0 +1,454 @@
+"""The corridor skeleton: where a pedestrian can walk, as the building's corridors rather than the
+walked line (DESIGN §8, issue 18). Same :class:`PathGraph` type and attributes as the path graph,
+so routing, GeoJSON and the app-map exporter work on it unchanged.
+
+    pg = build_skeleton(result)                                  # from an optimized MapResult
+    pg = build_skeleton_from_arrays(positions_m, tag_ids=…, tag_positions_m=…)
+
+How it is built (every threshold is a field of :class:`SkeletonParams`):
+
+1. **Floors.** Levels from the pose heights (``find_floor_levels``); a pose within the floor band
+   of a level is *settled* there. Between two consecutive settled poses on different floors lies a
+   floor change, widened over the steps around it that still climb ``stairs_min_rise_per_run``:
+   an elevator when it moves at most ``elevator_max_horizontal_m`` horizontally or
+   rises at least ``elevator_min_rise_per_run`` m per m, stairs otherwise.
+2. **Occupancy per floor.** The walked segments of each floor are drawn on a grid of ``cell_m``
+   in the horizontal x–z plane and widened by half the corridor width (a disk of radius
+   ``corridor_width_m / 2``), then *closed* (widened and narrowed again by ``close_m``). So two
+   passes of one corridor up to a corridor width apart (sway, a second pass beside the first, two
+   passes that end near each other) become one band, and small holes between them are filled.
+3. **Centreline.** The band is thinned to a one-cell-wide line (Zhang–Suen), which lies midway
+   between the band's edges: the centreline of all the passes. Its cells become a graph
+   (8-neighbours; a diagonal link that duplicates two straight ones is dropped).
+4. **Cleaning.** Cells of degree ≠ 2 are *ends* and *branch points*; the runs between them are
+   branches. Repeatedly: a dead-end branch shorter than ``stub_max_m`` is removed (a step toward a
+   tag on the wall, a bulge of the band), a small cycle (≤ ``loop_max_m`` round) loses its longer
+   side, and branch points joined by a branch shorter than ``junction_merge_m`` become one,
+   placed where its branches' lines meet.
+   Two dead ends within ``gap_close_m`` of each other that face each other are joined (a corridor
+   walked in two passes that did not meet).
+5. **Straight segments.** Each branch loses its cells within half a corridor width of its ends
+   (the hook a merged branch point leaves) and is thinned by Douglas–Peucker with
+   ``straight_tolerance_m``, so a straight corridor is one edge. Node heights are their floor's
+   level.
+6. **Stairs and elevators** keep the walked poses of the floor change (simplified), joined at both
+   ends to the nearest point of their floor's skeleton.
+7. **Anchors.** Each tag and point of interest is attached to the nearest point of a walk edge of
+   its own floor (the edge is split there), so a route ends beside it; its side of the corridor
+   follows from where it is relative to the walking direction (see
+   ``app.domain.navigation.instructions``).
+
+Node attributes: ``position_m``, ``floor``, ``kind`` (``"junction"`` where three or more branches
+meet, ``"node"`` otherwise), ``pose_index`` (None: a skeleton node is no pose). Edge attributes:
+``length_m``, ``kind`` (walk/stairs/elevator), ``floor``. One connected graph per connected walk.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import networkx as nx
+import numpy as np
+import numpy.typing as npt
+
+from app.domain.errors import ParameterError
+from app.domain.frames import FloatArray
+from app.domain.mapping.map_result import MapResult
+from app.domain.navigation.centreline import Branches, branches_of, clean
+from app.domain.navigation.floors import assign_floors, find_floor_levels
+from app.domain.navigation.path_graph import (
+    ELEVATOR,
+    JUNCTION,
+    NODE,
+    STAIRS,
+    WALK,
+    Anchor,
+    PathGraph,
+)
+from app.domain.navigation.path_graph.geometry import douglas_peucker, points_array
+from app.domain.navigation.raster import densify, dilate, thin
+
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+#: A pose within this height of a floor level is settled on it, m (capped at 0.45 × level gap).
+FLOOR_BAND_M = 0.75
+#: A step shorter than this horizontally counts as this long when judging its slope, m.
+STANDING_STILL_M = 0.05
+#: A projection this close to an edge end is that end, m.
+SNAP_TO_END_M = 0.3
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SkeletonParams:
+    """How a corridor skeleton is built; SI units in the names (see the module docstring).
+
+    corridor_width_m            passes closer than this (horizontally) are one corridor, m.
+    close_m                     holes in the band narrower than 2 × this are filled, m.
+    cell_m                      the occupancy grid's cell, m.
+    stub_max_m                  dead-end branches shorter than this are removed, m.
+    loop_max_m                  cycles shorter than this (round) are cut open, m.
+    junction_merge_m            branch points closer than this along a branch are one, m.
+    gap_close_m                 dead ends this close and facing each other are joined, m.
+    straight_tolerance_m        Douglas–Peucker tolerance of a branch, m.
+    stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
+                                that still climb at least this steeply (rise over run), so it
+                                starts where the stairs start.
+    elevator_max_horizontal_m   a floor change moving at most this far horizontally is an
+                                elevator, m.
+    elevator_min_rise_per_run   … and so is one rising at least this many m per horizontal m.
+    """
+
+    corridor_width_m: float = 1.8
+    close_m: float = 0.6
+    cell_m: float = 0.25
+    stub_max_m: float = 3.0
+    loop_max_m: float = 12.0
+    junction_merge_m: float = 3.0
+    gap_close_m: float = 4.0
+    straight_tolerance_m: float = 0.4
+    stairs_min_rise_per_run: float = 0.25
+    elevator_max_horizontal_m: float = 1.5
+    elevator_min_rise_per_run: float = 2.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")
+        if self.cell_m <= 0 or self.corridor_width_m <= 0:
+            raise ParameterError("cell_m and corridor_width_m must be > 0")
+
+
+DEFAULT_SKELETON_PARAMS = SkeletonParams()
+
+
+def build_skeleton(
+    result: MapResult, *, params: SkeletonParams = DEFAULT_SKELETON_PARAMS
+) -> PathGraph:
+    """The corridor skeleton of an optimized map (see :func:`build_skeleton_from_arrays`)."""
+    return build_skeleton_from_arrays(
+        result.world_T_phone[:, :3, 3],
+        tag_ids=[int(t) for t in result.tag_ids],
+        tag_positions_m=result.world_T_tag[:, :3, 3],
+        poi_names=result.poi_names,
+        poi_positions_m=result.world_T_poi[:, :3, 3],
+        params=params,
+    )
+
+
+def build_skeleton_from_arrays(
+    positions_m: npt.ArrayLike,
+    *,
+    tag_ids: Sequence[int] = (),
+    tag_positions_m: npt.ArrayLike | None = None,
+    poi_names: Sequence[str] = (),
+    poi_positions_m: npt.ArrayLike | None = None,
+    params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
+) -> PathGraph:
+    """The corridor skeleton of a walk (the steps are in the module docstring).
+
+    positions_m: (N, 3) the walked positions in time order, map frame (y up), m.
+    tag_ids, tag_positions_m: (K,) ids and (K, 3) positions of the tags, m.
+    poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
+    """
+    world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
+    world_p_tag = points_array(tag_positions_m, len(tag_ids), "tag_positions_m")
+    world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
+    if not np.all(np.isfinite(world_p_phone)):
+        raise ParameterError("positions_m must be finite")
+    levels_m = find_floor_levels(world_p_phone[:, 1])
+    G: nx.Graph[int] = nx.Graph()
+    if world_p_phone.shape[0] == 0:
+        return PathGraph(floor_levels_m=tuple(float(v) for v in levels_m))
+    pose_floor, changes = _floor_changes(world_p_phone, levels_m, params)
+    on_floor = np.ones(max(world_p_phone.shape[0] - 1, 0), dtype=np.bool_)
+    for change in changes:
+        on_floor[change.first : change.last] = False
+    for floor in range(len(levels_m)):
+        segments = np.flatnonzero(on_floor & (pose_floor[:-1] == floor) & (pose_floor[1:] == floor))
+        lone = np.flatnonzero(pose_floor == floor)
+        p_xz = world_p_phone[:, [0, 2]]
+        starts, ends = p_xz[segments], p_xz[segments + 1]
+        if segments.size == 0 and lone.size:
+            starts = ends = p_xz[lone[:1]]
+        if starts.shape[0]:
+            _add_floor(G, starts, ends, floor, float(levels_m[floor]), params)
+    for change in changes:
+        _add_floor_change(G, world_p_phone, levels_m, change, params)
+    tags = {
+        int(t): attach_anchor(G, str(t), p, levels_m)
+        for t, p in zip(tag_ids, world_p_tag, strict=True)
+    }
+    pois = tuple(
+        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
+    )
+    _mark_junctions(G)
+    return PathGraph(
+        graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
+    )
+
+
+# --------------------------------------------------------------------------- floors
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _FloorChange:
+    """Poses ``first`` … ``last`` (rows) go from ``floor_from`` to ``floor_to`` by ``kind``."""
+
+    first: int
+    last: int
+    floor_from: int
+    floor_to: int
+    kind: str
+
+
+def _floor_changes(
+    world_p_phone: FloatArray, levels_m: FloatArray, params: SkeletonParams
+) -> tuple[IntArray, list[_FloorChange]]:
+    """(pose floors (N,), the floor changes) of a walk (module step 1)."""
+    heights_m = world_p_phone[:, 1]
+    n = heights_m.shape[0]
+    nearest = assign_floors(heights_m, levels_m)
+    band_m = FLOOR_BAND_M
+    if len(levels_m) > 1:
+        band_m = min(band_m, 0.45 * float(np.min(np.diff(levels_m))))
+    settled_floor = np.where(np.abs(heights_m - levels_m[nearest]) <= band_m, nearest, -1)
+    settled_floor[0], settled_floor[-1] = nearest[0], nearest[-1]
+    settled = np.flatnonzero(settled_floor >= 0)
+    last_settled = np.maximum.accumulate(np.where(settled_floor >= 0, np.arange(n), 0))
+    pose_floor = settled_floor[last_settled].astype(np.int64)
+    changes: list[_FloorChange] = []
+    steps = np.diff(world_p_phone, axis=0)
+    run_m = np.maximum(np.hypot(steps[:, 0], steps[:, 2]), STANDING_STILL_M)
+    slope = steps[:, 1] / run_m  # rise over run of each step
+    done = 0
+    for k in np.flatnonzero(settled_floor[settled[:-1]] != settled_floor[settled[1:]]).tolist():
+        a, b = int(settled[k]), int(settled[k + 1])
+        up = 1.0 if settled_floor[b] > settled_floor[a] else -1.0
+        while a > done and up * slope[a - 1] >= params.stairs_min_rise_per_run:
+            a -= 1  # where the stairs (or the lift) really begin …
+        while b < n - 1 and up * slope[b] >= params.stairs_min_rise_per_run:
+            b += 1  # … and end
+        done = b
+        horizontal_m = float(np.hypot(steps[a:b, 0], steps[a:b, 2]).sum())
+        rise_m = abs(float(heights_m[b] - heights_m[a]))
+        is_elevator = (
+            horizontal_m <= params.elevator_max_horizontal_m
+            or rise_m >= params.elevator_min_rise_per_run * horizontal_m
+        )
+        changes.append(
+            _FloorChange(
+                first=a,
+                last=b,
+                floor_from=int(settled_floor[a]),
+                floor_to=int(settled_floor[b]),
+                kind=ELEVATOR if is_elevator else STAIRS,
+            )
+        )
+    return pose_floor, changes
+
+
+# --------------------------------------------------------------------------- one floor
+
+
+def _add_floor(
+    G: nx.Graph[int],
+    starts_xz: FloatArray,
+    ends_xz: FloatArray,
+    floor: int,
+    height_m: float,
+    params: SkeletonParams,
+) -> None:
+    """Add the skeleton of one floor's walked segments (M, 2) → (M, 2), x–z, m (steps 2–5)."""
+    cell = params.cell_m
+    samples = densify(starts_xz, ends_xz, cell / 2)
+    grow_px = (params.corridor_width_m / 2 + params.close_m) / cell
+    margin = math.ceil(grow_px) + 3
+    origin = samples.min(axis=0) - margin * cell
+    index = np.floor((samples - origin) / cell).astype(np.int64)
+    shape = (int(index[:, 0].max()) + margin + 1, int(index[:, 1].max()) + margin + 1)
+    band = np.zeros(shape, dtype=np.bool_)
+    band[index[:, 0], index[:, 1]] = True
+    band = dilate(band, grow_px)
+    if params.close_m > 0:
+        band = ~dilate(~band, params.close_m / cell)
+    state = clean(
+        branches_of(thin(band)),
+        stub_px=params.stub_max_m / cell,
+        loop_px=params.loop_max_m / cell,
+        knot_px=params.junction_merge_m / cell,
+        gap_px=params.gap_close_m / cell,
+        reach_px=params.corridor_width_m / cell,
+    )
+    _emit(G, state, origin, floor, height_m, params)
+
+
+# --------------------------------------------------------------------------- branches → graph
+
+
+def _emit(
+    G: nx.Graph[int],
+    state: Branches,
+    origin_xz: FloatArray,
+    floor: int,
+    height_m: float,
+    params: SkeletonParams,
+) -> None:
+    """Add the cleaned branches to ``G`` as straight walk edges (module step 5)."""
+    cell = params.cell_m
+    node_of: dict[int, int] = {}
+
+    def key_node(key: int) -> int:
+        if key not in node_of:
+            node_of[key] = _new_node(
+                G, (state.key_ij[key] + 0.5) * cell + origin_xz, floor, height_m
+            )
+        return node_of[key]
+
+    for key in state.key_ij:
+        key_node(key)
+    for u, v, poly in state.branches.values():
+        xz = (poly + 0.5) * cell + origin_xz
+        if u != v:  # a merged branch point's old cells would make a hook at the junction
+            radius_m = params.corridor_width_m / 2
+            interior = np.minimum(
+                np.linalg.norm(xz - xz[0], axis=1), np.linalg.norm(xz - xz[-1], axis=1)
+            )
+            keep = interior >= radius_m
+            keep[0] = keep[-1] = True
+            xz = xz[keep]
+        kept = _kept_indices(xz, params.straight_tolerance_m)
+        chain = [key_node(u)]
+        chain += [_new_node(G, xz[k], floor, height_m) for k in kept[1:-1]]
+        chain.append(key_node(v))
+        for a, b in itertools.pairwise(chain):
+            if a != b:
+                _add_walk_edge(G, a, b, floor)
+
+
+def _new_node(G: nx.Graph[int], xz: FloatArray, floor: int, height_m: float) -> int:
+    node = G.number_of_nodes()
+    while node in G:
+        node += 1
+    G.add_node(
+        node,
+        position_m=(float(xz[0]), height_m, float(xz[1])),
+        floor=floor,
+        kind=NODE,
+        pose_index=None,
+    )
+    return node
+
+
+def _add_walk_edge(G: nx.Graph[int], a: int, b: int, floor: int, kind: str = WALK) -> None:
+    length_m = math.dist(G.nodes[a]["position_m"], G.nodes[b]["position_m"])
+    if G.has_edge(a, b) and G.edges[a, b]["length_m"] <= length_m:
+        return
+    G.add_edge(a, b, length_m=length_m, kind=kind, floor=floor)
+
+
+def _kept_indices(points: FloatArray, tolerance_m: float) -> list[int]:
+    """:func:`douglas_peucker`'s kept points as their indices."""
+    return [int(i) for i in np.flatnonzero(douglas_peucker(points, tolerance_m))]
+
+
+# --------------------------------------------------------------------------- stairs, anchors
+
+
+def _add_floor_change(
+    G: nx.Graph[int],
+    world_p_phone: FloatArray,
+    levels_m: FloatArray,
+    change: _FloorChange,
+    params: SkeletonParams,
+) -> None:
+    """Add the stairs or elevator of ``change`` joined to both floors' skeletons (step 6)."""
+    p = world_p_phone[change.first : change.last + 1]
+    kept = _douglas_peucker3(p, params.straight_tolerance_m)
+    floors = assign_floors(p[kept, 1], levels_m)
+    chain = []
+    for k, floor in zip(kept, floors.tolist(), strict=True):
+        chain.append(_new_node(G, p[k][[0, 2]], int(floor), float(p[k, 1])))
+    lower = min(change.floor_from, change.floor_to)
+    for a, b in itertools.pairwise(chain):
+        _add_walk_edge(G, a, b, lower, kind=change.kind)
+    for end, floor in ((chain[0], change.floor_from), (chain[-1], change.floor_to)):
+        G.nodes[end]["floor"] = floor
+        joint = _split_nearest(G, np.asarray(G.nodes[end]["position_m"]), floor, avoid={*chain})
+        if joint is not None and joint != end:
+            _add_walk_edge(G, joint, end, floor)
+
+
+def _douglas_peucker3(points: FloatArray, tolerance_m: float) -> list[int]:
+    """Douglas–Peucker on (K, 3) points via the x–z and x–y projections (both within
+    tolerance)."""
+    horizontal = set(_kept_indices(points[:, [0, 2]], tolerance_m))
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    vertical = set(_kept_indices(np.column_stack([arc, points[:, 1]]), tolerance_m))
+    return sorted(horizontal | vertical)
+
+
+def _walk_edges(G: nx.Graph[int], floor: int, avoid: set[int]) -> list[tuple[int, int]]:
+    return [
+        (u, v)
+        for u, v, data in G.edges(data=True)
+        if data["kind"] == WALK and data["floor"] == floor and u not in avoid and v not in avoid
+    ]
+
+
+def _split_nearest(
+    G: nx.Graph[int], world_p: FloatArray, floor: int, *, avoid: set[int] | None = None
+) -> int | None:
+    """The node at the nearest point (x–z) of a walk edge of ``floor``: an end when within
+    ``SNAP_TO_END_M`` of it, else a new node splitting the edge; None if the floor has no edge."""
+    edges = _walk_edges(G, floor, avoid or set())
+    if not edges:
+        lone = [n for n in G.nodes if G.nodes[n]["floor"] == floor and n not in (avoid or set())]
+        if not lone:
+            return None
+        xz = np.array([np.asarray(G.nodes[n]["position_m"])[[0, 2]] for n in lone])
+        return lone[int(np.argmin(np.linalg.norm(xz - world_p[[0, 2]], axis=1)))]
+    a = np.array([G.nodes[u]["position_m"] for u, _ in edges], dtype=np.float64)
+    b = np.array([G.nodes[v]["position_m"] for _, v in edges], dtype=np.float64)
+    ab = (b - a)[:, [0, 2]]
+    ap = world_p[[0, 2]] - a[:, [0, 2]]
+    denominator = np.maximum((ab * ab).sum(axis=1), 1e-12)
+    t = np.clip((ap * ab).sum(axis=1) / denominator, 0.0, 1.0)
+    distance = np.linalg.norm(ap - t[:, None] * ab, axis=1)
+    e = int(np.argmin(distance))
+    u, v = edges[e]
+    length_m = float(np.linalg.norm(ab[e]))
+    if t[e] * length_m <= SNAP_TO_END_M:
+        return u
+    if (1 - t[e]) * length_m <= SNAP_TO_END_M:
+        return v
+    data = G.edges[u, v]
+    node = _new_node(G, (a[e] + t[e] * (b[e] - a[e]))[[0, 2]], floor, float(a[e, 1]))
+    G.remove_edge(u, v)
+    _add_walk_edge(G, u, node, data["floor"])
+    _add_walk_edge(G, node, v, data["floor"])
+    return node
+
+
+def attach_anchor(G: nx.Graph[int], name: str, world_p: FloatArray, levels_m: FloatArray) -> Anchor:
+    """Attach a tag or point of interest to the nearest point of its floor's skeleton."""
+    floor = int(assign_floors(world_p[None, 1], levels_m)[0])
+    node = _split_nearest(G, world_p, floor)
+    if node is None:
+        floors_present = {G.nodes[n]["floor"] for n in G.nodes}
+        other = min(floors_present, key=lambda f: abs(levels_m[f] - world_p[1]))
+        floor = int(other)
+        node = _split_nearest(G, world_p, floor)
+    assert node is not None
+    x, y, z = (float(c) for c in world_p)
+    return Anchor(name=name, node=node, position_m=(x, y, z), floor=floor)
+
+
+def _mark_junctions(G: nx.Graph[int]) -> None:
+    for node in G.nodes:
+        walk_degree = sum(1 for m in G.neighbors(node) if G.edges[node, m]["kind"] == WALK)
+        G.nodes[node]["kind"] = JUNCTION if walk_degree >= 3 else NODE
