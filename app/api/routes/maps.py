@@ -44,6 +44,7 @@ from app.api.schemas.maps import (
 )
 from app.services.maps import (
     APP_MAP_EXPORT,
+    BuildQueued,
     MapPages,
     MapState,
     add_session_to_map,
@@ -54,11 +55,11 @@ from app.services.maps import (
     current_overrides,
     current_version,
     delete_map_and_jobs,
-    enqueue_rebuild,
     merge_maps,
     picture_of_map,
     remove_session_from_map,
     rename_map,
+    request_build,
     tag_poses_of,
 )
 from app.services.version_cache import VersionCache
@@ -231,16 +232,15 @@ def rebuild_map(
     session_ids = body.session_ids if body else None
     if session_ids is not None:
         checked_session_ids(db_session, session_ids)
-    info, job_id = enqueue_rebuild(
+    build = request_build(
         db_session,
         valid_id(map_id, "map"),
         overrides,
         max_attempts=settings.max_attempts,
+        change="rebuild requested",
         session_ids=session_ids,
     )
-    accepted = RebuildAccepted.queued(info, job_id, overrides)
-    if session_ids is not None:
-        accepted.session_ids = session_ids
+    accepted = RebuildAccepted.from_build(build, overrides)
     response.headers["Location"] = accepted.job_url
     return accepted
 
@@ -274,13 +274,13 @@ def add_map_session(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = add_session_to_map(
+    build = add_session_to_map(
         db_session,
         valid_id(map_id, "map"),
         valid_id(body.session_id, "session"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
 @router.delete(
@@ -299,13 +299,13 @@ def remove_map_session(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = remove_session_from_map(
+    build = remove_session_from_map(
         db_session,
         valid_id(map_id, "map"),
         valid_id(session_id, "session"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
 @router.post(
@@ -325,17 +325,17 @@ def merge_map(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = merge_maps(
+    build = merge_maps(
         db_session,
         valid_id(map_id, "map"),
         valid_id(body.map_id, "map"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
-def _accepted(response: Response, info: MapInfo, job_id: int) -> RebuildAccepted:
-    accepted = RebuildAccepted.queued(info, job_id, current_overrides(info))
+def _accepted(response: Response, build: BuildQueued) -> RebuildAccepted:
+    accepted = RebuildAccepted.from_build(build, current_overrides(build.info))
     response.headers["Location"] = accepted.job_url
     return accepted
 

@@ -1,0 +1,229 @@
+"""Versions always match their walks (issue 25, items 1 and 4), on SQLite and PostgreSQL, with
+the real worker pipeline: a build overtaken by a change of the map's sessions stores no version
+(its result would not be of the map's current sessions) and the build of the current sessions
+becomes current; changes in quick succession coalesce into one build; a superseded build with no
+build of the current sessions queues one."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from app.config import Settings
+from app.services.errors import InvalidInput
+from app.services.maps import add_session_to_map, request_build
+from app.storage import maps, queue
+from app.storage.db import Database
+from app.storage.orm import JobState
+from tests.service.helpers import get_job, insert_session, session_bytes
+from workers.main import Worker
+from workers.pipeline import BUILD_MAP_STAGES, JobContext, Stage, store
+
+pytestmark = pytest.mark.db
+
+#: A small real walk (132 poses, 4 tags): uploaded several times, the copies share every tag.
+WALK = "pgt_tester3"
+
+
+def worker(db: Database, stages: tuple[Stage, ...] = BUILD_MAP_STAGES) -> Worker:
+    settings = Settings(
+        database_url=db.url.render_as_string(hide_password=False),
+        lease_s=30.0,
+        heartbeat_s=5.0,
+        poll_s=0.05,
+        retry_backoff_s=0.0,
+    )
+    return Worker(db, settings, pipelines={"build_map": stages})
+
+
+def run_all(db: Database) -> None:
+    """Run every queued job with the real pipeline."""
+    runner = worker(db)
+    while runner.run_once():
+        pass
+
+
+def built_map(db: Database) -> int:
+    """A map of one walk with its first version built."""
+    map_id = insert_session(db, session_bytes(WALK)).map_id
+    run_all(db)
+    return map_id
+
+
+def another_walk(db: Database) -> int:
+    """Another upload of the walk, its own map's build canceled (it is not what is tested)."""
+    inserted = insert_session(db, session_bytes(WALK))
+    with db.transaction() as db_session:
+        queue.request_cancel(db_session, inserted.job_id)
+    return inserted.session_id
+
+
+def map_now(db: Database, map_id: int) -> maps.MapInfo:
+    with db.read() as db_session:
+        return maps.get_map(db_session, map_id)
+
+
+def build_jobs(db: Database, map_id: int) -> list[queue.JobInfo]:
+    with db.read() as db_session:
+        return queue.jobs_of_map(db_session, map_id, kind="build_map")
+
+
+def test_a_rebuild_overtaken_by_an_add_stores_no_version(db: Database) -> None:
+    """The finding: a rebuild runs; a session is added and its build stores v2 from both walks;
+    then the older rebuild reaches its store. It used to store v3 from one walk, which became
+    current while the map listed both."""
+    map_id = built_map(db)
+    added = another_walk(db)
+    with db.transaction() as db_session:
+        rebuild = request_build(
+            db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="rebuild requested"
+        )
+
+    def add_and_build_then_store(ctx: JobContext) -> None:
+        with db.transaction() as db_session:
+            add_session_to_map(db_session, map_id, added, max_attempts=3)
+        run_all(db)  # another worker builds the map of both walks: version 2
+        assert map_now(db, map_id).current.number == 2  # type: ignore[union-attr]
+        store(ctx)
+
+    stages = (
+        *BUILD_MAP_STAGES[:-1],
+        Stage(name="store", weight=0.05, run=add_and_build_then_store),
+    )
+    assert worker(db, stages).run_once()
+
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert (info.current.number, info.version_count) == (2, 2)
+    assert info.current.session_ids == info.session_ids == [info.session_id, added]
+    assert info.up_to_date
+    assert info.pending_job_id is None
+    overtaken = get_job(db, rebuild.job_id)
+    assert overtaken.state == JobState.CANCELED
+    assert overtaken.error is not None
+    assert "changed while it was built" in overtaken.error
+    assert "superseded" in overtaken.log_tail
+
+
+def test_a_running_build_is_stopped_by_a_change_and_the_new_set_built(db: Database) -> None:
+    """The same race caught earlier: the change asks the running build to stop (its result
+    could not become current), and the change's own build makes the version."""
+    map_id = built_map(db)
+    added = another_walk(db)
+    with db.transaction() as db_session:
+        rebuild = request_build(db_session, map_id, {}, max_attempts=3, change="rebuild requested")
+    changed: dict[str, Any] = {}
+
+    def add(_ctx: JobContext) -> None:
+        with db.transaction() as db_session:
+            changed["build"] = add_session_to_map(db_session, map_id, added, max_attempts=3)
+
+    stages = list(BUILD_MAP_STAGES)
+    stages.insert(2, Stage(name="add", weight=0.0, run=add))  # after load and tune
+    assert worker(db, tuple(stages)).run_once()
+    assert changed["build"].superseded == (rebuild.job_id,)
+    stopped = get_job(db, rebuild.job_id)
+    assert stopped.state == JobState.CANCELED
+    assert stopped.error == (
+        f"superseded by job {changed['build'].job_id}: session {added} added; "
+        f"generation {changed['build'].generation} builds sessions "
+        f"{map_now(db, map_id).session_ids}"
+    )
+    run_all(db)
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert info.current.number == 2
+    assert info.current.session_ids == info.session_ids
+    assert info.up_to_date
+
+
+def test_adds_while_a_build_is_queued_coalesce_into_it(db: Database) -> None:
+    map_id = built_map(db)
+    walks = [another_walk(db) for _ in range(3)]
+    with db.transaction() as db_session:
+        builds = [add_session_to_map(db_session, map_id, s, max_attempts=3) for s in walks]
+    assert [b.coalesced for b in builds] == [False, True, True]
+    assert len({b.job_id for b in builds}) == 1
+    job = get_job(db, builds[0].job_id)
+    assert job.state == JobState.QUEUED
+    assert job.params["session_ids"] == map_now(db, map_id).session_ids
+    assert job.map_generation == builds[-1].generation
+    assert job.log_tail.count("coalesced: session") == 2
+    info = map_now(db, map_id)
+    assert not info.up_to_date
+    assert info.pending_job_id == job.id
+
+    run_all(db)
+    jobs = build_jobs(db, map_id)
+    assert [j.state for j in jobs] == [JobState.SUCCEEDED, JobState.SUCCEEDED]  # v1, then one
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert info.current.number == 2
+    assert info.current.session_ids == info.session_ids
+    assert len(info.session_ids) == 4
+
+
+def test_adds_while_a_build_runs_queue_one_follow_up(db: Database) -> None:
+    map_id = built_map(db)
+    first, second, third = (another_walk(db) for _ in range(3))
+    with db.transaction() as db_session:
+        running = add_session_to_map(db_session, map_id, first, max_attempts=3)
+    lease = queue.claim(db, worker_id="test", lease_s=30)
+    assert lease is not None
+    assert lease.job_id == running.job_id
+    with db.transaction() as db_session:
+        follow_up = add_session_to_map(db_session, map_id, second, max_attempts=3)
+        again = add_session_to_map(db_session, map_id, third, max_attempts=3)
+    assert (follow_up.coalesced, follow_up.superseded) == (False, (running.job_id,))
+    assert (again.job_id, again.coalesced, again.superseded) == (
+        follow_up.job_id,
+        True,
+        (running.job_id,),
+    )
+    with db.read() as db_session:
+        assert queue.get_job(db_session, running.job_id).cancel_requested
+
+
+def test_a_superseded_build_with_no_build_of_the_new_generation_queues_one(db: Database) -> None:
+    """A generation bumped by something that queued no build (none of the API's changes does
+    that, but a restore or a hand-made change might): the overtaken build queues the build."""
+    map_id = built_map(db)
+
+    def bump_then_store(ctx: JobContext) -> None:
+        with db.transaction() as db_session:
+            maps.lock_maps(db_session, [map_id])
+            maps.bump_generation(db_session, map_id)
+        store(ctx)
+
+    with db.transaction() as db_session:
+        rebuild = request_build(db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="x")
+    stages = (*BUILD_MAP_STAGES[:-1], Stage(name="store", weight=0.05, run=bump_then_store))
+    assert worker(db, stages).run_once()
+    assert get_job(db, rebuild.job_id).state == JobState.CANCELED
+    queued = [j for j in build_jobs(db, map_id) if j.state == JobState.QUEUED]
+    assert len(queued) == 1
+    assert queued[0].params == {"huber_k": 2.0}
+    assert queued[0].map_generation == rebuild.generation + 1
+    run_all(db)
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert info.current.number == 2
+    assert info.up_to_date
+    assert info.current.params["huber_k"] == 2.0
+
+
+def test_tuning_a_map_of_several_sessions_is_refused_before_anything_is_queued(
+    db: Database,
+) -> None:
+    map_id = built_map(db)
+    added = another_walk(db)
+    with db.transaction() as db_session:
+        add_session_to_map(db_session, map_id, added, max_attempts=3)
+    before = build_jobs(db, map_id)
+    with db.transaction() as db_session, pytest.raises(InvalidInput) as refused:
+        request_build(
+            db_session, map_id, {"auto_tune_trials": 1000}, max_attempts=3, change="rebuild"
+        )
+    assert refused.value.field == "auto_tune_trials"
+    assert build_jobs(db, map_id) == before
