@@ -98,14 +98,19 @@ def request_build(
     )
 
 
-def tuning_refused(map_id: int | None, session_count: int) -> InvalidInput:
-    """The 422 of ``auto_tune_trials`` asked for a map of several sessions."""
-    which = "a map" if map_id is None else f"map {map_id}"
+def tuning_refused(map_id: int, session_count: int | None = None) -> InvalidInput:
+    """The 422 of ``auto_tune_trials`` asked for a build of several sessions (``session_count``;
+    None: an upload into map ``map_id``, which then holds it and at least one more)."""
+    built_from = (
+        f"would be built from {session_count} sessions"
+        if session_count is not None
+        else "would be built from its sessions and this one"
+    )
     return InvalidInput(
         "invalid_parameter",
-        f"auto_tune_trials tunes a map of one session; {which} would be built from "
-        f"{session_count} sessions: tune it with a sweep (POST /v1/sweeps), which tunes their "
-        "joint map, then apply the sweep's best parameters",
+        f"auto_tune_trials tunes a map of one session; map {map_id} {built_from}: tune a map "
+        f"of several with a sweep (POST /v1/maps/{map_id}/sweeps), which tunes their joint map, "
+        "then apply its best parameters",
         field="auto_tune_trials",
     )
 

@@ -28,7 +28,7 @@ import hashlib
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from datetime import datetime
 from typing import Any
 
@@ -142,8 +142,10 @@ class MapInfo:
     session_ids: list[int]
     #: bumped by every change of its sessions or a rebuild's parameters (module docstring)
     generation: int = 0
-    #: the queued or running build of this generation (None: none is under way)
-    pending_job_id: int | None = None
+    #: the queued or running build of this generation (None: none is under way); read for one
+    #: map (:func:`get_map`), not for a page of them (:func:`list_maps`: always None), so not
+    #: compared (a map is the same map either way)
+    pending_job_id: int | None = field(default=None, compare=False)
 
     @property
     def up_to_date(self) -> bool:
@@ -678,7 +680,6 @@ def _map_infos(
         .order_by(MapSession.id)
     ).all():
         members.setdefault(map_id, []).append(session_id)
-    pending = _pending_builds(db_session, {row.id: row.generation for row in rows})
     return [
         MapInfo(
             id=row.id,
@@ -691,7 +692,6 @@ def _map_infos(
             image_sha256=image_sha256.get(row.session_id),
             session_ids=members.get(row.id) or [row.session_id],
             generation=row.generation,
-            pending_job_id=pending.get(row.id),
         )
         for row in rows
     ]

@@ -16,6 +16,9 @@ Choices:
   ``POST`` adds one, ``DELETE /{id}/sessions/{session_id}`` takes one out, ``POST /{id}/merge``
   merges another map in. Each change queues the rebuild that makes the version of the new set
   (202, like a rebuild); the version records exactly which sessions it used.
+- Versions always match their walks (docs/multi-session.md, "Versions and membership"): each
+  change bumps the map's ``generation``; a build stores its version only if it was built for the
+  map's generation; changes in quick succession fold into the one build that has not started.
 """
 
 from __future__ import annotations
@@ -212,10 +215,13 @@ def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> Vers
     "/{map_id}/rebuild",
     status_code=202,
     summary="Rebuild a map",
-    description="Queue a new build of the map's session, optionally with other SLAM "
+    description="Queue a new build of the map's sessions, optionally with other SLAM "
     "parameters (any SlamParams field; unknown names and out-of-range values are a 422 naming "
-    "the parameter). The new version becomes current when the job succeeds; the raw session is "
-    "never modified (admin).",
+    "the parameter) or other sessions (which become the map's). A build of the map queued "
+    "before and not started yet takes the request instead (`coalesced`); a running one is "
+    "asked to stop (`superseded_job_ids`): only a build of the map's current sessions and "
+    "parameters stores a version. `auto_tune_trials` on a map of several sessions is a 422. "
+    "The raw sessions are never modified (admin).",
     responses=error_responses(401, 403, 404, 422),
 )
 def rebuild_map(

@@ -179,7 +179,8 @@ def upload_session(
             ge=0,
             le=1000,
             description="tune the noise variances by the shift metric with this many sampler "
-            "trials before building (0: the default parameters)",
+            "trials before building (0: the default parameters); a map of one session only, so "
+            "with into_map a 422",
         ),
     ] = 0,
     into_map: Annotated[
@@ -196,7 +197,7 @@ def upload_session(
     if into_map is not None:
         admin_principal(principal)  # 403 for a device key
         if auto_tune_trials:  # refused at the door, never a build that drops or fails it
-            raise tuning_refused(into_map, 2)
+            raise tuning_refused(into_map)
     if not principal.is_admin and auto_tune_trials > settings.device_max_auto_tune_trials:
         raise ApiError(
             422,

@@ -176,6 +176,11 @@ _MAP_EXAMPLE: dict[str, Any] = {
     "latest_job": {"id": 31, "kind": "build_map", "state": "succeeded"},
 }
 
+#: A map in a list: no pending build (read for one map only) and no newest job.
+_SUMMARY_EXAMPLE = {
+    k: v for k, v in _MAP_EXAMPLE.items() if k not in ("pending_job_id", "latest_job")
+}
+
 GENERATION_DESCRIPTION = (
     "bumped by every change of what the map is built from (a session added, taken out or merged "
     "in; a rebuild); only a build of the map's generation stores a version"
@@ -212,7 +217,12 @@ class MapUpdate(BaseModel):
 class MapSummary(BaseModel):
     """A map in a list: its current version without tags (null until the first build)."""
 
-    model_config = examples({**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE})
+    model_config = examples(
+        {
+            **_SUMMARY_EXAMPLE,
+            "current_version": _VERSION_EXAMPLE,
+        }
+    )
 
     id: int
     name: str = Field(description="the session's map_id")
@@ -226,7 +236,6 @@ class MapSummary(BaseModel):
     version_count: int
     generation: int = Field(description=GENERATION_DESCRIPTION)
     up_to_date: bool = Field(description=UP_TO_DATE_DESCRIPTION)
-    pending_job_id: int | None = Field(description=PENDING_JOB_DESCRIPTION)
     current_version: VersionSummary | None
 
     @classmethod
@@ -242,7 +251,6 @@ class MapSummary(BaseModel):
             version_count=info.version_count,
             generation=info.generation,
             up_to_date=info.up_to_date,
-            pending_job_id=info.pending_job_id,
             current_version=VersionSummary.model_validate(info.current) if info.current else None,
         )
 
@@ -305,7 +313,7 @@ class MapsPublic(BaseModel):
 
     model_config = examples(
         {
-            "data": [{**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE}],
+            "data": [{**_SUMMARY_EXAMPLE, "current_version": _VERSION_EXAMPLE}],
             "count": 1,
             "limit": 50,
             "offset": 0,
@@ -341,7 +349,8 @@ class RebuildRequest(BaseModel):
         ge=0,
         le=1000,
         description="first choose the noise variances by the shift metric with this many "
-        "sampler trials (0: use the parameters as given)",
+        "sampler trials (0: use the parameters as given); a map of one session only: for a map "
+        "of several it is a 422 naming this field (tune those with a sweep)",
     )
     session_ids: list[int] | None = Field(
         default=None,
