@@ -162,7 +162,10 @@ def sessions_of(db: Database, map_id: int) -> list[int]:
         return maps.map_session_ids(db_session, map_id)
 
 
-def test_two_removes_at_once_keep_the_last_session(db: Database) -> None:
+def test_racing_changes_of_a_maps_sessions_answer_409_and_keep_the_last_session(
+    db: Database,
+) -> None:
+    # two removes at once of a map's two sessions: the second finds the last session
     map_id, (first, second) = a_map_of(db, 2)
     outcome = race(
         db,
@@ -172,9 +175,7 @@ def test_two_removes_at_once_keep_the_last_session(db: Database) -> None:
     assert answer(outcome) == (409, "last_session")
     assert sessions_of(db, map_id) == [second]
 
-
-def test_the_same_session_added_twice_at_once_is_one_add(db: Database) -> None:
-    map_id, _ = a_map_of(db, 1)
+    # the same session added twice at once: one add
     other = insert_session(db, session_bytes("pgt_tester3")).session_id
     outcome = race(
         db,
@@ -182,10 +183,21 @@ def test_the_same_session_added_twice_at_once_is_one_add(db: Database) -> None:
         lambda s: add_session_to_map(s, map_id, other, max_attempts=3),
     )
     assert answer(outcome) == (409, "already_in_map")
-    assert sessions_of(db, map_id)[-1] == other
+    assert sessions_of(db, map_id) == [second, other]
+
+    # a remove racing an add of another session: both changes made
+    third = insert_session(db, session_bytes("pgt_tester3")).session_id
+    outcome = race(
+        db,
+        lambda s: remove_session_from_map(s, map_id, second, max_attempts=3),
+        lambda s: add_session_to_map(s, map_id, third, max_attempts=3),
+    )
+    assert "error" not in outcome, outcome
+    assert sessions_of(db, map_id) == [other, third]
 
 
-def test_merges_both_ways_at_once_merge_once(db: Database) -> None:
+def test_merges_and_deletes_racing_changes_answer_404(db: Database) -> None:
+    # merges both ways at once: one merge, then the other map is gone
     a, _ = a_map_of(db, 1)
     b, _ = a_map_of(db, 1)
     outcome = race(
@@ -198,50 +210,30 @@ def test_merges_both_ways_at_once_merge_once(db: Database) -> None:
     with db.read() as db_session, pytest.raises(MapNotFound):
         maps.get_map(db_session, b)
 
-
-def test_a_merge_racing_a_delete_of_the_merged_map_is_not_found(db: Database) -> None:
-    a, _ = a_map_of(db, 1)
-    b, _ = a_map_of(db, 1)
+    # a merge racing a delete of the map merged in
+    c, _ = a_map_of(db, 1)
     outcome = race(
         db,
-        lambda s: delete_map_and_jobs(s, b),
-        lambda s: merge_maps(s, a, b, max_attempts=3),
+        lambda s: delete_map_and_jobs(s, c),
+        lambda s: merge_maps(s, a, c, max_attempts=3),
     )
     assert answer(outcome) == (404, "not_found")
-    assert len(sessions_of(db, a)) == 1
+    assert len(sessions_of(db, a)) == 2
 
-
-def test_an_add_racing_a_delete_of_the_map_is_not_found(db: Database) -> None:
-    map_id, _ = a_map_of(db, 1)
+    # an add racing a delete of the map, either way round
     other = insert_session(db, session_bytes("pgt_tester3")).session_id
     outcome = race(
         db,
-        lambda s: delete_map_and_jobs(s, map_id),
-        lambda s: add_session_to_map(s, map_id, other, max_attempts=3),
-    )
-    assert answer(outcome) == (404, "not_found")
-
-
-def test_a_delete_racing_an_add_deletes_it_all(db: Database) -> None:
-    map_id, _ = a_map_of(db, 1)
-    other = insert_session(db, session_bytes("pgt_tester3")).session_id
-    outcome = race(
-        db,
-        lambda s: add_session_to_map(s, map_id, other, max_attempts=3),
-        lambda s: delete_map_and_jobs(s, map_id),
+        lambda s: add_session_to_map(s, a, other, max_attempts=3),
+        lambda s: delete_map_and_jobs(s, a),
     )
     assert outcome == {"value": None}
     with db.read() as db_session, pytest.raises(MapNotFound):
-        maps.get_map(db_session, map_id)
-
-
-def test_a_remove_racing_an_add_keeps_both_changes(db: Database) -> None:
-    map_id, (first, second) = a_map_of(db, 2)
-    third = insert_session(db, session_bytes("pgt_tester3")).session_id
+        maps.get_map(db_session, a)
+    d, _ = a_map_of(db, 1)
     outcome = race(
         db,
-        lambda s: remove_session_from_map(s, map_id, first, max_attempts=3),
-        lambda s: add_session_to_map(s, map_id, third, max_attempts=3),
+        lambda s: delete_map_and_jobs(s, d),
+        lambda s: add_session_to_map(s, d, other, max_attempts=3),
     )
-    assert "error" not in outcome, outcome
-    assert sessions_of(db, map_id) == [second, third]
+    assert answer(outcome) == (404, "not_found")

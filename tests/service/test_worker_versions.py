@@ -138,11 +138,14 @@ def test_a_running_build_is_stopped_by_a_change_and_the_new_set_built(db: Databa
     assert info.up_to_date
 
 
-def test_adds_while_a_build_is_queued_coalesce_into_it(db: Database) -> None:
+def test_changes_coalesce_into_one_build_and_tuning_several_sessions_is_refused(
+    db: Database,
+) -> None:
     map_id = built_map(db)
-    walks = [another_walk(db) for _ in range(3)]
+    walks = [another_walk(db) for _ in range(5)]
+    # adds while a build is queued fold into it
     with db.transaction() as db_session:
-        builds = [add_session_to_map(db_session, map_id, s, max_attempts=3) for s in walks]
+        builds = [add_session_to_map(db_session, map_id, s, max_attempts=3) for s in walks[:3]]
     assert [b.coalesced for b in builds] == [False, True, True]
     assert len({b.job_id for b in builds}) == 1
     job = get_job(db, builds[0].job_id)
@@ -154,35 +157,33 @@ def test_adds_while_a_build_is_queued_coalesce_into_it(db: Database) -> None:
     assert not info.up_to_date
     assert info.pending_job_id == job.id
 
-    run_all(db)
-    jobs = build_jobs(db, map_id)
-    assert [j.state for j in jobs] == [JobState.SUCCEEDED, JobState.SUCCEEDED]  # v1, then one
-    info = map_now(db, map_id)
-    assert info.current is not None
-    assert info.current.number == 2
-    assert info.current.session_ids == info.session_ids
-    assert len(info.session_ids) == 4
+    # tuning a map of several sessions: refused, nothing queued or changed
+    with db.transaction() as db_session, pytest.raises(InvalidInput) as refused:
+        request_build(
+            db_session, map_id, {"auto_tune_trials": 1000}, max_attempts=3, change="rebuild"
+        )
+    assert refused.value.field == "auto_tune_trials"
+    assert get_job(db, job.id) == job
 
-
-def test_adds_while_a_build_runs_queue_one_follow_up(db: Database) -> None:
-    map_id = built_map(db)
-    first, second, third = (another_walk(db) for _ in range(3))
-    with db.transaction() as db_session:
-        running = add_session_to_map(db_session, map_id, first, max_attempts=3)
+    # adds while it runs: it is asked to stop, one follow-up takes them all
     lease = queue.claim(db, worker_id="test", lease_s=30)
     assert lease is not None
-    assert lease.job_id == running.job_id
+    assert lease.job_id == job.id
     with db.transaction() as db_session:
-        follow_up = add_session_to_map(db_session, map_id, second, max_attempts=3)
-        again = add_session_to_map(db_session, map_id, third, max_attempts=3)
-    assert (follow_up.coalesced, follow_up.superseded) == (False, (running.job_id,))
-    assert (again.job_id, again.coalesced, again.superseded) == (
-        follow_up.job_id,
-        True,
-        (running.job_id,),
-    )
-    with db.read() as db_session:
-        assert queue.get_job(db_session, running.job_id).cancel_requested
+        follow_up = add_session_to_map(db_session, map_id, walks[3], max_attempts=3)
+        again = add_session_to_map(db_session, map_id, walks[4], max_attempts=3)
+    assert (follow_up.coalesced, follow_up.superseded) == (False, (job.id,))
+    assert (again.job_id, again.coalesced) == (follow_up.job_id, True)
+    assert get_job(db, job.id).cancel_requested
+
+    run_all(db)
+    assert get_job(db, follow_up.job_id).state == JobState.SUCCEEDED
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert info.current.number == 2  # one build of all six walks, not five
+    assert info.current.session_ids == info.session_ids
+    assert len(info.session_ids) == 6
+    assert info.up_to_date
 
 
 def test_a_superseded_build_with_no_build_of_the_new_generation_queues_one(db: Database) -> None:
@@ -211,19 +212,3 @@ def test_a_superseded_build_with_no_build_of_the_new_generation_queues_one(db: D
     assert info.current.number == 2
     assert info.up_to_date
     assert info.current.params["huber_k"] == 2.0
-
-
-def test_tuning_a_map_of_several_sessions_is_refused_before_anything_is_queued(
-    db: Database,
-) -> None:
-    map_id = built_map(db)
-    added = another_walk(db)
-    with db.transaction() as db_session:
-        add_session_to_map(db_session, map_id, added, max_attempts=3)
-    before = build_jobs(db, map_id)
-    with db.transaction() as db_session, pytest.raises(InvalidInput) as refused:
-        request_build(
-            db_session, map_id, {"auto_tune_trials": 1000}, max_attempts=3, change="rebuild"
-        )
-    assert refused.value.field == "auto_tune_trials"
-    assert build_jobs(db, map_id) == before
