@@ -27,7 +27,7 @@ from app.storage.db import Database
 from app.storage.images import MapImage, StoredImage
 from app.storage.maps import BUILD_MAP, MapInfo, TagPose, VersionInfo
 from app.storage.navigation import path_graph_document
-from app.storage.orm import TERMINAL_STATES, MapRow
+from app.storage.orm import TERMINAL_STATES, JobState, MapRow
 from app.storage.queue import JobInfo
 from app.storage.sessions import AUTO_TUNE_TRIALS, SESSION_IDS
 
@@ -46,12 +46,14 @@ class BuildQueued:
     #: running builds asked to stop (and older queued ones canceled): their result would not
     #: have been of the map's current sessions and parameters
     superseded: tuple[int, ...]
+    #: the parameter overrides the job builds with
+    params: dict[str, Any]
 
 
 def request_build(
     db_session: Session,
     map_id: int,
-    overrides: dict[str, Any],
+    overrides: dict[str, Any] | None,
     *,
     max_attempts: int,
     change: str,
@@ -61,6 +63,10 @@ def request_build(
     caller's transaction: bump its generation and have one build of its current sessions with
     ``overrides`` (already checked, see :func:`checked_overrides`) under way — a queued build
     absorbs it, a running one is superseded (``app.storage.queue.enqueue_coalesced``).
+    ``overrides`` None (a change of sessions): the map's parameters as they stand
+    (:func:`map_parameters`), so a change folded into a rebuild not yet built keeps its
+    parameters; ``auto_tune_trials`` among them is dropped, with a line in the job's log, once
+    the map has several sessions.
     ``session_ids``: build from these (an older version's, to make it again; checked by
     :func:`checked_session_ids`); they become the map's sessions, since only a version of the
     map's own sessions can be current. A 422 naming ``auto_tune_trials`` when the build would be
@@ -72,6 +78,13 @@ def request_build(
         maps.set_sessions(db_session, map_id, session_ids)
     info = maps.get_map(db_session, map_id)
     ids = list(info.session_ids)
+    if overrides is None:
+        overrides = map_parameters(db_session, info)
+        if overrides.get(AUTO_TUNE_TRIALS) and len(ids) > 1:
+            change += (
+                f" (its {AUTO_TUNE_TRIALS}={overrides.pop(AUTO_TUNE_TRIALS)} dropped: "
+                f"it tunes a map of one session)"
+            )
     if overrides.get(AUTO_TUNE_TRIALS) and len(ids) > 1:
         raise tuning_refused(map_id, len(ids))
     generation = maps.bump_generation(db_session, map_id)
@@ -95,7 +108,20 @@ def request_build(
         generation=generation,
         coalesced=done.coalesced,
         superseded=done.superseded,
+        params=dict(overrides),
     )
+
+
+def map_parameters(db_session: Session, info: MapInfo) -> dict[str, Any]:
+    """The parameter overrides map ``info`` is being built with: those of its newest queued or
+    running build (a rebuild asked for and not built yet), else its current version's
+    (:func:`current_overrides`)."""
+    pending = queue.jobs_of_map(
+        db_session, info.id, kind=BUILD_MAP, states=(JobState.QUEUED, JobState.RUNNING)
+    )
+    if pending:
+        return {name: v for name, v in pending[-1].params.items() if name != SESSION_IDS}
+    return current_overrides(info)
 
 
 def tuning_refused(map_id: int, session_count: int | None = None) -> InvalidInput:
@@ -177,13 +203,8 @@ def add_session_to_map(
         maps.add_session(db_session, map_id, session_id)
     except maps.MapMembershipError as err:
         raise Conflict(err.code, str(err)) from err
-    info = maps.get_map(db_session, map_id)
     return request_build(
-        db_session,
-        map_id,
-        current_overrides(info),
-        max_attempts=max_attempts,
-        change=f"session {session_id} added",
+        db_session, map_id, None, max_attempts=max_attempts, change=f"session {session_id} added"
     )
 
 
@@ -198,11 +219,10 @@ def remove_session_from_map(
         if err.code == "not_in_map":
             raise NotFound(err.code, str(err)) from err
         raise Conflict(err.code, str(err)) from err
-    info = maps.get_map(db_session, map_id)
     return request_build(
         db_session,
         map_id,
-        current_overrides(info),
+        None,
         max_attempts=max_attempts,
         change=f"session {session_id} taken out",
     )
@@ -226,13 +246,8 @@ def merge_maps(
             maps.add_session(db_session, map_id, session_id)
             ids.append(session_id)
     delete_map_and_jobs(db_session, other_map_id)
-    info = maps.get_map(db_session, map_id)
     return request_build(
-        db_session,
-        map_id,
-        current_overrides(info),
-        max_attempts=max_attempts,
-        change=f"map {other_map_id} merged in",
+        db_session, map_id, None, max_attempts=max_attempts, change=f"map {other_map_id} merged in"
     )
 
 

@@ -143,16 +143,26 @@ def test_changes_coalesce_into_one_build_and_tuning_several_sessions_is_refused(
 ) -> None:
     map_id = built_map(db)
     walks = [another_walk(db) for _ in range(5)]
-    # adds while a build is queued fold into it
+    # a rebuild of the one-session map, tuned; then adds while it is queued fold into it,
+    # keeping its parameters but the tuning (a map of several sessions is not tuned)
     with db.transaction() as db_session:
+        rebuild = request_build(
+            db_session,
+            map_id,
+            {"huber_k": 2.0, "auto_tune_trials": 5},
+            max_attempts=3,
+            change="rebuild requested",
+        )
         builds = [add_session_to_map(db_session, map_id, s, max_attempts=3) for s in walks[:3]]
-    assert [b.coalesced for b in builds] == [False, True, True]
-    assert len({b.job_id for b in builds}) == 1
-    job = get_job(db, builds[0].job_id)
+    assert [b.coalesced for b in builds] == [True, True, True]
+    assert {b.job_id for b in builds} == {rebuild.job_id}
+    assert [b.params for b in builds] == [{"huber_k": 2.0}] * 3
+    job = get_job(db, rebuild.job_id)
     assert job.state == JobState.QUEUED
-    assert job.params["session_ids"] == map_now(db, map_id).session_ids
+    assert job.params == {"huber_k": 2.0, "session_ids": map_now(db, map_id).session_ids}
     assert job.map_generation == builds[-1].generation
-    assert job.log_tail.count("coalesced: session") == 2
+    assert job.log_tail.count("coalesced: session") == 3
+    assert "auto_tune_trials=5 dropped: it tunes a map of one session" in job.log_tail
     info = map_now(db, map_id)
     assert not info.up_to_date
     assert info.pending_job_id == job.id
@@ -184,6 +194,7 @@ def test_changes_coalesce_into_one_build_and_tuning_several_sessions_is_refused(
     assert info.current.session_ids == info.session_ids
     assert len(info.session_ids) == 6
     assert info.up_to_date
+    assert info.current.params["huber_k"] == 2.0
 
 
 def test_a_superseded_build_with_no_build_of_the_new_generation_queues_one(db: Database) -> None:

@@ -55,7 +55,6 @@ from app.services.maps import (
     checked_overrides,
     checked_session_ids,
     chosen_version,
-    current_overrides,
     current_version,
     delete_map_and_jobs,
     merge_maps,
@@ -341,7 +340,7 @@ def merge_map(
 
 
 def _accepted(response: Response, build: BuildQueued) -> RebuildAccepted:
-    accepted = RebuildAccepted.from_build(build, current_overrides(build.info))
+    accepted = RebuildAccepted.from_build(build, build.params)
     response.headers["Location"] = accepted.job_url
     return accepted
 

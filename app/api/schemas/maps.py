@@ -413,7 +413,12 @@ class RebuildAccepted(BaseModel):
         with ``params``, where what it replaced is not known (a sweep's apply)."""
         return cls.from_build(
             BuildQueued(
-                info=info, job_id=job_id, generation=info.generation, coalesced=False, superseded=()
+                info=info,
+                job_id=job_id,
+                generation=info.generation,
+                coalesced=False,
+                superseded=(),
+                params=params,
             ),
             params,
         )
