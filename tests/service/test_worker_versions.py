@@ -107,12 +107,15 @@ def test_a_rebuild_overtaken_by_an_add_stores_no_version(db: Database) -> None:
 
 
 def test_a_running_build_is_stopped_by_a_change_and_the_new_set_built(db: Database) -> None:
-    """The same race caught earlier: the change asks the running build to stop (its result
-    could not become current), and the change's own build makes the version."""
+    """The finding's race caught earlier: a rebuild with auto_tune_trials runs; a session is
+    added, which asks the running build to stop (its result could not become current) before
+    its trials; the add's own build makes the version of both walks."""
     map_id = built_map(db)
     added = another_walk(db)
     with db.transaction() as db_session:
-        rebuild = request_build(db_session, map_id, {}, max_attempts=3, change="rebuild requested")
+        rebuild = request_build(
+            db_session, map_id, {"auto_tune_trials": 20}, max_attempts=3, change="tune it"
+        )
     changed: dict[str, Any] = {}
 
     def add(_ctx: JobContext) -> None:
@@ -120,13 +123,14 @@ def test_a_running_build_is_stopped_by_a_change_and_the_new_set_built(db: Databa
             changed["build"] = add_session_to_map(db_session, map_id, added, max_attempts=3)
 
     stages = list(BUILD_MAP_STAGES)
-    stages.insert(2, Stage(name="add", weight=0.0, run=add))  # after load and tune
+    stages.insert(1, Stage(name="add", weight=0.0, run=add))  # after load, before tune
     assert worker(db, tuple(stages)).run_once()
     assert changed["build"].superseded == (rebuild.job_id,)
     stopped = get_job(db, rebuild.job_id)
     assert stopped.state == JobState.CANCELED
     assert stopped.error == (
-        f"superseded by job {changed['build'].job_id}: session {added} added; "
+        f"superseded by job {changed['build'].job_id}: session {added} added (its "
+        "auto_tune_trials=20 dropped: it tunes a map of one session); "
         f"generation {changed['build'].generation} builds sessions "
         f"{map_now(db, map_id).session_ids}"
     )
