@@ -572,7 +572,12 @@ def store(ctx: JobContext) -> None:
     transaction rolls back, if the lease is gone) and add the map version that refers to the
     blobs. So the build's write lock (SQLite's only one) is held
     for milliseconds, not for the seconds the bulk data takes (issue 19, finding 4). Afterwards,
-    blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected."""
+    blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected.
+
+    The version is stored only if the map is still at the generation the build was queued for
+    (``maps.generation_for_store``, under the map's lock, first thing in that transaction); a
+    build overtaken by a change of the map is superseded instead (:func:`_supersede`), and if
+    that is already known before the bulk data is written, none is written."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
