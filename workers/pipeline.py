@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from sqlalchemy.exc import DataError
+from sqlalchemy.orm import Session as DbSession
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation.metrics import joint_shift_metric
@@ -114,6 +115,8 @@ class Outcome(enum.StrEnum):
 
     #: the result is stored and the job is ``succeeded``
     SUCCEEDED = "succeeded"
+    #: the map changed while it was built: the result is not stored and the job is ``canceled``
+    SUPERSEDED = "superseded"
     #: a transient error; the job is ``queued`` again, after a back-off
     RETRYING = "retrying"
     #: a permanent error, or the last attempt's transient one; the job is ``failed``
@@ -170,8 +173,16 @@ class JobContext:
     tuning_target: TuningTarget | None = None
     trials: list[Trial] | None = None
     version: VersionInfo | None = None
-    #: set by the stage that committed the job as succeeded (``queue.finish``)
+    #: the map's generation the build was queued for (``lease.map_generation``): its version is
+    #: stored only while it is still the map's (:func:`store`)
+    map_generation: int = 0
+    #: the map's current version when the build started (None: none yet): where a warm start
+    #: would start from (:func:`previous_optimum`)
+    previous_version: VersionInfo | None = None
+    #: set by the stage that committed the job as succeeded (``queue.finish``), or as
+    #: superseded (``superseded`` then)
     finished: bool = False
+    superseded: bool = False
     stage: str = ""
     stage_start: float = 0.0
     stage_weight: float = 0.0
@@ -264,6 +275,8 @@ def load(ctx: JobContext) -> None:
     if lease.session_id is None or lease.map_id is None:
         raise PermanentJobError(f"a {lease.kind} job needs a session and a map")
     overrides = dict(lease.params)
+    ctx.map_generation = lease.map_generation
+    ctx.previous_version = _current_version(ctx.db, lease.map_id)
     ctx.auto_tune_trials = _auto_tune_trials(overrides.pop(AUTO_TUNE_TRIALS, 0))
     ctx.session_ids = _session_ids(overrides.pop(SESSION_IDS, None), lease.session_id)
     ctx.params = SlamParams().with_overrides(overrides)
@@ -286,6 +299,29 @@ def load(ctx: JobContext) -> None:
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {size_bytes / 1e6:.2f} MB"
     )
+
+
+def _current_version(db: Database, map_id: int) -> VersionInfo | None:
+    """The map's current version (its metadata), None without one or without the map."""
+    try:
+        with db.read() as tx:
+            return maps.get_map(tx, map_id).current
+    except maps.MapNotFound:
+        return None
+
+
+def previous_optimum(ctx: JobContext) -> MapResult | None:
+    """The map's version when the build started (``ctx.previous_version``), read back as a
+    ``MapResult``: the seam for a warm start of the joint optimization from the previous optimum
+    (issue 25, item 5; the domain side is not written yet, so nothing calls this). None without
+    a previous version. Its ``session_ids`` say which sessions it holds: those it shares with
+    ``ctx.session_ids`` can start from it, a new one from its alignment."""
+    version = ctx.previous_version
+    if version is None:
+        return None
+    with ctx.db.read() as tx:
+        document = maps.map_document(tx, version.map_id, version.number)
+    return map_from_json(document)
 
 
 def _session_ids(value: Any, session_id: int) -> list[int]:
@@ -402,6 +438,8 @@ def _optimize_joint(ctx: JobContext) -> None:
     cannot place fails the job with the reason (AlignmentError is an InvisibleMapError)."""
     started_s = time.perf_counter()
     names = [f"session {session_id}" for session_id in ctx.session_ids]
+    # warm start (issue 25): once optimize_sessions takes a starting point, pass it
+    # previous_optimum(ctx) here (ctx.previous_version says which sessions it holds)
     joint = optimize_sessions(ctx.sessions, _need(ctx.params, "params"), names=names)
     ctx.joint, ctx.result, ctx.session = joint, joint.map, joint.combined
     stats = joint.map.stats
@@ -534,10 +572,23 @@ def store(ctx: JobContext) -> None:
     transaction rolls back, if the lease is gone) and add the map version that refers to the
     blobs. So the build's write lock (SQLite's only one) is held
     for milliseconds, not for the seconds the bulk data takes (issue 19, finding 4). Afterwards,
-    blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected."""
+    blobs nobody refers to for an hour (a failed attempt's, a deleted map's) are collected.
+
+    The version is stored only if the map is still at the generation the build was queued for
+    (``maps.generation_for_store``, under the map's lock, first thing in that transaction); a
+    build overtaken by a change of the map is superseded instead (:func:`_supersede`), and if
+    that is already known before the bulk data is written, none is written."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
     map_id = _need(ctx.lease.map_id, "map_id")
+    with ctx.db.read() as tx:  # overtaken already: write no bulk data for nothing
+        seen = maps.map_generation(tx, map_id)
+    if seen is not None and seen != ctx.map_generation:
+        with ctx.db.transaction() as tx:
+            generation = maps.generation_for_store(tx, map_id)
+            if generation is not None and generation != ctx.map_generation:
+                _supersede(ctx, tx, map_id, generation)
+                return
     document = map_to_json(result)
     derived: maps.DerivedDocuments | None
     try:
@@ -561,6 +612,11 @@ def store(ctx: JobContext) -> None:
     )
     ctx.report(0.9)
     with ctx.db.transaction() as tx:
+        # the map first, then the job: the order every change of the map takes
+        now = maps.generation_for_store(tx, map_id)
+        if now is not None and now != ctx.map_generation:
+            _supersede(ctx, tx, map_id, now)
+            return
         queue.finish(tx, ctx.lease, log_tail=ctx.log_tail)
         ctx.version = maps.store_version(
             tx,
@@ -576,6 +632,7 @@ def store(ctx: JobContext) -> None:
             session_ids=ctx.session_ids,
             sessions=_session_contributions(ctx),
             bulk=bulk,
+            generation=ctx.map_generation,
         )
     ctx.finished = True
     try:
@@ -585,6 +642,50 @@ def store(ctx: JobContext) -> None:
     else:
         if collected:
             logger.info("job %d: %d orphan blobs collected", ctx.lease.job_id, collected)
+
+
+def _supersede(ctx: JobContext, tx: DbSession, map_id: int, generation: int) -> None:
+    """End the build without storing its version: map ``map_id`` changed while it was built
+    (its generation is ``generation`` now, the build's ``ctx.map_generation``), so its result is
+    not of the map's current sessions and parameters. (Dropped, not kept as a version: the
+    newest version is the current one everywhere — the API, the app-map, localization — and a
+    version of an old set can be made again by a rebuild with its ``session_ids``.) The build of
+    the current generation is the change's own job; only if there is none at all (nothing else
+    makes one) is one queued here, from the map's sessions with this build's parameters."""
+    jobs = [
+        job
+        for job in queue.jobs_of_map(tx, map_id, kind=BUILD_MAP)
+        if (job.map_generation or 0) == generation
+    ]
+    if jobs:
+        follow_up = jobs[-1]
+        builds = f"job {follow_up.id} ({follow_up.state}) builds"
+    else:
+        overrides = {
+            name: value
+            for name, value in ctx.lease.params.items()
+            if name not in (SESSION_IDS, AUTO_TUNE_TRIALS)
+        }
+        ids = maps.map_session_ids(tx, map_id)
+        params = dict(overrides)
+        if len(ids) > 1:
+            params[SESSION_IDS] = ids
+        job_id = queue.enqueue(
+            tx,
+            kind=BUILD_MAP,
+            map_id=map_id,
+            session_id=ids[0],
+            params=params,
+            max_attempts=ctx.lease.max_attempts,
+            map_generation=generation,
+        )
+        builds = f"job {job_id} (queued now) builds"
+    reason = (
+        f"map {map_id} changed while it was built (generation {ctx.map_generation} → "
+        f"{generation}); its version is not stored: {builds} the map's current sessions"
+    )
+    queue.supersede(tx, ctx.lease, reason=reason, log_tail=ctx.log_tail)
+    ctx.finished = ctx.superseded = True
 
 
 BUILD_MAP_STAGES: tuple[Stage, ...] = (
@@ -698,7 +799,7 @@ def run_job(
                 return ended(Outcome.CANCELED)
             retrying(functools.partial(stage.run, ctx), f"stage {stage.name}")
             if ctx.finished:
-                return ended(Outcome.SUCCEEDED)
+                return ended(Outcome.SUPERSEDED if ctx.superseded else Outcome.SUCCEEDED)
             done_weight += stage.weight
         raise PermanentJobError(f"the {lease.kind} pipeline ended without storing a result")
     except LeaseLost:

@@ -13,7 +13,6 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.domain.errors import ParameterError
@@ -26,11 +25,120 @@ from app.storage import images, maps, queue, sessions
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
 from app.storage.images import MapImage, StoredImage
-from app.storage.maps import MapInfo, TagPose, VersionInfo
+from app.storage.maps import BUILD_MAP, MapInfo, TagPose, VersionInfo
 from app.storage.navigation import path_graph_document
-from app.storage.orm import TERMINAL_STATES, MapRow
+from app.storage.orm import TERMINAL_STATES, JobState, MapRow
 from app.storage.queue import JobInfo
-from app.storage.sessions import BUILD_MAP, SESSION_IDS
+from app.storage.sessions import AUTO_TUNE_TRIALS, SESSION_IDS
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BuildQueued:
+    """What a change of a map (a rebuild, a session added, taken out or merged in) queued: the
+    map after it, the job that builds its new generation, and what that job replaced."""
+
+    info: MapInfo
+    job_id: int
+    #: the map's generation the job builds (``app.storage.maps.bump_generation``)
+    generation: int
+    #: the change was folded into job ``job_id``, queued before and not started yet
+    coalesced: bool
+    #: running builds asked to stop (and older queued ones canceled): their result would not
+    #: have been of the map's current sessions and parameters
+    superseded: tuple[int, ...]
+    #: the parameter overrides the job builds with
+    params: dict[str, Any]
+
+
+def request_build(
+    db_session: Session,
+    map_id: int,
+    overrides: dict[str, Any] | None,
+    *,
+    max_attempts: int,
+    change: str,
+    session_ids: list[int] | None = None,
+) -> BuildQueued:
+    """After a change of map ``map_id`` (``change`` says which, for the job's log), in the
+    caller's transaction: bump its generation and have one build of its current sessions with
+    ``overrides`` (already checked, see :func:`checked_overrides`) under way — a queued build
+    absorbs it, a running one is superseded (``app.storage.queue.enqueue_coalesced``).
+    ``overrides`` None (a change of sessions): the map's parameters as they stand
+    (:func:`map_parameters`), so a change folded into a rebuild not yet built keeps its
+    parameters; ``auto_tune_trials`` among them is dropped, with a line in the job's log, once
+    the map has several sessions.
+    ``session_ids``: build from these (an older version's, to make it again; checked by
+    :func:`checked_session_ids`); they become the map's sessions, since only a version of the
+    map's own sessions can be current. A 422 naming ``auto_tune_trials`` when the build would be
+    of several sessions (tuning a map of several walks is not supported: a sweep tunes one).
+    Raises MapNotFound, also when a delete of the map commits meanwhile (the map row is locked
+    first, so a delete waits for this transaction, or this one for the delete)."""
+    maps.lock_maps(db_session, [map_id])
+    if session_ids is not None:
+        maps.set_sessions(db_session, map_id, session_ids)
+    info = maps.get_map(db_session, map_id)
+    ids = list(info.session_ids)
+    if overrides is None:
+        overrides = map_parameters(db_session, info)
+        if overrides.get(AUTO_TUNE_TRIALS) and len(ids) > 1:
+            change += (
+                f" (its {AUTO_TUNE_TRIALS}={overrides.pop(AUTO_TUNE_TRIALS)} dropped: "
+                f"it tunes a map of one session)"
+            )
+    if overrides.get(AUTO_TUNE_TRIALS) and len(ids) > 1:
+        raise tuning_refused(map_id, len(ids))
+    generation = maps.bump_generation(db_session, map_id)
+    params = dict(overrides)
+    if len(ids) > 1:
+        params[SESSION_IDS] = ids
+    done = queue.enqueue_coalesced(
+        db_session,
+        kind=BUILD_MAP,
+        map_id=info.id,
+        session_id=ids[0],
+        params=params,
+        map_generation=generation,
+        max_attempts=max_attempts,
+        note=f"{change}; generation {generation} builds sessions {ids}",
+    )
+    info = maps.get_map(db_session, map_id)
+    return BuildQueued(
+        info=info,
+        job_id=done.job_id,
+        generation=generation,
+        coalesced=done.coalesced,
+        superseded=done.superseded,
+        params=dict(overrides),
+    )
+
+
+def map_parameters(db_session: Session, info: MapInfo) -> dict[str, Any]:
+    """The parameter overrides map ``info`` is being built with: those of its newest queued or
+    running build (a rebuild asked for and not built yet), else its current version's
+    (:func:`current_overrides`)."""
+    pending = queue.jobs_of_map(
+        db_session, info.id, kind=BUILD_MAP, states=(JobState.QUEUED, JobState.RUNNING)
+    )
+    if pending:
+        return {name: v for name, v in pending[-1].params.items() if name != SESSION_IDS}
+    return current_overrides(info)
+
+
+def tuning_refused(map_id: int, session_count: int | None = None) -> InvalidInput:
+    """The 422 of ``auto_tune_trials`` asked for a build of several sessions (``session_count``;
+    None: an upload into map ``map_id``, which then holds it and at least one more)."""
+    built_from = (
+        f"would be built from {session_count} sessions"
+        if session_count is not None
+        else "would be built from its sessions and this one"
+    )
+    return InvalidInput(
+        "invalid_parameter",
+        f"auto_tune_trials tunes a map of one session; map {map_id} {built_from}: tune a map "
+        f"of several with a sweep (POST /v1/maps/{map_id}/sweeps), which tunes their joint map, "
+        "then apply its best parameters",
+        field="auto_tune_trials",
+    )
 
 
 def enqueue_rebuild(
@@ -41,28 +149,16 @@ def enqueue_rebuild(
     max_attempts: int,
     session_ids: list[int] | None = None,
 ) -> tuple[MapInfo, int]:
-    """Queue a build of map ``map_id`` with ``overrides`` (already checked, see
-    :func:`checked_overrides`) from its sessions, or from ``session_ids`` (an older version's,
-    to make it again); returns the map and the job's id. Raises MapNotFound, also when a delete
-    of the map commits meanwhile: the map row is share-locked first (PostgreSQL ``FOR KEY
-    SHARE``), so a delete waits for this transaction, or this one for the delete and then finds
-    no map (never a job referring to a deleted map)."""
-    lock_map(db_session, map_id)
-    info = maps.get_map(db_session, map_id)
-    MAP_CHANGES.note(db_session, map_id)  # its newest job changes
-    ids = list(session_ids or info.session_ids)
-    params = dict(overrides)
-    if len(ids) > 1:
-        params[SESSION_IDS] = ids
-    job_id = queue.enqueue(
+    """A rebuild of map ``map_id`` (:func:`request_build`): the map and the build's job id."""
+    queued = request_build(
         db_session,
-        kind=BUILD_MAP,
-        map_id=info.id,
-        session_id=ids[0],
-        params=params,
+        map_id,
+        overrides,
         max_attempts=max_attempts,
+        change="rebuild requested",
+        session_ids=session_ids,
     )
-    return info, job_id
+    return queued.info, queued.job_id
 
 
 def checked_session_ids(db_session: Session, session_ids: list[int]) -> None:
@@ -99,41 +195,50 @@ def current_overrides(info: MapInfo) -> dict[str, Any]:
 
 def add_session_to_map(
     db_session: Session, map_id: int, session_id: int, *, max_attempts: int
-) -> tuple[MapInfo, int]:
-    """Add an uploaded session to a map and queue the rebuild that makes the version of all its
-    sessions; the map and the job id. 404 for no such map or session, 409 ``already_in_map``."""
+) -> BuildQueued:
+    """Add an uploaded session to a map and have the build of all its sessions under way
+    (:func:`request_build`). 404 for no such map or session, 409 ``already_in_map``."""
     sessions.get_session(db_session, session_id)  # SessionNotFound: 404
     try:
         maps.add_session(db_session, map_id, session_id)
     except maps.MapMembershipError as err:
         raise Conflict(err.code, str(err)) from err
-    info = maps.get_map(db_session, map_id)
-    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
+    return request_build(
+        db_session, map_id, None, max_attempts=max_attempts, change=f"session {session_id} added"
+    )
 
 
 def remove_session_from_map(
     db_session: Session, map_id: int, session_id: int, *, max_attempts: int
-) -> tuple[MapInfo, int]:
-    """Take a session out of a map (the upload stays) and queue the rebuild without it. 404 for
-    no such map, 409 ``not_in_map`` or ``last_session``."""
+) -> BuildQueued:
+    """Take a session out of a map (the upload stays) and have the build without it under way.
+    404 for no such map, 409 ``not_in_map`` or ``last_session``."""
     try:
         maps.remove_session(db_session, map_id, session_id)
     except maps.MapMembershipError as err:
         if err.code == "not_in_map":
             raise NotFound(err.code, str(err)) from err
         raise Conflict(err.code, str(err)) from err
-    info = maps.get_map(db_session, map_id)
-    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
+    return request_build(
+        db_session,
+        map_id,
+        None,
+        max_attempts=max_attempts,
+        change=f"session {session_id} taken out",
+    )
 
 
 def merge_maps(
     db_session: Session, map_id: int, other_map_id: int, *, max_attempts: int
-) -> tuple[MapInfo, int]:
+) -> BuildQueued:
     """Merge map ``other_map_id`` into ``map_id``: its sessions join this map's (after them) and
-    it is deleted (its sessions' uploads stay); queues the rebuild of this map. 404 for either
-    map missing, 409 ``same_map`` for a map merged into itself."""
+    it is deleted (its sessions' uploads stay); has the build of this map under way. Both maps
+    are locked first, in ascending id order, so that a merge racing another merge of the same
+    maps (either way), a delete, or a change of their sessions waits for it and then finds what
+    it left: 404 for either map missing, 409 ``same_map`` for a map merged into itself."""
     if map_id == other_map_id:
         raise Conflict("same_map", f"map {map_id} cannot be merged into itself")
+    maps.lock_maps(db_session, [map_id, other_map_id], for_delete=True)
     ids = maps.map_session_ids(db_session, map_id)
     other_ids = maps.map_session_ids(db_session, other_map_id)
     for session_id in other_ids:
@@ -141,16 +246,8 @@ def merge_maps(
             maps.add_session(db_session, map_id, session_id)
             ids.append(session_id)
     delete_map_and_jobs(db_session, other_map_id)
-    info = maps.get_map(db_session, map_id)
-    return enqueue_rebuild(db_session, map_id, current_overrides(info), max_attempts=max_attempts)
-
-
-def lock_map(db_session: Session, map_id: int) -> None:
-    """Share-lock map ``map_id``'s row to the end of the transaction so that it goes on existing
-    (PostgreSQL ``FOR KEY SHARE``: a delete waits; SQLite's writers run one at a time anyway).
-    No row, no lock: the caller's read then says MapNotFound."""
-    db_session.execute(
-        select(MapRow.id).where(MapRow.id == map_id).with_for_update(read=True, key_share=True)
+    return request_build(
+        db_session, map_id, None, max_attempts=max_attempts, change=f"map {other_map_id} merged in"
     )
 
 
@@ -226,10 +323,13 @@ def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
     """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The delete
-    locks the map row, so a rebuild racing it waits for it (:func:`enqueue_rebuild`). (Jobs are
-    updated before the map is locked: a worker storing a version updates its job first, then
-    locks the map, and the other order would deadlock with it.)"""
+    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The map row
+    is locked first (``maps.lock_maps``), then its jobs, the order every change of a map and
+    every build storing into it takes, so none of them deadlocks with it; a rebuild racing it
+    waits for it and then finds no map."""
+    maps.lock_maps(db_session, [map_id], for_delete=True)
+    if db_session.get(MapRow, map_id) is None:
+        raise maps.MapNotFound(map_id)
     queue.cancel_unfinished_for_map(db_session, map_id)
     maps.delete_map(db_session, map_id)
 

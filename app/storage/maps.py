@@ -9,6 +9,15 @@ writes before the small transaction that stores the version (:func:`write_versio
 stored before the blobs hold it in their row. The worker also stores what is derived from a version
 once (``app.domain.formats.derived_documents``: the app's map file and the dashboard's overview) as
 blobs the version refers to (:class:`DerivedDocuments`); older versions have none.
+
+Versions always match their walks (issue 25): every change of what a map's next version is built
+from (a session added, taken out or merged in, a rebuild with other parameters or sessions) bumps
+the map's *generation* (:func:`bump_generation`, under the map row's lock: :func:`lock_maps`),
+a build job carries the generation it was queued for (``job.map_generation``), and
+:func:`store_version` is called only while it is still the map's (:func:`generation_for_store`,
+which takes the same lock), so the newest version is always one of the map's current sessions
+and parameters. Changes of maps lock their rows in ascending id order, so two of them never
+deadlock; a build storing locks its map before its job, as a change does.
 """
 
 from __future__ import annotations
@@ -19,11 +28,11 @@ import hashlib
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Row, delete, func, select, true
+from sqlalchemy import Row, delete, func, select, true, update
 from sqlalchemy.orm import Session, defer
 
 from app.domain.evaluation.metrics import SHIFT_METRIC_VERSION
@@ -35,8 +44,20 @@ from app.domain.upload.session import display_name_of
 from app.storage import blobs
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
-from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
+from app.storage.orm import (
+    Job,
+    JobState,
+    MapRow,
+    MapSession,
+    MapTag,
+    MapVersion,
+    SessionImage,
+    utc_now,
+)
 from app.storage.rows import info_from_row
+
+#: The job kind that turns a map's sessions into a map version.
+BUILD_MAP = "build_map"
 
 #: Load options for a version's metadata without its (large) map document and plot.
 _WITHOUT_BLOBS = (
@@ -92,6 +113,8 @@ class VersionInfo:
     app_map_sha256: str | None = None
     app_map_export: int | None = None
     overview_sha256: str | None = None
+    #: the map's generation it was built for (None: stored before generations)
+    generation: int | None = None
 
     @classmethod
     def from_row(cls, row: MapVersion) -> VersionInfo:
@@ -117,6 +140,23 @@ class MapInfo:
     image_sha256: str | None = None
     #: the sessions it is made of now, in order (the next build uses them)
     session_ids: list[int]
+    #: bumped by every change of its sessions or a rebuild's parameters (module docstring)
+    generation: int = 0
+    #: the queued or running build of this generation (None: none is under way); read for one
+    #: map (:func:`get_map`), not for a page of them (:func:`list_maps`: always None), so not
+    #: compared (a map is the same map either way)
+    pending_job_id: int | None = field(default=None, compare=False)
+
+    @property
+    def up_to_date(self) -> bool:
+        """Whether the current version was built from the map's current sessions and parameters
+        (its generation; a version stored before generations: its sessions)."""
+        current = self.current
+        if current is None:
+            return False
+        if current.generation is not None:
+            return current.generation == self.generation
+        return (current.session_ids or [self.session_id]) == self.session_ids
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -169,6 +209,53 @@ class MapMembershipError(ValueError):
         self.code = code
 
 
+def lock_maps(db_session: Session, map_ids: Sequence[int], *, for_delete: bool = False) -> None:
+    """Lock the rows of maps ``map_ids`` to the end of the transaction, in ascending id order
+    (so that two changes of the same maps never deadlock): PostgreSQL's ``FOR NO KEY UPDATE``,
+    which holds back other changes of these maps and builds storing into them but not uploads
+    or localizations that merely refer to them; ``for_delete``: ``FOR UPDATE``, for a map about
+    to be deleted. Missing maps are skipped (the caller's read then says MapNotFound). SQLite's
+    writers run one at a time anyway (``BEGIN IMMEDIATE``)."""
+    db_session.execute(
+        select(MapRow.id)
+        .where(MapRow.id.in_(sorted(set(map_ids))))
+        .order_by(MapRow.id)
+        .with_for_update(key_share=not for_delete)
+    ).all()
+
+
+def bump_generation(db_session: Session, map_id: int) -> int:
+    """Advance map ``map_id``'s generation (the caller holds its lock: :func:`lock_maps`): what
+    is being built for the old one will not be stored. Returns the new one. Raises
+    MapNotFound."""
+    generation = db_session.scalar(
+        update(MapRow)
+        .where(MapRow.id == map_id)
+        .values(generation=MapRow.generation + 1)
+        .returning(MapRow.generation)
+    )
+    if generation is None:
+        raise MapNotFound(map_id)
+    MAP_CHANGES.note(db_session, map_id)
+    return int(generation)
+
+
+def map_generation(db_session: Session, map_id: int) -> int | None:
+    """Map ``map_id``'s generation now (no lock); None if the map is gone."""
+    generation = db_session.scalar(select(MapRow.generation).where(MapRow.id == map_id))
+    return None if generation is None else int(generation)
+
+
+def generation_for_store(db_session: Session, map_id: int) -> int | None:
+    """Lock map ``map_id`` (as :func:`lock_maps`) and read its generation, in the transaction
+    that will store a version of it: the version may be stored only if this is the generation
+    its build was queued for. None if the map is gone."""
+    generation = db_session.scalar(
+        select(MapRow.generation).where(MapRow.id == map_id).with_for_update(key_share=True)
+    )
+    return None if generation is None else int(generation)
+
+
 def map_session_ids(db_session: Session, map_id: int) -> list[int]:
     """The sessions map ``map_id`` is made of, in order (the first is the reference frame).
     Raises MapNotFound."""
@@ -189,7 +276,9 @@ def _session_ids(db_session: Session, row: MapRow) -> list[int]:
 
 def add_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
     """Add a session to a map (last in the order); the map's sessions after. Raises MapNotFound,
-    MapMembershipError ``already_in_map`` (the session must exist: the caller checks)."""
+    MapMembershipError ``already_in_map`` (the session must exist: the caller checks). Locks the
+    map first (:func:`lock_maps`): two adds of one session are one add and a 409."""
+    lock_maps(db_session, [map_id])
     ids = map_session_ids(db_session, map_id)
     if session_id in ids:
         raise MapMembershipError(
@@ -205,7 +294,10 @@ def add_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
 def remove_session(db_session: Session, map_id: int, session_id: int) -> list[int]:
     """Take a session out of a map (its upload and other maps stay); the map's sessions after.
     The first remaining session becomes the map's reference. Raises MapNotFound,
-    MapMembershipError ``not_in_map`` or ``last_session``."""
+    MapMembershipError ``not_in_map`` or ``last_session``. Locks the map first
+    (:func:`lock_maps`): of two removes racing each other, the second sees the first's result,
+    so a map never loses its last session."""
+    lock_maps(db_session, [map_id])
     ids = map_session_ids(db_session, map_id)
     if session_id not in ids:
         raise MapMembershipError("not_in_map", f"session {session_id} is not in map {map_id}")
@@ -226,6 +318,24 @@ def remove_session(db_session: Session, map_id: int, session_id: int) -> list[in
     row.session_id = remaining[0]
     db_session.flush()
     return remaining
+
+
+def set_sessions(db_session: Session, map_id: int, session_ids: list[int]) -> None:
+    """Make ``session_ids`` (distinct, existing: the caller checks) the map's sessions, in this
+    order; the first becomes its reference. Raises MapNotFound. Locks the map first."""
+    lock_maps(db_session, [map_id])
+    row = db_session.get(MapRow, map_id)
+    if row is None:
+        raise MapNotFound(map_id)
+    if _session_ids(db_session, row) == session_ids:
+        return
+    MAP_CHANGES.note(db_session, map_id)
+    db_session.execute(delete(MapSession).where(MapSession.map_id == map_id))
+    now = utc_now()
+    for session_id in session_ids:
+        db_session.add(MapSession(map_id=map_id, session_id=session_id, added_at=now))
+    row.session_id = session_ids[0]
+    db_session.flush()
 
 
 def _ensure_rows(db_session: Session, map_id: int, ids: list[int]) -> None:
@@ -355,15 +465,17 @@ def store_version(
     session_ids: list[int] | None = None,
     sessions: list[dict[str, Any]] | None = None,
     bulk: VersionBulk | None = None,
+    generation: int | None = None,
 ) -> VersionInfo:
     """Add the next version of ``map_id`` in the caller's transaction. Its bulk data is
     ``bulk``, written beforehand by :func:`write_version_bulk` (the worker: this transaction
     then writes only small rows), or else ``plot_png`` and ``path_graph``
     (``app.domain.navigation.path_graph.path_graph_to_json`` of it), written here as blobs in this
     transaction. ``session_ids``: the sessions it was made from, in order; ``sessions``: what
-    each contributed (``statistics["sessions"]``). Two builds of one map storing at once take
-    their numbers in turn (the map row's lock, held to the commit; PostgreSQL's
-    ``FOR NO KEY UPDATE`` does not hold back uploads or rebuilds that refer to the map).
+    each contributed (``statistics["sessions"]``); ``generation``: the map's generation it was
+    built for (the worker checks it with :func:`generation_for_store` first). Two builds of
+    one map storing at once take their numbers in turn (the map row's lock, held to the commit;
+    PostgreSQL's ``FOR NO KEY UPDATE`` does not hold back uploads that refer to the map).
     Raises ``blobs.BlobMissing`` if a blob of ``bulk`` is gone (the caller writes it again)."""
     if bulk is None:
         bulk = _version_bulk(
@@ -441,6 +553,7 @@ def store_version(
         app_map_export=bulk.app_map_export,
         overview_sha256=bulk.overview_sha256,
         session_ids=session_ids,
+        generation=generation,
     )
     db_session.add(row)
     db_session.flush()
@@ -475,6 +588,7 @@ def _gzip_json(document: Any) -> bytes:
 
 def delete_map(db_session: Session, map_id: int) -> None:
     """Delete a map and its versions (the session and its raw upload stay)."""
+    lock_maps(db_session, [map_id], for_delete=True)
     if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     MAP_CHANGES.note(db_session, map_id)
@@ -501,7 +615,14 @@ def list_maps(
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
     total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
     page = (
-        select(MapRow.id, MapRow.name, MapRow.session_id, MapRow.created_at, MapRow.display_name)
+        select(
+            MapRow.id,
+            MapRow.name,
+            MapRow.session_id,
+            MapRow.created_at,
+            MapRow.display_name,
+            MapRow.generation,
+        )
         .where(MapRow.id.in_(query.scalar_subquery()) if tag_id is not None else true())
         .order_by(MapRow.id.desc())
         .limit(limit)
@@ -515,7 +636,7 @@ _VERSION_COLUMNS = tuple(getattr(MapVersion, f.name) for f in fields(VersionInfo
 
 
 def _map_infos(
-    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None]]
+    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None, int]]
 ) -> list[MapInfo]:
     """:func:`_map_info` of a page of maps (rows of their columns) in four queries, however
     long the page (not three or four per map: a list of 50 maps made 150 round trips), reading
@@ -570,9 +691,29 @@ def _map_infos(
             display_name=row.display_name or display_name_of(row.name),
             image_sha256=image_sha256.get(row.session_id),
             session_ids=members.get(row.id) or [row.session_id],
+            generation=row.generation,
         )
         for row in rows
     ]
+
+
+def _pending_builds(db_session: Session, generations: dict[int, int]) -> dict[int, int]:
+    """Per map (id → its generation): the newest queued or running build of that generation."""
+    pending: dict[int, int] = {}
+    if not generations:
+        return pending
+    for job_id, map_id, generation in db_session.execute(
+        select(Job.id, Job.map_id, Job.map_generation)
+        .where(
+            Job.map_id.in_(list(generations)),
+            Job.kind == BUILD_MAP,
+            Job.state.in_([JobState.QUEUED.value, JobState.RUNNING.value]),
+        )
+        .order_by(Job.id)
+    ).all():
+        if map_id is not None and (generation or 0) == generations[map_id]:
+            pending[map_id] = job_id
+    return pending
 
 
 def list_versions(db_session: Session, map_id: int) -> list[VersionInfo]:
@@ -682,6 +823,8 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         display_name=row.display_name or display_name_of(row.name),
         image_sha256=image_sha256,
         session_ids=_session_ids(db_session, row),
+        generation=row.generation,
+        pending_job_id=_pending_builds(db_session, {row.id: row.generation}).get(row.id),
     )
 
 

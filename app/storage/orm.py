@@ -214,6 +214,10 @@ class MapRow(Base):
         ForeignKey("session.id", ondelete="CASCADE"), index=True
     )
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    #: bumped by every change of what the next version is to be built from (its sessions, a
+    #: rebuild's parameters); a build stores its version only if this is still the generation
+    #: it was queued for (``app.storage.maps.bump_generation``, docs/multi-session.md)
+    generation: Mapped[int] = mapped_column(default=0, server_default=text("0"))
 
 
 class SessionImage(Base):
@@ -280,6 +284,9 @@ class Job(Base):
     #: the sweep whose trials a ``sweep_trials`` job runs (no foreign key: the map's cascade
     #: removes both)
     sweep_id: Mapped[int | None] = mapped_column(index=True)
+    #: a ``build_map`` job: the map's generation it builds (``map.generation``); its version is
+    #: stored only while that is still the map's. Null: queued before generations (as 0)
+    map_generation: Mapped[int | None]
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32))
     error: Mapped[str | None] = mapped_column(Text)
@@ -336,6 +343,9 @@ class MapVersion(Base):
     #: the sessions it was optimized from, in order (the first is the reference frame); null for
     #: versions built before maps held several sessions (their map's ``session_id`` alone)
     session_ids: Mapped[list[int] | None] = mapped_column(JSONValue)
+    #: the map's ``generation`` it was built for (it was the map's generation when it was
+    #: stored); null for versions stored before generations
+    generation: Mapped[int | None]
 
 
 class Blob(Base):

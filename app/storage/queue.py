@@ -77,6 +77,8 @@ class JobInfo:
     attempts: int
     max_attempts: int
     progress: float
+    #: a build's map generation (``Job.map_generation``; None: none)
+    map_generation: int | None = None
     stage: str | None
     error: str | None
     log_tail: str
@@ -107,6 +109,8 @@ class Lease:
     attempt: int
     max_attempts: int
     log_tail: str
+    #: a build's map generation (0 for builds queued before generations)
+    map_generation: int = 0
 
 
 # --------------------------------------------------------------------------- the API's side
@@ -122,9 +126,11 @@ def enqueue(
     max_attempts: int = 3,
     priority: int = 0,
     sweep_id: int | None = None,
+    map_generation: int | None = None,
     now: datetime | None = None,
 ) -> int:
-    """Add a queued job in the caller's transaction; returns its id."""
+    """Add a queued job in the caller's transaction; returns its id. ``map_generation``: of a
+    build, the map's generation it builds."""
     now = now or utc_now()
     job = Job(
         kind=kind,
@@ -135,6 +141,7 @@ def enqueue(
         max_attempts=max_attempts,
         priority=priority,
         sweep_id=sweep_id,
+        map_generation=map_generation,
         run_after=now,
         created_at=now,
         updated_at=now,
@@ -143,6 +150,114 @@ def enqueue(
     db_session.add(job)
     db_session.flush()
     return job.id
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Coalesced:
+    """What :func:`enqueue_coalesced` did: the job that will do the work, whether it was a
+    queued job that absorbed the request (else it is new), and the jobs it superseded."""
+
+    job_id: int
+    #: the request was folded into job ``job_id``, queued before and not started yet
+    coalesced: bool
+    #: running jobs asked to stop, and older queued ones canceled, because job ``job_id``
+    #: replaces them
+    superseded: tuple[int, ...] = ()
+
+
+def enqueue_coalesced(
+    db_session: Session,
+    *,
+    kind: str,
+    map_id: int,
+    session_id: int,
+    params: dict[str, Any],
+    map_generation: int,
+    note: str,
+    max_attempts: int = 3,
+    now: datetime | None = None,
+) -> Coalesced:
+    """Ask for one job of ``kind`` on map ``map_id`` with ``params``, building its generation
+    ``map_generation``, that replaces whatever of
+    that kind the map has under way, in the caller's transaction: the newest queued job (not
+    started) absorbs the request (its parameters replaced, its attempts and back-off reset,
+    ``note`` added to its log) instead of a second job being queued; otherwise a new job is
+    queued. Any other queued job of the map and kind is canceled, and any running one asked to
+    stop, with ``error`` naming the job that replaces it. The caller holds the map's lock
+    (``app.storage.maps.lock_maps``), so changes of one map do this one at a time; a worker
+    claiming the queued job meanwhile either took it first (it is then running, and superseded)
+    or takes it afterwards, with the new parameters."""
+    now = now or utc_now()
+    rows = db_session.scalars(
+        select(Job)
+        .where(
+            Job.map_id == map_id,
+            Job.kind == kind,
+            Job.state.in_([JobState.QUEUED.value, JobState.RUNNING.value]),
+        )
+        .order_by(Job.id)
+        .with_for_update()
+        .execution_options(populate_existing=True)
+    ).all()
+    queued = [row for row in rows if row.state == JobState.QUEUED]
+    running = [row for row in rows if row.state == JobState.RUNNING]
+    if queued:
+        target = queued.pop()
+        target.params = params
+        target.map_generation = map_generation
+        target.session_id = session_id
+        target.attempts = 0
+        target.max_attempts = max_attempts
+        target.error = None
+        target.run_after = now
+        target.updated_at = now
+        target.log_tail = _append(target.log_tail, now, f"coalesced: {note}")
+        db_session.flush()
+        job_id, coalesced = target.id, True
+    else:
+        job_id = enqueue(
+            db_session,
+            kind=kind,
+            map_id=map_id,
+            session_id=session_id,
+            params=params,
+            max_attempts=max_attempts,
+            map_generation=map_generation,
+            now=now,
+        )
+        row = db_session.get(Job, job_id)
+        assert row is not None
+        row.log_tail = _append(row.log_tail, now, note)
+        job_id, coalesced = row.id, False
+    why = f"superseded by job {job_id}: {note}"
+    for row in queued:
+        row.state = JobState.CANCELED.value
+        row.finished_at = now
+        row.error = why
+        row.log_tail = _append(row.log_tail, now, why)
+    for row in running:
+        # the worker owns a running job's log: the reason goes in ``error``, which it keeps
+        row.cancel_requested = True
+        row.error = why
+    for row in (*queued, *running):
+        row.updated_at = now
+    db_session.flush()
+    return Coalesced(
+        job_id=job_id,
+        coalesced=coalesced,
+        superseded=tuple(row.id for row in (*queued, *running)),
+    )
+
+
+def jobs_of_map(
+    db_session: Session, map_id: int, *, kind: str, states: tuple[JobState, ...] | None = None
+) -> list[JobInfo]:
+    """The jobs of ``kind`` on map ``map_id`` (only those in ``states`` when given), oldest
+    first."""
+    query = select(Job).where(Job.map_id == map_id, Job.kind == kind)
+    if states is not None:
+        query = query.where(Job.state.in_([state.value for state in states]))
+    return [JobInfo.from_row(row) for row in db_session.scalars(query.order_by(Job.id))]
 
 
 def get_job(db_session: Session, job_id: int) -> JobInfo:
@@ -349,6 +464,7 @@ def claim(
             Job.attempts,
             Job.max_attempts,
             Job.log_tail,
+            Job.map_generation,
         )
     )
     with db.transaction() as db_session:
@@ -369,6 +485,7 @@ def claim(
         attempt=row.attempts,
         max_attempts=row.max_attempts,
         log_tail=log_tail,
+        map_generation=row.map_generation or 0,
     )
 
 
@@ -477,6 +594,32 @@ def fail(
             "log_tail": _append(log_tail, now, f"retrying in {delay_s:g} s"),
         }
     return _end_attempt(db, lease, state, now, error=error, **values)
+
+
+def supersede(
+    db_session: Session, lease: Lease, *, reason: str, log_tail: str, now: datetime | None = None
+) -> None:
+    """End the job as ``canceled`` because its result was overtaken (``reason``, also its
+    ``error``), in the caller's transaction, fenced like :func:`finish`: its result is not
+    stored. Raises LeaseLost (roll back then)."""
+    now = now or utc_now()
+    updated = db_session.execute(
+        update(Job)
+        .where(_fenced(lease, now))
+        .values(
+            state=JobState.CANCELED.value,
+            stage=None,
+            error=reason,
+            finished_at=now,
+            updated_at=now,
+            lease_owner=None,
+            lease_expires_at=None,
+            log_tail=_append(log_tail, now, f"superseded: {reason}"),
+        )
+        .returning(Job.id),
+    ).scalar_one_or_none()
+    if updated is None:
+        raise LeaseLost(lease.job_id)
 
 
 def mark_canceled(

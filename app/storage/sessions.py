@@ -41,7 +41,7 @@ from app.storage.orm import Job, MapRow, MapSession, SessionRow, SessionUpload, 
 from app.storage.rows import info_from_row
 
 #: The job kind that turns a session into a map version.
-BUILD_MAP = "build_map"
+BUILD_MAP = maps.BUILD_MAP
 #: A build_map job parameter: tune the noise variances by the shift metric first (trial count).
 AUTO_TUNE_TRIALS = "auto_tune_trials"
 #: A build_map job parameter: the sessions of a map of several, in order (absent: the job's one

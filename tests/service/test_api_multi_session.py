@@ -346,3 +346,90 @@ def test_upload_into_an_existing_map(database_url: str) -> None:
             first["map_id"],
             created["session_id"],
         )
+
+
+def test_the_map_says_what_its_version_is_built_from_and_tuning_it_is_refused(
+    database_url: str,
+) -> None:
+    """Issue 25: a change of a map's sessions answers what it queued (the generation, and
+    whether it was folded into a build queued before); the map and its sessions list say which
+    sessions the current version was built from and whether the build of the current ones is
+    under way; tuning a map of several sessions is a 422 naming the field, at the door."""
+    walk = (SESSIONS_DIR / "pgt_tester3.json").read_bytes()
+    with running_api(database_url) as api:
+        first = api.uploaded(walk)
+        second = api.uploaded(with_tags_renumbered(SESSIONS_DIR / "pgt_tester3.json", {}))
+        build(api)
+        map_id = first["map_id"]
+        settled = get_map(api, map_id)
+        assert (settled["up_to_date"], settled["pending_job_id"]) == (True, None)
+        assert settled["current_version"]["generation"] == settled["generation"] == 0
+
+        response = api.client.post(
+            f"/v1/maps/{map_id}/sessions", json={"session_id": second["session_id"]}, headers=ADMIN
+        )
+        assert response.status_code == 202, response.text
+        added = response.json()
+        assert (added["generation"], added["coalesced"], added["superseded_job_ids"]) == (
+            1,
+            False,
+            [],
+        )
+        both = [first["session_id"], second["session_id"]]
+        pending = get_map(api, map_id)
+        assert pending["session_ids"] == both
+        assert pending["current_version"]["session_ids"] == [first["session_id"]]
+        assert (pending["up_to_date"], pending["pending_job_id"]) == (False, added["job_id"])
+        listed = api.client.get(f"/v1/maps/{map_id}/sessions", headers=ADMIN).json()
+        assert listed["current_session_ids"] == [first["session_id"]]
+        assert (listed["up_to_date"], listed["pending_job_id"]) == (False, added["job_id"])
+        assert [s["in_current_version"] for s in listed["data"]] == [True, False]
+
+        # tuning a map of several sessions: refused at the door, nothing queued or stored
+        response = api.client.post(
+            f"/v1/maps/{map_id}/rebuild", json={"auto_tune_trials": 1000}, headers=ADMIN
+        )
+        assert response.status_code == 422, response.text
+        assert (response.json()["code"], response.json()["field"]) == (
+            "invalid_parameter",
+            "auto_tune_trials",
+        )
+        sessions_before = api.client.get("/v1/sessions", headers=ADMIN).json()["count"]
+        response = api.client.post(
+            f"/v1/sessions?into_map={map_id}&auto_tune_trials=50",
+            content=walk,
+            headers={**ADMIN, "Content-Type": "application/json"},
+        )
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == "auto_tune_trials"
+        assert api.client.get("/v1/sessions", headers=ADMIN).json()["count"] == sessions_before
+        assert get_map(api, map_id)["pending_job_id"] == added["job_id"]
+
+        # a rebuild before the add's build started: folded into it, one build of both
+        response = api.client.post(
+            f"/v1/maps/{map_id}/rebuild", json={"params": {"huber_k": 2.0}}, headers=ADMIN
+        )
+        assert response.status_code == 202, response.text
+        rebuilt = response.json()
+        assert (rebuilt["job_id"], rebuilt["coalesced"], rebuilt["generation"]) == (
+            added["job_id"],
+            True,
+            2,
+        )
+        build(api)
+        built = get_map(api, map_id)
+        assert built["version_count"] == 2
+        assert built["current_version"]["session_ids"] == both
+        assert built["current_version"]["params"]["huber_k"] == 2.0
+        assert (built["up_to_date"], built["pending_job_id"], built["generation"]) == (
+            True,
+            None,
+            2,
+        )
+        assert "coalesced: rebuild requested" in job(api, added["job_id"])["log_tail"]
+
+        # a map of one session may still be tuned
+        response = api.client.post(
+            f"/v1/maps/{second['map_id']}/rebuild", json={"auto_tune_trials": 3}, headers=ADMIN
+        )
+        assert response.status_code == 202, response.text

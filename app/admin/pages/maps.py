@@ -178,9 +178,9 @@ def add_session(
     try:
         session_id = valid_id(int(str(form.get("session_id") or "0")), "session")
         with db.transaction() as db_session:
-            _, job_id = add_session_to_map(
+            job_id = add_session_to_map(
                 db_session, map_id, session_id, max_attempts=settings.max_attempts
-            )
+            ).job_id
     except (ServiceError, ValueError, LookupError) as err:
         return redirect(request, f"/admin/maps/{map_id}", flash=f"Not added: {err}")
     return redirect(
@@ -202,12 +202,12 @@ def remove_session(
     map_id = valid_id(map_id, "map")
     try:
         with db.transaction() as db_session:
-            _, job_id = remove_session_from_map(
+            job_id = remove_session_from_map(
                 db_session,
                 map_id,
                 valid_id(session_id, "session"),
                 max_attempts=settings.max_attempts,
-            )
+            ).job_id
     except (ServiceError, LookupError) as err:
         return redirect(request, f"/admin/maps/{map_id}", flash=f"Not removed: {err}")
     return redirect(
@@ -225,7 +225,9 @@ def merge(
     try:
         other = valid_id(int(str(form.get("map_id") or "0")), "map")
         with db.transaction() as db_session:
-            _, job_id = merge_maps(db_session, map_id, other, max_attempts=settings.max_attempts)
+            job_id = merge_maps(
+                db_session, map_id, other, max_attempts=settings.max_attempts
+            ).job_id
     except (ServiceError, ValueError, LookupError) as err:
         return redirect(request, f"/admin/maps/{map_id}", flash=f"Not merged: {err}")
     return redirect(

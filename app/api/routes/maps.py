@@ -16,6 +16,9 @@ Choices:
   ``POST`` adds one, ``DELETE /{id}/sessions/{session_id}`` takes one out, ``POST /{id}/merge``
   merges another map in. Each change queues the rebuild that makes the version of the new set
   (202, like a rebuild); the version records exactly which sessions it used.
+- Versions always match their walks (docs/multi-session.md, "Versions and membership"): each
+  change bumps the map's ``generation``; a build stores its version only if it was built for the
+  map's generation; changes in quick succession fold into the one build that has not started.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from app.api.schemas.maps import (
 )
 from app.services.maps import (
     APP_MAP_EXPORT,
+    BuildQueued,
     MapPages,
     MapState,
     add_session_to_map,
@@ -51,14 +55,13 @@ from app.services.maps import (
     checked_overrides,
     checked_session_ids,
     chosen_version,
-    current_overrides,
     current_version,
     delete_map_and_jobs,
-    enqueue_rebuild,
     merge_maps,
     picture_of_map,
     remove_session_from_map,
     rename_map,
+    request_build,
     tag_poses_of,
 )
 from app.services.version_cache import VersionCache
@@ -211,10 +214,13 @@ def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> Vers
     "/{map_id}/rebuild",
     status_code=202,
     summary="Rebuild a map",
-    description="Queue a new build of the map's session, optionally with other SLAM "
+    description="Queue a new build of the map's sessions, optionally with other SLAM "
     "parameters (any SlamParams field; unknown names and out-of-range values are a 422 naming "
-    "the parameter). The new version becomes current when the job succeeds; the raw session is "
-    "never modified (admin).",
+    "the parameter) or other sessions (which become the map's). A build of the map queued "
+    "before and not started yet takes the request instead (`coalesced`); a running one is "
+    "asked to stop (`superseded_job_ids`): only a build of the map's current sessions and "
+    "parameters stores a version. `auto_tune_trials` on a map of several sessions is a 422. "
+    "The raw sessions are never modified (admin).",
     responses=error_responses(401, 403, 404, 422),
 )
 def rebuild_map(
@@ -231,16 +237,15 @@ def rebuild_map(
     session_ids = body.session_ids if body else None
     if session_ids is not None:
         checked_session_ids(db_session, session_ids)
-    info, job_id = enqueue_rebuild(
+    build = request_build(
         db_session,
         valid_id(map_id, "map"),
         overrides,
         max_attempts=settings.max_attempts,
+        change="rebuild requested",
         session_ids=session_ids,
     )
-    accepted = RebuildAccepted.queued(info, job_id, overrides)
-    if session_ids is not None:
-        accepted.session_ids = session_ids
+    accepted = RebuildAccepted.from_build(build, overrides)
     response.headers["Location"] = accepted.job_url
     return accepted
 
@@ -274,13 +279,13 @@ def add_map_session(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = add_session_to_map(
+    build = add_session_to_map(
         db_session,
         valid_id(map_id, "map"),
         valid_id(body.session_id, "session"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
 @router.delete(
@@ -299,13 +304,13 @@ def remove_map_session(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = remove_session_from_map(
+    build = remove_session_from_map(
         db_session,
         valid_id(map_id, "map"),
         valid_id(session_id, "session"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
 @router.post(
@@ -325,17 +330,17 @@ def merge_map(
     settings: SettingsDep,
     response: Response,
 ) -> RebuildAccepted:
-    info, job_id = merge_maps(
+    build = merge_maps(
         db_session,
         valid_id(map_id, "map"),
         valid_id(body.map_id, "map"),
         max_attempts=settings.max_attempts,
     )
-    return _accepted(response, info, job_id)
+    return _accepted(response, build)
 
 
-def _accepted(response: Response, info: MapInfo, job_id: int) -> RebuildAccepted:
-    accepted = RebuildAccepted.queued(info, job_id, current_overrides(info))
+def _accepted(response: Response, build: BuildQueued) -> RebuildAccepted:
+    accepted = RebuildAccepted.from_build(build, build.params)
     response.headers["Location"] = accepted.job_url
     return accepted
 

@@ -20,7 +20,7 @@ from fastapi import APIRouter, Header, Query, Response
 
 from app.api.schemas.sessions import ImageStored, SessionCreated, SessionPublic, SessionsPublic
 from app.domain.upload.session import Session as ParsedSession
-from app.services.maps import image_url, merge_maps, store_session_image
+from app.services.maps import image_url, merge_maps, store_session_image, tuning_refused
 from app.services.uploads import parse_upload
 from app.storage import keys, maps, sessions
 from app.storage.db import Database
@@ -179,7 +179,8 @@ def upload_session(
             ge=0,
             le=1000,
             description="tune the noise variances by the shift metric with this many sampler "
-            "trials before building (0: the default parameters)",
+            "trials before building (0: the default parameters); a map of one session only, so "
+            "with into_map a 422",
         ),
     ] = 0,
     into_map: Annotated[
@@ -195,6 +196,8 @@ def upload_session(
 ) -> SessionCreated:
     if into_map is not None:
         admin_principal(principal)  # 403 for a device key
+        if auto_tune_trials:  # refused at the door, never a build that drops or fails it
+            raise tuning_refused(into_map)
     if not principal.is_admin and auto_tune_trials > settings.device_max_auto_tune_trials:
         raise ApiError(
             422,
@@ -227,14 +230,16 @@ def upload_session(
             )
             if into_map is not None and not result.replayed:
                 # its own map merged into the one named (404 there rolls the upload back)
-                info, job_id = merge_maps(
+                build = merge_maps(
                     db_session, into_map, result.map_id, max_attempts=settings.max_attempts
                 )
                 result = dataclasses.replace(
                     result,
-                    map_id=info.id,
-                    job_id=job_id,
-                    shares_tags_with=tuple(t for t in result.shares_tags_with if t[0] != info.id),
+                    map_id=build.info.id,
+                    job_id=build.job_id,
+                    shares_tags_with=tuple(
+                        t for t in result.shares_tags_with if t[0] != build.info.id
+                    ),
                 )
     response.headers["Location"] = f"/v1/jobs/{result.job_id}"
     if result.replayed:

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
 from app.api.schemas.jobs import JobBrief
-from app.services.maps import image_url, map_session_uses
+from app.services.maps import BuildQueued, image_url, map_session_uses
 from app.storage.maps import MapInfo, TagPose, VersionInfo
 from app.storage.queue import JobInfo
 
@@ -34,6 +34,7 @@ _VERSION_EXAMPLE: dict[str, Any] = {
     "warnings": [],
     "content_sha256": SHA_EXAMPLE,
     "session_ids": [17],
+    "generation": 1,
 }
 
 
@@ -74,6 +75,10 @@ class VersionSummary(BaseModel):
     session_ids: list[int] = Field(
         description="the sessions it was optimized from, in order (the first is the map frame); "
         "empty for versions made before maps held several sessions (the map's session_id)"
+    )
+    generation: int | None = Field(
+        default=None,
+        description="the map's generation it was built for (null: built before generations)",
     )
 
     @model_validator(mode="before")
@@ -143,6 +148,7 @@ def _version_fields(version: VersionInfo) -> dict[str, Any]:
         "warnings": version.warnings,
         "content_sha256": version.content_sha256,
         "session_ids": version.session_ids,
+        "generation": version.generation,
     }
 
 
@@ -164,8 +170,29 @@ _MAP_EXAMPLE: dict[str, Any] = {
     "session_ids": [17],
     "created_at": AT_EXAMPLE,
     "version_count": 1,
+    "generation": 1,
+    "up_to_date": True,
+    "pending_job_id": None,
     "latest_job": {"id": 31, "kind": "build_map", "state": "succeeded"},
 }
+
+#: A map in a list: no pending build (read for one map only) and no newest job.
+_SUMMARY_EXAMPLE = {
+    k: v for k, v in _MAP_EXAMPLE.items() if k not in ("pending_job_id", "latest_job")
+}
+
+GENERATION_DESCRIPTION = (
+    "bumped by every change of what the map is built from (a session added, taken out or merged "
+    "in; a rebuild); only a build of the map's generation stores a version"
+)
+UP_TO_DATE_DESCRIPTION = (
+    "whether the current version was built from the map's current sessions and parameters "
+    "(its generation); false while a change is being built, or after its build failed"
+)
+PENDING_JOB_DESCRIPTION = (
+    "the queued or running build of the current sessions and parameters; null when none is "
+    "under way"
+)
 
 
 DISPLAY_NAME_DESCRIPTION = (
@@ -190,7 +217,12 @@ class MapUpdate(BaseModel):
 class MapSummary(BaseModel):
     """A map in a list: its current version without tags (null until the first build)."""
 
-    model_config = examples({**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE})
+    model_config = examples(
+        {
+            **_SUMMARY_EXAMPLE,
+            "current_version": _VERSION_EXAMPLE,
+        }
+    )
 
     id: int
     name: str = Field(description="the session's map_id")
@@ -202,6 +234,8 @@ class MapSummary(BaseModel):
     )
     created_at: datetime
     version_count: int
+    generation: int = Field(description=GENERATION_DESCRIPTION)
+    up_to_date: bool = Field(description=UP_TO_DATE_DESCRIPTION)
     current_version: VersionSummary | None
 
     @classmethod
@@ -215,6 +249,8 @@ class MapSummary(BaseModel):
             session_ids=info.session_ids,
             created_at=info.created_at,
             version_count=info.version_count,
+            generation=info.generation,
+            up_to_date=info.up_to_date,
             current_version=VersionSummary.model_validate(info.current) if info.current else None,
         )
 
@@ -228,6 +264,8 @@ class MapPublic(BaseModel):
         {
             **_MAP_EXAMPLE,
             "version_count": 0,
+            "up_to_date": False,
+            "pending_job_id": 31,
             "current_version": None,
             "latest_job": {"id": 31, "kind": "build_map", "state": "queued"},
         },
@@ -243,6 +281,9 @@ class MapPublic(BaseModel):
     )
     created_at: datetime
     version_count: int
+    generation: int = Field(description=GENERATION_DESCRIPTION)
+    up_to_date: bool = Field(description=UP_TO_DATE_DESCRIPTION)
+    pending_job_id: int | None = Field(description=PENDING_JOB_DESCRIPTION)
     current_version: VersionPublic | None
     latest_job: JobBrief | None
 
@@ -259,6 +300,9 @@ class MapPublic(BaseModel):
             session_ids=info.session_ids,
             created_at=info.created_at,
             version_count=info.version_count,
+            generation=info.generation,
+            up_to_date=info.up_to_date,
+            pending_job_id=info.pending_job_id,
             current_version=VersionPublic.with_tags(info.current, tags) if info.current else None,
             latest_job=JobBrief.from_domain(latest_job) if latest_job else None,
         )
@@ -269,7 +313,7 @@ class MapsPublic(BaseModel):
 
     model_config = examples(
         {
-            "data": [{**_MAP_EXAMPLE, "current_version": _VERSION_EXAMPLE}],
+            "data": [{**_SUMMARY_EXAMPLE, "current_version": _VERSION_EXAMPLE}],
             "count": 1,
             "limit": 50,
             "offset": 0,
@@ -305,7 +349,8 @@ class RebuildRequest(BaseModel):
         ge=0,
         le=1000,
         description="first choose the noise variances by the shift metric with this many "
-        "sampler trials (0: use the parameters as given)",
+        "sampler trials (0: use the parameters as given); a map of one session only: for a map "
+        "of several it is a 422 naming this field (tune those with a sweep)",
     )
     session_ids: list[int] | None = Field(
         default=None,
@@ -327,7 +372,21 @@ class RebuildAccepted(BaseModel):
             "session_ids": [17],
             "params": {"tag_position_var_m2": 0.001},
             "job_url": "/v1/jobs/40",
-        }
+            "generation": 3,
+            "coalesced": False,
+            "superseded_job_ids": [],
+        },
+        {
+            "job_id": 40,
+            "map_id": 12,
+            "session_id": 17,
+            "session_ids": [17, 18, 19],
+            "params": {},
+            "job_url": "/v1/jobs/40",
+            "generation": 4,
+            "coalesced": True,
+            "superseded_job_ids": [39],
+        },
     )
 
     job_id: int
@@ -336,17 +395,48 @@ class RebuildAccepted(BaseModel):
     session_ids: list[int] = Field(description="the sessions the build uses, in order")
     params: dict[str, Any] = Field(description="the overrides, as the job will use them")
     job_url: str
+    generation: int = Field(
+        description="the map's generation the job builds (" + GENERATION_DESCRIPTION + ")"
+    )
+    coalesced: bool = Field(
+        description="the change was folded into job_id, a build of this map queued before and "
+        "not started yet (it now builds this generation), instead of another build"
+    )
+    superseded_job_ids: list[int] = Field(
+        description="builds of the map's previous generations that were running (asked to "
+        "stop: their result would not be current) or queued (canceled)"
+    )
 
     @classmethod
     def queued(cls, info: MapInfo, job_id: int, params: dict[str, Any]) -> RebuildAccepted:
-        """The answer for the build job ``job_id`` queued for map ``info`` with ``params``."""
+        """The answer for the build job ``job_id`` of map ``info`` (as it is after the change)
+        with ``params``, where what it replaced is not known (a sweep's apply)."""
+        return cls.from_build(
+            BuildQueued(
+                info=info,
+                job_id=job_id,
+                generation=info.generation,
+                coalesced=False,
+                superseded=(),
+                params=params,
+            ),
+            params,
+        )
+
+    @classmethod
+    def from_build(cls, build: BuildQueued, params: dict[str, Any]) -> RebuildAccepted:
+        """The answer for ``build``, queued with ``params``."""
+        info = build.info
         return cls(
-            job_id=job_id,
+            job_id=build.job_id,
             map_id=info.id,
             session_id=info.session_id,
             session_ids=info.session_ids,
             params=params,
-            job_url=f"/v1/jobs/{job_id}",
+            job_url=f"/v1/jobs/{build.job_id}",
+            generation=build.generation,
+            coalesced=build.coalesced,
+            superseded_job_ids=list(build.superseded),
         )
 
 
@@ -487,14 +577,38 @@ class MapSessionsPublic(BaseModel):
                 {"session_id": 18, "in_current_version": False, "contribution": None},
             ],
             "count": 2,
+            "current_version": 1,
+            "current_session_ids": [17],
+            "generation": 2,
+            "up_to_date": False,
+            "pending_job_id": 32,
         }
     )
 
     map_id: int
     data: list[MapSessionPublic]
     count: int
+    current_version: int | None = Field(description="the current version's number")
+    current_session_ids: list[int] = Field(
+        description="the sessions the current version was built from, in order (empty: none)"
+    )
+    generation: int = Field(description=GENERATION_DESCRIPTION)
+    up_to_date: bool = Field(description=UP_TO_DATE_DESCRIPTION)
+    pending_job_id: int | None = Field(description=PENDING_JOB_DESCRIPTION)
 
     @classmethod
     def from_domain(cls, info: MapInfo) -> MapSessionsPublic:
         data = [MapSessionPublic.model_validate(use) for use in map_session_uses(info)]
-        return cls(map_id=info.id, data=data, count=len(data))
+        current = info.current
+        return cls(
+            map_id=info.id,
+            data=data,
+            count=len(data),
+            current_version=None if current is None else current.number,
+            current_session_ids=[]
+            if current is None
+            else (current.session_ids or [info.session_id]),
+            generation=info.generation,
+            up_to_date=info.up_to_date,
+            pending_job_id=info.pending_job_id,
+        )
