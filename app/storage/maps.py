@@ -117,6 +117,8 @@ class MapInfo:
     image_sha256: str | None = None
     #: the sessions it is made of now, in order (the next build uses them)
     session_ids: list[int]
+    #: grows with every corridor edit added or deleted (``app.storage.corridor_edits``)
+    corridor_edits_revision: int = 0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -501,7 +503,14 @@ def list_maps(
         query = query.where(MapRow.id.in_(_maps_with_tag_in_current_version(tag_id)))
     total = db_session.scalar(select(func.count()).select_from(query.subquery())) or 0
     page = (
-        select(MapRow.id, MapRow.name, MapRow.session_id, MapRow.created_at, MapRow.display_name)
+        select(
+            MapRow.id,
+            MapRow.name,
+            MapRow.session_id,
+            MapRow.created_at,
+            MapRow.display_name,
+            MapRow.corridor_edits_revision,
+        )
         .where(MapRow.id.in_(query.scalar_subquery()) if tag_id is not None else true())
         .order_by(MapRow.id.desc())
         .limit(limit)
@@ -515,7 +524,7 @@ _VERSION_COLUMNS = tuple(getattr(MapVersion, f.name) for f in fields(VersionInfo
 
 
 def _map_infos(
-    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None]]
+    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None, int]]
 ) -> list[MapInfo]:
     """:func:`_map_info` of a page of maps (rows of their columns) in four queries, however
     long the page (not three or four per map: a list of 50 maps made 150 round trips), reading
@@ -570,6 +579,7 @@ def _map_infos(
             display_name=row.display_name or display_name_of(row.name),
             image_sha256=image_sha256.get(row.session_id),
             session_ids=members.get(row.id) or [row.session_id],
+            corridor_edits_revision=row.corridor_edits_revision,
         )
         for row in rows
     ]
@@ -682,6 +692,7 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         display_name=row.display_name or display_name_of(row.name),
         image_sha256=image_sha256,
         session_ids=_session_ids(db_session, row),
+        corridor_edits_revision=row.corridor_edits_revision,
     )
 
 
