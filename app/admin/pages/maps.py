@@ -28,10 +28,10 @@ from app.domain.formats.derived_documents import figure_of_overview, overview_do
 from app.domain.formats.map_io import map_from_json
 from app.domain.navigation.path_graph import PathGraph
 from app.domain.upload.session import Session as ParsedSession
+from app.services.corridor_edits import app_map_with_edits_gzip
 from app.services.errors import ServiceError
 from app.services.maps import (
     add_session_to_map,
-    app_map_gzip,
     chosen_version,
     delete_map_and_jobs,
     enqueue_rebuild,
@@ -334,7 +334,11 @@ def download_app_map(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=gzip.decompress(app_map_gzip(request.app.state.version_cache, db_session, chosen)),
+        content=gzip.decompress(
+            app_map_with_edits_gzip(
+                request.app.state.version_cache, db_session, chosen, info.corridor_edits_revision
+            )[0]
+        ),
         media_type="application/json",
         headers={
             "Content-Disposition": f'attachment; filename="map-{info.id}-v{chosen.number}.json"'
@@ -353,7 +357,9 @@ def download_geojson(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=geojson_bytes(request.app.state.version_cache, db_session, chosen),
+        content=geojson_bytes(
+            request.app.state.version_cache, db_session, chosen, info.corridor_edits_revision
+        ),
         media_type="application/geo+json",
         headers={
             "Content-Disposition": (

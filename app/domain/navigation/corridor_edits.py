@@ -60,8 +60,11 @@ from dataclasses import dataclass, replace
 from typing import Any, Final
 
 import networkx as nx
+import numpy as np
 
 from app.domain.errors import InvisibleMapError
+from app.domain.frames import FloatArray
+from app.domain.mapping.map_result import MapResult
 from app.domain.navigation.path_graph import (
     ELEVATOR,
     JUNCTION,
@@ -110,6 +113,9 @@ MAP_MARGIN_M = 20.0
 POI_TOLERANCE_M = 5.0
 #: Longest name of a point of interest, characters.
 MAX_NAME_LENGTH = 200
+#: Two positions closer than this are one point of interest's, m (the path graph keeps the
+#: map's positions as floats: they are equal).
+SAME_POSITION_M = 1e-6
 #: The graph attribute (``PathGraph.graph.graph``) holding the quiet nodes.
 QUIET_NODES: Final = "quiet_nodes"
 
@@ -709,3 +715,24 @@ def _projection_xz(
     t = 0.0 if length2 == 0 else ((point[0] - a[0]) * dx + (point[2] - a[2]) * dz) / length2
     t = min(1.0, max(0.0, t))
     return t, math.hypot(a[0] + t * dx - point[0], a[2] + t * dz - point[2])
+
+
+def with_edited_pois(result: MapResult, pg: PathGraph) -> MapResult:
+    """``result`` with the points of interest of the edited graph ``pg`` (added, renamed and
+    removed by edits) in place of its own, for the app's ``waypoints_vertices``: a point of
+    interest at the position of one of ``result``'s keeps that one's pose, a new one faces the
+    map's axes."""
+    kept = [tuple(float(v) for v in T[:3, 3]) for T in result.world_T_poi]
+    names: list[str] = []
+    poses: list[FloatArray] = []
+    for poi in pg.pois:
+        pose = np.eye(4)
+        pose[:3, 3] = poi.position_m
+        for k, position in enumerate(kept):
+            if _distance_3d(position, poi.position_m) <= SAME_POSITION_M:
+                pose = np.array(result.world_T_poi[k], dtype=np.float64)
+                break
+        names.append(poi.name)
+        poses.append(pose)
+    world_T_poi = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
+    return replace(result, poi_names=tuple(names), world_T_poi=world_T_poi)
