@@ -57,10 +57,11 @@ import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Final
+from typing import Any, Final, cast
 
 import networkx as nx
 import numpy as np
+import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
 from app.domain.frames import FloatArray
@@ -293,6 +294,11 @@ class _Work:
     pois: list[Anchor]
     extent: tuple[float, float, float, float]  # min x, max x, min z, max z, m
     next_id: int
+    # the nodes as arrays, for finding the nearest (a removed node's floor is −1)
+    node_ids: list[int]
+    node_xz: FloatArray  # (N, 2) m
+    node_floor: npt.NDArray[np.int64]  # (N,)
+    row_of: dict[int, int]
 
     @classmethod
     def of(cls, pg: PathGraph) -> _Work:
@@ -305,14 +311,37 @@ class _Work:
             xs.append(anchor.position_m[0])
             zs.append(anchor.position_m[2])
         extent = (min(xs), max(xs), min(zs), max(zs)) if xs else (0.0, 0.0, 0.0, 0.0)
+        node_ids = [int(n) for n in G.nodes]
+        positions = [G.nodes[n]["position_m"] for n in node_ids]
         return cls(
             G=G,
             floor_levels_m=tuple(pg.floor_levels_m),
             tags=dict(pg.tags),
             pois=list(pg.pois),
             extent=extent,
-            next_id=max((int(n) for n in G.nodes), default=-1) + 1,
+            next_id=max(node_ids, default=-1) + 1,
+            node_ids=node_ids,
+            node_xz=np.array([(p[0], p[2]) for p in positions], dtype=np.float64).reshape(-1, 2),
+            node_floor=np.array([G.nodes[n]["floor"] for n in node_ids], dtype=np.int64),
+            row_of={n: k for k, n in enumerate(node_ids)},
         )
+
+    def _indexed(self, node: int) -> None:
+        """Note the node's position and floor (added or moved) in the arrays."""
+        d = self.G.nodes[node]
+        row = self.row_of.get(node)
+        if row is None:
+            row = len(self.node_ids)
+            self.row_of[node] = row
+            self.node_ids.append(node)
+            self.node_xz = np.vstack([self.node_xz, np.zeros((1, 2))])
+            self.node_floor = np.append(self.node_floor, 0)
+        self.node_xz[row] = (d["position_m"][0], d["position_m"][2])
+        self.node_floor[row] = d["floor"]
+
+    def _remove_node(self, node: int) -> None:
+        self.G.remove_node(node)
+        self.node_floor[self.row_of[node]] = -1
 
     def path_graph(self) -> PathGraph:
         self.G.graph[QUIET_NODES] = frozenset(
@@ -386,7 +415,7 @@ class _Work:
                 raise EditConflict("to", f"a corridor from {u} to {v} exists already")
         except EditError:
             for node, a, b, data in reversed(undo):
-                self.G.remove_node(node)
+                self._remove_node(node)
                 self.G.add_edge(a, b, **data)
                 self.next_id -= 1
             raise
@@ -425,7 +454,7 @@ class _Work:
         for a, b in run:  # interior nodes of a run left with no edge go with it
             for node in (a, b):
                 if node not in (u, v) and self.G.degree(node) == 0 and not self._anchors(node):
-                    self.G.remove_node(node)
+                    self._remove_node(node)
         for node in (u, v):
             self._update_kind(node)
 
@@ -442,6 +471,7 @@ class _Work:
         y = self._position(node)[1]
         position = (to_m[0], y, to_m[2])  # the node keeps its height (its floor's level)
         self.G.nodes[node]["position_m"] = position
+        self._indexed(node)
         for other in self.G.neighbors(node):
             self.G.edges[node, other]["length_m"] = _distance_3d(position, self._position(other))
 
@@ -507,15 +537,13 @@ class _Work:
         return node
 
     def _nearest_node(self, point_m: Point3, floor: int) -> tuple[int | None, float]:
-        best, best_m = None, math.inf
-        for n, d in self.G.nodes(data=True):
-            if d["floor"] != floor:
-                continue
-            p = d["position_m"]
-            distance_m = math.hypot(p[0] - point_m[0], p[2] - point_m[2])
-            if distance_m < best_m:
-                best, best_m = int(n), distance_m
-        return best, best_m
+        rows = np.flatnonzero(self.node_floor == floor)
+        if len(rows) == 0:
+            return None, math.inf
+        offsets = self.node_xz[rows] - (point_m[0], point_m[2])
+        squared = np.einsum("ij,ij->i", offsets, offsets)
+        k = int(np.argmin(squared))
+        return self.node_ids[int(rows[k])], math.sqrt(float(squared[k]))
 
     def _nearest_walk_point(
         self, point_m: Point3, floor: int
@@ -524,10 +552,20 @@ class _Work:
         u + t (v − u), t in [0, 1]."""
         best: tuple[int, int, float] | None = None
         best_m = math.inf
+        px, pz = point_m[0], point_m[2]
+        nodes = self.G.nodes
         for u, v, d in self.G.edges(data=True):
             if d["kind"] != WALK or d["floor"] != floor:
                 continue
-            t, distance_m = _projection_xz(point_m, self._position(u), self._position(v))
+            a, b = nodes[u]["position_m"], nodes[v]["position_m"]
+            if (  # the edge's box is farther than the best so far: it cannot be nearer
+                px - max(a[0], b[0]) > best_m
+                or min(a[0], b[0]) - px > best_m
+                or pz - max(a[2], b[2]) > best_m
+                or min(a[2], b[2]) - pz > best_m
+            ):
+                continue
+            t, distance_m = _projection_xz(point_m, a, b)
             if distance_m < best_m:
                 best, best_m = (int(u), int(v), t), distance_m
         return best, best_m
@@ -585,6 +623,7 @@ class _Work:
         self.G.add_node(
             node, position_m=here, floor=int(self.G.nodes[u]["floor"]), kind=NODE, pose_index=None
         )
+        self._indexed(node)
         self.G.remove_edge(u, v)
         self.G.add_edge(u, node, **{**data, "length_m": _distance_3d(a, here)})
         self.G.add_edge(node, v, **{**data, "length_m": _distance_3d(here, b)})
@@ -595,11 +634,18 @@ class _Work:
         the segment from ``from_m`` to ``to_m`` (horizontal) where no other corridor branches
         off (each of degree 2), or [] if there is none: one corridor that a rebuild or an edit
         split into several edges."""
+        low_x = min(from_m[0], to_m[0]) - NODE_TOLERANCE_M
+        high_x = max(from_m[0], to_m[0]) + NODE_TOLERANCE_M
+        low_z = min(from_m[2], to_m[2]) - NODE_TOLERANCE_M
+        high_z = max(from_m[2], to_m[2]) + NODE_TOLERANCE_M
+        positions = cast(Iterable[tuple[int, Point3]], self.G.nodes(data="position_m"))
         near = [
             n
-            for n, d in self.G.nodes(data=True)
-            if (n in (u, v) or self.G.degree(n) == 2)
-            and _projection_xz(d["position_m"], from_m, to_m)[1] <= NODE_TOLERANCE_M
+            for n, p in positions
+            if low_x <= p[0] <= high_x
+            and low_z <= p[2] <= high_z
+            and (n in (u, v) or self.G.degree(n) == 2)
+            and _projection_xz(p, from_m, to_m)[1] <= NODE_TOLERANCE_M
         ]
         if u not in near or v not in near:
             return []
