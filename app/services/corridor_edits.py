@@ -92,13 +92,14 @@ def add_edit(
 ) -> tuple[StoredEdit, EditsReport]:
     """Check ``document`` against the map's current version with its edits, and store it as the
     newest edit; the edit and the report after it (see the module docstring for the refusals).
-    Raises MapNotFound."""
-    revision = corridor_edits.lock_edits(db_session, map_id)  # the map's row, to the commit
-    _check_expected(map_id, expected_revision, revision - 1)
+    Raises MapNotFound. A refusal leaves the map's revision raised in the transaction: the
+    caller rolls it back (an error raised through the request's transaction does)."""
     try:
         edit = edit_from_json(document)
     except EditInvalid as err:
         raise _refusal(err) from err
+    revision = corridor_edits.lock_edits(db_session, map_id)  # the map's row, to the commit
+    _check_expected(map_id, expected_revision, revision - 1)
     info = maps.get_map(db_session, map_id)
     version = chosen_version(db_session, info, None)
     _, edits = corridor_edits.list_edits(db_session, map_id)

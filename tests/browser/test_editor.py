@@ -171,6 +171,14 @@ def test_a_refused_edit_says_why_and_changes_nothing(page, map_id):
     expect(history(page)).to_have_count(count)
 
 
+def test_the_map_page_says_how_many_edits_apply(page, map_id):
+    page.goto(f"/admin/maps/{map_id}")
+    count = len(data(page, map_id)["edits"])
+    expect(page.locator("#corridor-edits-summary")).to_contain_text(
+        f"Corridor edits: {count} of {count} applied to this version"
+    )
+
+
 def test_delete_an_edit_from_the_history(page, map_id):
     open_editor(page, map_id)
     count = history(page).count()

@@ -120,6 +120,7 @@ def test_an_edit_reads_back_as_written(document):
         ({"op": "quiet", "at": [0, 0]}, "at", "three numbers"),
         ({"op": "quiet", "at": [0, True, 0]}, "at", "three numbers"),
         ({"op": "quiet", "at": [0, float("nan"), 0]}, "at", "finite"),
+        ({"op": "quiet", "at": [0, 10**400, 0]}, "at", "finite"),
         ({"op": "quiet", "at": [0, 0, 0], "form": 1}, "form", "takes no field 'form'"),
         ({"op": "add_edge", "from": [0, 0, 0], "to": [1, 0, 0], "kind": "ramp"}, "kind", "ramp"),
         ({"op": "add_edge", "from": [0, 0, 0], "to": [1, 0, 0]}, "kind", "needs 'kind'"),

@@ -19,7 +19,7 @@ from __future__ import annotations
 import hmac
 from typing import Annotated, Any
 
-from fastapi import Depends, Header, Query, Request, Response
+from fastapi import Body, Depends, Header, Query, Request, Response
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
@@ -103,19 +103,13 @@ def editor_data(
 
 
 @router.post("/maps/{map_id}/editor/edits")
-async def add_edit(
+def add_edit(
     request: Request,
     user: CheckedJsonUserDep,
     db_session: WriteDbSessionDep,
     map_id: int,
+    document: Annotated[Any, Body()] = None,
 ) -> Response:
-    try:
-        document = await request.json()
-    except ValueError:
-        return JSONResponse(
-            {"detail": "the edit is not JSON", "code": "invalid_edit", "field": None},
-            status_code=422,
-        )
     try:
         stored, report = corridor_edits.add_edit(
             request.app.state.version_cache,
@@ -125,6 +119,7 @@ async def add_edit(
             principal=user.principal,
         )
     except ServiceError as err:
+        db_session.rollback()  # the map's edit revision was raised: nothing is kept
         return _error(err)
     outcome = report.outcomes[-1]
     return JSONResponse(
@@ -142,6 +137,7 @@ def delete_edit(
             db_session, valid_id(map_id, "map"), valid_id(edit_id, "corridor edit")
         )
     except ServiceError as err:
+        db_session.rollback()
         return _error(err)
     return JSONResponse({"id": stored.id, "edit": stored.edit.to_json()})
 

@@ -233,7 +233,10 @@ def _point(value: Any, field: str) -> Point3:
         or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
     ):
         raise EditInvalid(field, "a point is [x, y, z]: three numbers, m, map frame")
-    x, y, z = (float(v) for v in value)
+    try:
+        x, y, z = (float(v) for v in value)
+    except OverflowError as err:  # an int of hundreds of digits
+        raise EditInvalid(field, "a point's coordinates must be finite numbers") from err
     if not all(math.isfinite(v) for v in (x, y, z)):
         raise EditInvalid(field, "a point's coordinates must be finite numbers")
     return (x, y, z)
