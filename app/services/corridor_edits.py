@@ -140,21 +140,28 @@ def delete_edit(
 
 def app_map_with_edits_gzip(
     cache: VersionCache, db_session: Session, version: VersionInfo, revision: int
-) -> tuple[bytes, EditedVersion]:
+) -> tuple[bytes, str]:
     """The app-map of ``version`` (gzip) made from its path graph with the map's corridor edits
-    as of ``revision`` (its points of interest as the edits left them), and the edited version.
-    Without edits it is the version's own file (``app.services.maps.app_map_gzip``); with
-    them it is made from the map document once per process and revision."""
-    edited = edited_version(cache, db_session, version, revision)
+    as of ``revision`` (its points of interest as the edits left them), and the edits' digest
+    for its ETag. Without edits (or a path graph to apply them to) it is the version's own file
+    (``app.services.maps.app_map_gzip``) and the digest is empty; with them it is made from the
+    map document once per process and revision."""
+    if revision == 0:
+        return app_map_gzip(cache, db_session, version), ""
+    try:
+        edited = edited_version(cache, db_session, version, revision)
+    except Conflict:  # a version built before path graphs: served as it is
+        return app_map_gzip(cache, db_session, version), ""
     if not edited.edits:
-        return app_map_gzip(cache, db_session, version), edited
+        return app_map_gzip(cache, db_session, version), ""
 
     def make() -> bytes:
         stored = map_from_json(maps.map_document(db_session, version.map_id, version.number))
         content = app_map_of(with_edited_pois(stored, edited.path_graph), edited.path_graph)
         return gzip.compress(content, compresslevel=DERIVED_GZIP_LEVEL, mtime=0)
 
-    return cache.get(("app_map_gzip_edited", version.id, edited.revision), make), edited
+    zipped = cache.get(("app_map_gzip_edited", version.id, edited.revision), make)
+    return zipped, edited.digest
 
 
 def who(stored: StoredEdit) -> str:

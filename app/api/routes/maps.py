@@ -397,7 +397,7 @@ def _ready_app_map(
     """The app-map of ``version`` with its map's corridor edits as of ``revision``; its ETag
     names the version, the export's own version (a rebuild that changes nothing still gets a
     new ETag, so a phone learns of the version) and the edits."""
-    zipped, edited = app_map_with_edits_gzip(cache, db_session, version, revision)
+    zipped, digest = app_map_with_edits_gzip(cache, db_session, version, revision)
     return ReadyDocument.of(
         gzip.decompress(zipped),
         media_type=JSON_MEDIA_TYPE,
@@ -408,7 +408,7 @@ def _ready_app_map(
             version.map_id,
             version.number,
             version.content_sha256,
-            *((edited.digest,) if edited.digest else ()),
+            *((digest,) if digest else ()),
         ),
     )
 
