@@ -21,6 +21,7 @@ from app.api.body_limit import BodyLimit
 from app.api.docs_pages import install_docs
 from app.api.query_text import refuse_unstorable_query
 from app.api.routes import (
+    corridor_edits,
     jobs,
     keys,
     localization,
@@ -119,7 +120,7 @@ def create_app(
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
     # A request is matched against the routers in this order, route by route: the phones'
     # hottest (routes, localization updates, maps) first. (No two routers' paths overlap.)
-    for module in (navigation, localization, maps, jobs, sessions, sweeps, keys):
+    for module in (navigation, localization, maps, corridor_edits, jobs, sessions, sweeps, keys):
         app.include_router(module.router, prefix="/v1", dependencies=authenticated)
     app.include_router(admin_router)  # /admin: the dashboard (cookie login; not in OpenAPI)
     return app

@@ -25,5 +25,6 @@ NAV = (
     NavItem(label="Maps", url="/admin/maps", section="maps"),
     NavItem(label="Sweeps", url="/admin/sweeps", section="sweeps"),
     NavItem(label="Route tester", url="/admin/routes", section="routes"),
+    NavItem(label="Corridor editor", url="/admin/editor", section="editor"),
     NavItem(label="API keys", url="/admin/keys", section="keys"),
 )

@@ -11,6 +11,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from app.admin.pages import (
+    editor,
     jobs,
     keys,
     login,
@@ -23,7 +24,7 @@ from app.admin.pages import (
     sweeps,
 )
 
-PAGES = (static, login, overview, sessions, jobs, maps, sweeps, route_tester, keys)
+PAGES = (static, login, overview, sessions, jobs, maps, sweeps, route_tester, editor, keys)
 
 router = APIRouter(include_in_schema=False)
 for page in PAGES:

@@ -146,6 +146,8 @@ class MapInfo:
     #: map (:func:`get_map`), not for a page of them (:func:`list_maps`: always None), so not
     #: compared (a map is the same map either way)
     pending_job_id: int | None = field(default=None, compare=False)
+    #: grows with every corridor edit added or deleted (``app.storage.corridor_edits``)
+    corridor_edits_revision: int = 0
 
     @property
     def up_to_date(self) -> bool:
@@ -622,6 +624,7 @@ def list_maps(
             MapRow.created_at,
             MapRow.display_name,
             MapRow.generation,
+            MapRow.corridor_edits_revision,
         )
         .where(MapRow.id.in_(query.scalar_subquery()) if tag_id is not None else true())
         .order_by(MapRow.id.desc())
@@ -636,7 +639,7 @@ _VERSION_COLUMNS = tuple(getattr(MapVersion, f.name) for f in fields(VersionInfo
 
 
 def _map_infos(
-    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None, int]]
+    db_session: Session, rows: Sequence[Row[int, str, int, datetime, str | None, int, int]]
 ) -> list[MapInfo]:
     """:func:`_map_info` of a page of maps (rows of their columns) in four queries, however
     long the page (not three or four per map: a list of 50 maps made 150 round trips), reading
@@ -692,6 +695,7 @@ def _map_infos(
             image_sha256=image_sha256.get(row.session_id),
             session_ids=members.get(row.id) or [row.session_id],
             generation=row.generation,
+            corridor_edits_revision=row.corridor_edits_revision,
         )
         for row in rows
     ]
@@ -825,6 +829,7 @@ def _map_info(db_session: Session, row: MapRow) -> MapInfo:
         session_ids=_session_ids(db_session, row),
         generation=row.generation,
         pending_job_id=_pending_builds(db_session, {row.id: row.generation}).get(row.id),
+        corridor_edits_revision=row.corridor_edits_revision,
     )
 
 

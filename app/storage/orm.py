@@ -6,7 +6,8 @@ Tables (singular, snake_case): ``api_key`` with its dashboard logins (``admin_lo
 ``map_version`` with one ``map_tag`` row per tag, ``blob`` with its ``blob_chunk`` rows (a
 version's bulk data, content-addressed), ``job`` (the queue) and ``worker`` (who is alive
 and what it runs), ``localization``, ``sweep`` with one ``sweep_trial`` row per finished trial,
-and ``session_image`` (the app's picture of a session's map).
+``session_image`` (the app's picture of a session's map), and ``corridor_edit`` (an operator's
+corrections of a map's corridor graph).
 """
 
 from __future__ import annotations
@@ -218,6 +219,27 @@ class MapRow(Base):
     #: rebuild's parameters); a build stores its version only if this is still the generation
     #: it was queued for (``app.storage.maps.bump_generation``, docs/multi-session.md)
     generation: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    #: grows by one with every corridor edit added or deleted (``corridor_edit``): what the
+    #: API's per-process caches of edited graphs and documents are keyed by, and the lock that
+    #: puts two operators' edits of one map one after the other
+    corridor_edits_revision: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+
+
+class CorridorEditRow(Base):
+    """An operator's correction of a map's corridor graph (issue 27,
+    ``app.domain.navigation.corridor_edits``): kept per map, applied to every version of it.
+    ``edit`` is the edit's JSON (``{"op": "quiet", "at": [x, y, z]}``, …); ``created_by`` who
+    made it (``key:<id>`` or the server's admin key) and ``created_by_name`` that key's name."""
+
+    __tablename__ = "corridor_edit"
+    __table_args__ = (NEVER_REUSE_IDS,)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    edit: Mapped[dict[str, Any]]
+    created_by: Mapped[str] = mapped_column(String(64))
+    created_by_name: Mapped[str | None] = mapped_column(String(100))
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
 class SessionImage(Base):

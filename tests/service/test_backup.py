@@ -26,11 +26,14 @@ from sqlalchemy import func, select
 from app.domain.evaluation.sweep_plan import SweepPlan
 from app.domain.evaluation.tuning import Axis, SearchSpace, Trial
 from app.domain.formats.derived_documents import APP_MAP_EXPORT
+from app.domain.navigation.corridor_edits import edit_from_json
+from app.domain.navigation.path_graph import path_graph_from_json
 from app.domain.upload.session import decode_json_bytes, parse_session
-from app.storage import backup, images, keys, maps, queue, sessions, sweeps
+from app.storage import backup, corridor_edits, images, keys, maps, queue, sessions, sweeps
 from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefused
 from app.storage.db import Database
 from app.storage.migrate import head_revision
+from app.storage.navigation import path_graph_document
 from app.storage.orm import Base, Job, JobState, Role
 from tests.service.api_support import ADMIN, run_next_job, running_api
 from tests.service.helpers import session_bytes
@@ -139,9 +142,32 @@ def build_source(db: Database) -> tuple[int, str, str]:
     assert running.map_id == 5
     with db.transaction() as tx:
         maps.delete_map(tx, 6)
+    add_corridor_edits(db, 3)
     add_sweep(db, 2, trials_done=3)
     add_sweep(db, 2, trials_done=1)
     return device.id, secret, device.prefix
+
+
+def add_corridor_edits(db: Database, map_id: int) -> None:
+    """Two points of interest added by an operator at a node of the map, one deleted again:
+    the map's edit revision is 3, one edit is left (which the app-map shows)."""
+    with db.transaction() as tx:
+        version = maps.get_map(tx, map_id).current
+        assert version is not None
+        document = path_graph_document(tx, version.id)
+        assert document is not None
+        at = path_graph_from_json(document).graph.nodes[0]["position_m"]
+        added = []
+        for name in ("Desk", "Door"):
+            corridor_edits.lock_edits(tx, map_id)
+            edit = edit_from_json({"op": "add_poi", "name": name, "at": list(at)})
+            added.append(
+                corridor_edits.add_edit(
+                    tx, map_id, edit, created_by=keys.ENVIRONMENT_ADMIN, created_by_name=None
+                )
+            )
+        corridor_edits.lock_edits(tx, map_id)
+        corridor_edits.delete_edit(tx, map_id, added[1].id)
 
 
 def app_maps_of(url: str) -> dict[tuple[int, int | None], bytes]:
@@ -306,6 +332,12 @@ def test_round_trip_sqlite_postgresql_sqlite_keeps_everything(
             assert picture is not None
             assert picture.jpeg == SOURCE_PICTURE
 
+        for database in (middle, last):  # the corridor edits and the map's edit revision
+            with database.read() as tx:
+                revision, edits = corridor_edits.list_edits(tx, 3)
+            assert revision == 3
+            assert [(e.edit.op, e.edit.name) for e in edits] == [("add_poi", "Desk")]
+        assert b'"id":"Desk"' in source.app_maps[(3, None)]
         assert app_maps_of(postgres_url) == source.app_maps
         assert app_maps_of(last.url.render_as_string(hide_password=False)) == source.app_maps
     finally:
@@ -718,4 +750,33 @@ def test_an_archive_from_before_maps_of_several_sessions_still_imports(
         assert maps.get_version(tx, 1, 1).session_ids == []
         sweep = sweeps.get_sweep(tx, 1)
         assert (sweep.shift_metric_version, sweep.session_ids) == (1, [])
+    db.dispose()
+
+
+def test_an_archive_from_before_corridor_edits_still_imports(
+    source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """No ``corridor_edit`` table, no ``corridor_edits_revision`` column: the maps have no
+    edits, at revision 0."""
+
+    def drop_edits(name: str, data: bytes) -> bytes | None:
+        if name == "tables/corridor_edit.jsonl":
+            return None
+        if name != "tables/map.jsonl":
+            return data
+        rows = [json.loads(line) for line in data.splitlines()]
+        for row in rows:
+            row.pop("corridor_edits_revision")
+        return b"".join(json.dumps(row).encode() + b"\n" for row in rows)
+
+    def drop_count(document: dict[str, Any]) -> None:
+        document["counts"].pop("corridor_edit")
+        document["id_high_water"].pop("corridor_edit")
+
+    old = rewrite(source.archive, tmp_path / "old.zip", member=drop_edits, manifest=drop_count)
+    db = Database(database_url)
+    backup.import_archive(db, old)
+    with db.read() as tx:
+        assert corridor_edits.list_edits(tx, 3) == (0, [])
+        assert all(info.corridor_edits_revision == 0 for info in maps.list_maps(tx)[0])
     db.dispose()

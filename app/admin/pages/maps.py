@@ -28,10 +28,10 @@ from app.domain.formats.derived_documents import figure_of_overview, overview_do
 from app.domain.formats.map_io import map_from_json
 from app.domain.navigation.path_graph import PathGraph
 from app.domain.upload.session import Session as ParsedSession
+from app.services.corridor_edits import app_map_with_edits_gzip, edits_report
 from app.services.errors import ServiceError
 from app.services.maps import (
     add_session_to_map,
-    app_map_gzip,
     chosen_version,
     delete_map_and_jobs,
     enqueue_rebuild,
@@ -159,7 +159,30 @@ def map_page(
         submitted_name=submitted_name,
         map_sessions=map_session_uses(info),
         sharing=_maps_sharing_tags(db_session, info),
+        edits=_edits_on(request, db_session, info, version),
     )
+
+
+def _edits_on(
+    request: Request, db_session: Session, info: MapInfo, version: VersionInfo | None
+) -> dict[str, Any] | None:
+    """How many of the map's corridor edits apply to ``version``, and why the others do not
+    (None: never edited, or no version with a path graph)."""
+    if version is None or info.corridor_edits_revision == 0:
+        return None
+    try:
+        report = edits_report(request.app.state.version_cache, db_session, info, version.number)
+    except ServiceError:
+        return None
+    return {
+        "count": len(report.edits),
+        "applied": report.applied_count,
+        "not_applied": [
+            (stored.id, stored.edit.op, outcome.reason)
+            for stored, outcome in zip(report.edits, report.outcomes, strict=True)
+            if not outcome.applied
+        ],
+    }
 
 
 def _maps_sharing_tags(db_session: Session, info: MapInfo) -> list[tuple[int, str, list[int]]]:
@@ -336,7 +359,11 @@ def download_app_map(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=gzip.decompress(app_map_gzip(request.app.state.version_cache, db_session, chosen)),
+        content=gzip.decompress(
+            app_map_with_edits_gzip(
+                request.app.state.version_cache, db_session, chosen, info.corridor_edits_revision
+            )[0]
+        ),
         media_type="application/json",
         headers={
             "Content-Disposition": f'attachment; filename="map-{info.id}-v{chosen.number}.json"'
@@ -355,7 +382,9 @@ def download_geojson(
     info = maps.get_map(db_session, valid_id(map_id, "map"))
     chosen = chosen_version(db_session, info, version)
     return Response(
-        content=geojson_bytes(request.app.state.version_cache, db_session, chosen),
+        content=geojson_bytes(
+            request.app.state.version_cache, db_session, chosen, info.corridor_edits_revision
+        ),
         media_type="application/geo+json",
         headers={
             "Content-Disposition": (

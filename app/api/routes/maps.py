@@ -45,13 +45,13 @@ from app.api.schemas.maps import (
     VersionsPublic,
     VersionSummary,
 )
+from app.services.corridor_edits import app_map_with_edits_gzip
 from app.services.maps import (
     APP_MAP_EXPORT,
     BuildQueued,
     MapPages,
     MapState,
     add_session_to_map,
-    app_map_gzip,
     checked_overrides,
     checked_session_ids,
     chosen_version,
@@ -369,9 +369,12 @@ async def get_app_map(
     accept_encoding: AcceptEncoding = None,
 ) -> Response:
     cache: VersionCache = request.app.state.version_cache
+    revision = state.info.corridor_edits_revision
     document: ReadyDocument | None = None
     if version is None:
-        document = cache.peek((APP_MAP_DOCUMENT, APP_MAP_EXPORT, current_version(state).id))
+        document = cache.peek(
+            (APP_MAP_DOCUMENT, APP_MAP_EXPORT, current_version(state).id, revision)
+        )
     if document is None:
         document = await run_in_threadpool(_app_map_document, cache, db, state.info, version)
     return document.response(if_none_match, accept_encoding)
@@ -386,22 +389,31 @@ def _app_map_document(
 ) -> ReadyDocument:
     with db.read() as db_session:
         chosen = chosen_version(db_session, info, number)
+        revision = info.corridor_edits_revision
         return cache.get(
-            (APP_MAP_DOCUMENT, APP_MAP_EXPORT, chosen.id),
-            lambda: _ready_app_map(cache, db_session, chosen),
+            (APP_MAP_DOCUMENT, APP_MAP_EXPORT, chosen.id, revision),
+            lambda: _ready_app_map(cache, db_session, chosen, revision),
         )
 
 
-def _ready_app_map(cache: VersionCache, db_session: Session, version: VersionInfo) -> ReadyDocument:
-    """The app-map of ``version``; its ETag names the version and the export's own version (a
-    rebuild that changes nothing still gets a new ETag, so a phone learns of the version)."""
-    zipped = app_map_gzip(cache, db_session, version)
+def _ready_app_map(
+    cache: VersionCache, db_session: Session, version: VersionInfo, revision: int
+) -> ReadyDocument:
+    """The app-map of ``version`` with its map's corridor edits as of ``revision``; its ETag
+    names the version, the export's own version (a rebuild that changes nothing still gets a
+    new ETag, so a phone learns of the version) and the edits."""
+    zipped, digest = app_map_with_edits_gzip(cache, db_session, version, revision)
     return ReadyDocument.of(
         gzip.decompress(zipped),
         media_type=JSON_MEDIA_TYPE,
         gzipped=zipped,
         etag=strong_etag(
-            "app-map", APP_MAP_EXPORT, version.map_id, version.number, version.content_sha256
+            "app-map",
+            APP_MAP_EXPORT,
+            version.map_id,
+            version.number,
+            version.content_sha256,
+            *((digest,) if digest else ()),
         ),
     )
 

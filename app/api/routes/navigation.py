@@ -22,10 +22,10 @@ from app.domain.navigation.routing import (
 from app.services.maps import current_version
 from app.services.navigation import (
     current_path_graph,
+    edited_version,
     geojson_content,
     kept_path_graph,
     planned_route,
-    version_path_graph,
 )
 from app.services.version_cache import VersionCache
 from app.storage.db import Database
@@ -102,10 +102,11 @@ def list_pois(
 async def plan(state: MapStateDep, body: RouteRequest, request: Request) -> Response:
     version = current_version(state)
     cache: VersionCache = request.app.state.version_cache
-    graph = kept_path_graph(cache, version)
+    revision = state.info.corridor_edits_revision
+    graph = kept_path_graph(cache, version, revision)
     if graph is None:
         db: Database = request.app.state.db
-        graph = await run_in_threadpool(_read_path_graph, cache, db, version)
+        graph = await run_in_threadpool(_read_path_graph, cache, db, version, revision)
     route = planned_route(
         graph,
         body.from_.to_domain(),
@@ -119,9 +120,11 @@ async def plan(state: MapStateDep, body: RouteRequest, request: Request) -> Resp
     return Response(content=answer, media_type=JSON_MEDIA_TYPE)
 
 
-def _read_path_graph(cache: VersionCache, db: Database, version: VersionInfo) -> PathGraph:
+def _read_path_graph(
+    cache: VersionCache, db: Database, version: VersionInfo, revision: int
+) -> PathGraph:
     with db.read() as db_session:
-        return version_path_graph(cache, db_session, version)
+        return edited_version(cache, db_session, version, revision).path_graph
 
 
 @router.get(
@@ -165,19 +168,31 @@ async def geojson(
 ) -> Response:
     version = current_version(state)
     cache: VersionCache = request.app.state.version_cache
-    document: ReadyDocument | None = cache.peek((GEOJSON_DOCUMENT, version.id))
+    revision = state.info.corridor_edits_revision
+    document: ReadyDocument | None = cache.peek((GEOJSON_DOCUMENT, version.id, revision))
     if document is None:
-        document = await run_in_threadpool(_geojson_document, cache, db, version)
+        document = await run_in_threadpool(_geojson_document, cache, db, version, revision)
     return document.response(if_none_match, accept_encoding)
 
 
-def _geojson_document(cache: VersionCache, db: Database, version: VersionInfo) -> ReadyDocument:
+def _geojson_document(
+    cache: VersionCache, db: Database, version: VersionInfo, revision: int
+) -> ReadyDocument:
+    """The GeoJSON of ``version`` with its map's corridor edits; its ETag names the edits (none:
+    the ETag of the version alone)."""
     with db.read() as db_session:
+        edited = edited_version(cache, db_session, version, revision)
         return cache.get(
-            (GEOJSON_DOCUMENT, version.id),
+            (GEOJSON_DOCUMENT, version.id, edited.revision),
             lambda: ReadyDocument.of(
-                geojson_content(version_path_graph(cache, db_session, version)).encode(),
+                geojson_content(edited.path_graph).encode(),
                 media_type=GEOJSON_MEDIA_TYPE,
-                etag=strong_etag("geojson", version.map_id, version.number, version.content_sha256),
+                etag=strong_etag(
+                    "geojson",
+                    version.map_id,
+                    version.number,
+                    version.content_sha256,
+                    *((edited.digest,) if edited.digest else ()),
+                ),
             ),
         )

@@ -16,7 +16,9 @@ How instructions are chosen (angles in the horizontal x–z plane, + is left, as
    junction is placed at the junction. A decision is announced as
    a turn when |turn| ≥ ``TURN_MIN_DEG``; as "bear left/right" when ``BEAR_MIN_DEG`` ≤ |turn| <
    ``TURN_MIN_DEG`` and it is at a junction (a node where three or more corridors meet); else it is
-   silent. So instructions are at least ``MIN_SPACING_M`` apart except at junctions.
+   silent. So instructions are at least ``MIN_SPACING_M`` apart except at junctions. A decision
+   at a node an operator quieted (a corridor edit, ``app.domain.navigation.corridor_edits``) is
+   silent too.
 3. **Announcements.** Before a turn, a leg long enough to keep them ``MIN_SPACING_M`` apart gets
    "in N m, turn left" ``ANNOUNCE_BEFORE_M`` before the corner.
 4. **First and last steps.** Given the phone's heading (``heading_rad``: the walking direction's
@@ -41,6 +43,7 @@ from typing import Literal, TypeAlias
 import numpy as np
 
 from app.domain.frames import FloatArray
+from app.domain.navigation.corridor_edits import QUIET_NODES
 from app.domain.navigation.floors import assign_floors
 from app.domain.navigation.path_graph import STAIRS, WALK, PathGraph
 from app.domain.navigation.path_graph.geometry import douglas_peucker_end_legs
@@ -210,7 +213,9 @@ def _guidance_steps(
     """:func:`guidance_steps` of the route through ``nodes`` whose polyline is (N, 3) ``xyz``,
     the same as ``points``, with (N − 1) ``lengths_m`` the 3-D length of each segment; ``lookups``
     are ``pg``'s."""
-    kinds, junction = _segment_kinds(lookups, points, nodes)
+    kinds, junction, at = _segment_kinds(lookups, points, nodes)
+    quiet_at = pg.graph.graph.get(QUIET_NODES, ())  # corridor edits: silenced nodes
+    quiet = [n in quiet_at for n in at] if quiet_at else [False] * len(at)
     floors = _point_floors(pg, lookups, points)
     steps: list[Step] = []
     heading: tuple[float, float] | None = None
@@ -223,6 +228,7 @@ def _guidance_steps(
                 points[i : j + 2],
                 lengths_m[i : j + 1],
                 junction[i : j + 2],
+                quiet[i : j + 2],
                 floors[i],
                 facing,
                 style,
@@ -257,7 +263,7 @@ def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[b
     """The walked stretches of ``route`` between its stairs and elevators: each (points (K, 3),
     whether each point is a junction)."""
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
-    kinds, junction = _segment_kinds(node_lookups(pg), _points(xyz), route.nodes)
+    kinds, junction, _ = _segment_kinds(node_lookups(pg), _points(xyz), route.nodes)
     return [(xyz[i : j + 2], junction[i : j + 2]) for kind, i, j in _runs(kinds) if kind == WALK]
 
 
@@ -425,13 +431,15 @@ def _walk_steps(
     points: Sequence[Point3],
     lengths_m: Sequence[float],
     junction: Sequence[bool],
+    quiet: Sequence[bool],
     floor: int,
     heading_rad: float | None,
     style: GuidanceStyle,
     steps: list[Step],
 ) -> tuple[float, float] | None:
     """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``, whose
-    segments are ``lengths_m`` long; return its final x–z heading."""
+    segments are ``lengths_m`` long; return its final x–z heading. A decision at a point that
+    ``quiet`` flags (a node an operator quieted) is not announced."""
     walked = distances_along_m(lengths_m)
     first_dir = last_dir = None
     if len(points) > 1:
@@ -450,7 +458,7 @@ def _walk_steps(
     decisions = _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
     from_m, from_i = 0.0, 0
     for index, turn_deg, at_junction, along_m in decisions:
-        if not _announced(turn_deg, at_junction):
+        if not _announced(turn_deg, at_junction) or quiet[index]:
             continue
         leg_m = along_m - from_m
         steps.append(
@@ -531,9 +539,10 @@ def _side(heading: tuple[float, float] | None, end: Point3, thing_m: FloatArray 
 
 def _segment_kinds(
     lookups: NodeLookups, points: Sequence[Point3], nodes: Sequence[int]
-) -> tuple[list[str], list[bool]]:
-    """(kind of each polyline segment, whether each point is a junction): a point is the route
-    node at its position (rounded to ``ROUNDED_DECIMALS``; the last such node if several)."""
+) -> tuple[list[str], list[bool], list[int | None]]:
+    """(kind of each polyline segment, whether each point is a junction, the node at each point
+    or None): a point is the route node at its position (rounded to ``ROUNDED_DECIMALS``; the
+    last such node if several)."""
     place_of_node, place_of_point = lookups.place_of_node, lookups.place_of_point
     node_at = {place_of_node[n]: n for n in nodes}
     places = [place_of_point.get(p, -1) for p in points]  # -1: no node there
@@ -548,7 +557,7 @@ def _segment_kinds(
         WALK if a is None or b is None else kind_between[a].get(b, WALK)
         for a, b in itertools.pairwise(at)
     ]
-    return kinds, junction
+    return kinds, junction, at
 
 
 def _rounded(point: Point3) -> Point3:

@@ -24,6 +24,7 @@ from app.storage.migrate import alembic_config
 from app.storage.orm import (
     ApiKey,
     Base,
+    CorridorEditRow,
     Job,
     MapRow,
     MapSession,
@@ -51,7 +52,16 @@ SPOOL_MAX_BYTES = 8 * 2**20
 #: Bytes read or written at a time when copying a member.
 CHUNK_BYTES = 2**20
 #: Tables whose ids are never given out twice (``NEVER_REUSE_IDS`` in orm.py).
-ID_SEQUENCE_TABLES = ("api_key", "session", "map", "job", "map_version", "localization", "sweep")
+ID_SEQUENCE_TABLES = (
+    "api_key",
+    "session",
+    "map",
+    "job",
+    "map_version",
+    "localization",
+    "sweep",
+    "corridor_edit",
+)
 #: Tables that must be empty for a restore (one that keeps the archive's ids).
 RESTORE_NEEDS_EMPTY = ("session", "map", "job", "sweep")
 KEY_SUBJECT = re.compile(r"key:(\d+)")
@@ -150,6 +160,11 @@ TABLES = (
         refs={"session_id": "session"},
     ),
     TableSpec(model=MapRow, refs={"session_id": "session"}),
+    TableSpec(
+        model=CorridorEditRow,
+        refs={"map_id": "map"},
+        optional=True,  # added with corridor edits (issue 27)
+    ),
     TableSpec(
         model=SessionImage,
         key="session_id",

@@ -1,0 +1,192 @@
+"""``/v1/maps/{id}/corridor-edits``: an operator's corrections of a map's corridor graph (issue
+27; admin keys). Devices see their effect only through routes, points of interest, GeoJSON and
+the app-map, which serve the current version's graph with the edits applied from the next
+request on (no rebuild).
+
+``GET`` lists the edits with what became of each on the current version (``?version=N``: on
+that one) and an ETag of the edits' revision; ``POST`` adds one (201, ``Location``), ``DELETE``
+removes one (undo). ``POST`` and ``DELETE`` take ``If-Match`` with that ETag: 409
+``edits_changed`` when another operator changed the edits meanwhile.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Header, Query, Request, Response
+
+from app.api.schemas.corridor_edits import (
+    EDIT_EXAMPLES,
+    CorridorEditCreated,
+    CorridorEditPublic,
+    CorridorEditsPublic,
+)
+from app.services import corridor_edits
+from app.services.errors import InvalidInput, NotFound
+from app.storage import maps
+from app.web.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.web.errors import error_responses
+from app.web.route_class import SessionEndingRoute
+
+router = APIRouter(prefix="/maps", tags=["corridor edits"], route_class=SessionEndingRoute)
+
+IfMatch = Annotated[
+    str | None,
+    Header(
+        alias="If-Match",
+        description='the ETag of the edits you read ("edits-4"): 409 edits_changed if they '
+        "changed since",
+    ),
+]
+
+NO_PATH_GRAPH = (
+    "no_path_graph",
+    "version 1 of map 5 has no path graph (it was built before path graphs existed): rebuild "
+    "the map",
+)
+
+
+def _etag(revision: int) -> str:
+    return f'"edits-{revision}"'
+
+
+def _expected(if_match: str | None) -> int | None:
+    """The revision an ``If-Match`` names; None without one (or ``*``)."""
+    if if_match is None or if_match.strip() == "*":
+        return None
+    text = if_match.strip().removeprefix("W/").strip('"')
+    number = text.removeprefix("edits-")
+    if not number.isdigit() or not text.startswith("edits-"):
+        raise InvalidInput(
+            "invalid_if_match",
+            f'If-Match must be the ETag of the edits ("edits-4"), got {if_match!r}',
+            field="If-Match",
+        )
+    return int(number)
+
+
+@router.get(
+    "/{map_id}/corridor-edits",
+    summary="List a map's corridor edits",
+    description="The map's corridor edits, oldest first (the order they apply in), each with who "
+    "made it and when, and whether it applies to the current version (or `?version=N`): an edit "
+    "whose place the version no longer has is kept and reported as not applied, with the reason. "
+    "The ETag is the edits' revision, for `If-Match` on POST and DELETE. Admin keys only.",
+    responses=error_responses(401, 403, 404, 409, 422, examples={409: NO_PATH_GRAPH}),
+)
+def list_corridor_edits(
+    map_id: int,
+    request: Request,
+    response: Response,
+    _admin: AdminPrincipal,
+    db_session: ReadDbSessionDep,
+    version: Annotated[
+        int | None,
+        Query(ge=1, le=2**31, description="a version number; the current one if left out"),
+    ] = None,
+) -> CorridorEditsPublic:
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    report = corridor_edits.edits_report(request.app.state.version_cache, db_session, info, version)
+    response.headers["ETag"] = _etag(report.revision)
+    response.headers["Cache-Control"] = "no-store"
+    return CorridorEditsPublic.from_domain(report)
+
+
+@router.post(
+    "/{map_id}/corridor-edits",
+    status_code=201,
+    summary="Add a corridor edit",
+    description="An edit of the map's corridor graph, in the map's frame (points `[x, y, z]`, m, "
+    "y up): `quiet` (at), `add_edge` (from, to, kind walk|door|stairs|elevator), `remove_edge` "
+    "(from, to), `move_node` (from, to), `add_poi` (name, at), `rename_poi` (name, new_name, "
+    "optional at), `remove_poi` (name, optional at). It must apply to the current version: a "
+    "malformed edit, an unknown op, a point far outside the map or on no floor, a self-loop, a "
+    "place with no node near it is a 422 naming the field; a duplicate edge, a removal that "
+    "would cut a tag or point of interest off from the rest of the map, a name taken a 409; a "
+    "map without a path graph the 409 no_path_graph. Kept per map and applied to every version "
+    "(rebuilds, new walks), found again by position. Routes and downloads use it from the next "
+    "request on. Admin keys only.",
+    responses=error_responses(
+        401,
+        403,
+        404,
+        409,
+        422,
+        examples={
+            409: (
+                "edit_conflict",
+                "to: removing the edge 12–13 would cut tag 305 off from the rest of the map (the "
+                "app cannot route to a place it cannot reach)",
+            ),
+            422: ("invalid_edit", "op: unknown op 'straighten': one of quiet, add_edge, …"),
+        },
+    ),
+)
+def add_corridor_edit(
+    map_id: int,
+    request: Request,
+    response: Response,
+    admin: AdminPrincipal,
+    db_session: WriteDbSessionDep,
+    edit: Annotated[dict[str, Any], Body(openapi_examples=EDIT_EXAMPLES)],
+    if_match: IfMatch = None,
+) -> CorridorEditCreated:
+    stored, report = corridor_edits.add_edit(
+        request.app.state.version_cache,
+        db_session,
+        valid_id(map_id, "map"),
+        edit,
+        principal=admin,
+        expected_revision=_expected(if_match),
+    )
+    response.headers["Location"] = f"/v1/maps/{map_id}/corridor-edits/{stored.id}"
+    response.headers["ETag"] = _etag(report.revision)
+    public = CorridorEditPublic.from_domain(stored, report.outcomes[-1])
+    return CorridorEditCreated(
+        **public.model_dump(), map_version=report.version.number, revision=report.revision
+    )
+
+
+@router.get(
+    "/{map_id}/corridor-edits/{edit_id}",
+    summary="Get a corridor edit",
+    description="One edit, and whether it applies to the current version. Admin keys only.",
+    responses=error_responses(401, 403, 404, 409, 422, examples={409: NO_PATH_GRAPH}),
+)
+def get_corridor_edit(
+    map_id: int,
+    edit_id: int,
+    request: Request,
+    _admin: AdminPrincipal,
+    db_session: ReadDbSessionDep,
+) -> CorridorEditPublic:
+    info = maps.get_map(db_session, valid_id(map_id, "map"))
+    report = corridor_edits.edits_report(request.app.state.version_cache, db_session, info)
+    for stored, outcome in zip(report.edits, report.outcomes, strict=True):
+        if stored.id == edit_id:
+            return CorridorEditPublic.from_domain(stored, outcome)
+    raise NotFound("not_found", f"map {info.id} has no corridor edit {edit_id}")
+
+
+@router.delete(
+    "/{map_id}/corridor-edits/{edit_id}",
+    status_code=204,
+    summary="Delete a corridor edit",
+    description="Remove an edit (undo). The edits after it stay and apply without it from the "
+    "next request on; one that needed it is then reported as not applied. Admin keys only.",
+    responses=error_responses(401, 403, 404, 409, 422),
+)
+def delete_corridor_edit(
+    map_id: int,
+    edit_id: int,
+    _admin: AdminPrincipal,
+    db_session: WriteDbSessionDep,
+    if_match: IfMatch = None,
+) -> Response:
+    corridor_edits.delete_edit(
+        db_session,
+        valid_id(map_id, "map"),
+        valid_id(edit_id, "corridor edit"),
+        expected_revision=_expected(if_match),
+    )
+    return Response(status_code=204)
