@@ -28,10 +28,12 @@ from typing import Annotated
 from urllib.parse import quote
 
 from fastapi import Depends, Request, Response
+from fastapi.exceptions import RequestValidationError
 from starlette.datastructures import FormData
 
 from app.admin.signing import Signer, load_or_create_secret
 from app.config import Settings
+from app.domain.upload.fields import text_fault
 from app.storage import admin_logins, keys
 from app.storage.db import Database
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
@@ -313,8 +315,9 @@ DashboardUserDep = Annotated[DashboardUser, Depends(dashboard_user)]
 
 
 async def posted_form(request: Request) -> FormData:
-    """The posted form, unchecked (only the login form, which has no login yet, uses it)."""
-    return await request.form()
+    """The posted form, without a CSRF check (only the login form, which has no login yet,
+    uses it); its text is checked (:func:`read_form`)."""
+    return await read_form(request)
 
 
 PostedFormDep = Annotated[FormData, Depends(posted_form)]
@@ -322,7 +325,7 @@ PostedFormDep = Annotated[FormData, Depends(posted_form)]
 
 async def checked_form(request: Request, user: DashboardUserDep) -> FormData:
     """The posted form, if it carries the login's CSRF token; CsrfRefused (403) otherwise."""
-    form = await request.form()
+    form = await read_form(request)
     token = form.get("csrf_token")
     if not isinstance(token, str) or not hmac.compare_digest(token, user.csrf_token):
         raise CsrfRefused("the form's security token is missing or wrong")
@@ -330,6 +333,20 @@ async def checked_form(request: Request, user: DashboardUserDep) -> FormData:
 
 
 CheckedFormDep = Annotated[FormData, Depends(checked_form)]
+
+
+async def read_form(request: Request) -> FormData:
+    """The posted form. Every field's name and text value must be text a database can hold
+    (:func:`app.domain.upload.fields.text_fault`, the rule of every stored text): a NUL is a
+    422 naming the field (RequestValidationError, a page) before anything else happens."""
+    form = await request.form()
+    for name, value in form.multi_items():
+        reason = text_fault(name) or (text_fault(value) if isinstance(value, str) else None)
+        if reason is not None:
+            raise RequestValidationError(
+                [{"loc": ("body", name), "msg": f"the field {reason}", "type": "value_error"}]
+            )
+    return form
 
 
 def safe_next(next_url: str | None) -> str:

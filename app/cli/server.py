@@ -270,6 +270,7 @@ def _migrate(_args: argparse.Namespace) -> int:
 
 
 def _keys_create(args: argparse.Namespace) -> int:
+    from app.domain.upload.fields import text_fault
     from app.storage import keys
     from app.storage.orm import Role, utc_now
 
@@ -280,6 +281,8 @@ def _keys_create(args: argparse.Namespace) -> int:
         )
     if len(args.name) > 100:
         raise CommandError(f"--name is {len(args.name)} characters; at most 100")
+    if (reason := text_fault(args.name)) is not None:  # e.g. bytes that are no UTF-8
+        raise CommandError(f"--name {reason}")
     expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
     database = open_migrated(load_settings())
     with database.transaction() as db_session:

@@ -21,6 +21,7 @@ from collections.abc import Iterable
 from sqlalchemy.orm import Session
 
 from app.domain.errors import SessionFormatError
+from app.domain.upload.fields import text_fault
 from app.domain.upload.session import Session as ParsedSession
 from app.domain.upload.session import parse_session_stream
 from app.storage import sessions
@@ -55,15 +56,11 @@ def stored_session(db_session: Session, session_id: int) -> ParsedSession:
 
 
 def check_text(field: str, value: str) -> None:
-    """SessionFormatError naming ``field`` if ``value`` cannot be stored as text everywhere."""
-    if "\x00" in value:
-        raise SessionFormatError(field, "holds a NUL character (U+0000)")
-    try:
-        value.encode("utf-8")
-    except UnicodeEncodeError as err:
-        raise SessionFormatError(
-            field, f"holds a lone surrogate (U+{ord(value[err.start]):04X}), which is no text"
-        ) from None
+    """SessionFormatError naming ``field`` if ``value`` cannot be stored as text everywhere
+    (:func:`app.domain.upload.fields.text_fault`, the rule of every text that is stored)."""
+    reason = text_fault(value)
+    if reason is not None:
+        raise SessionFormatError(field, reason)
 
 
 def check_storable(parsed: ParsedSession) -> None:
