@@ -31,14 +31,17 @@ from app.storage.sessions import MAX_MAP_NAME_LENGTH
 MAX_TAG_ID = 2**31 - 1
 
 
-def parse_upload(json_chunks: Iterable[bytes], *, max_poses: int) -> ParsedSession:
+def parse_upload(
+    json_chunks: Iterable[bytes], *, max_poses: int, source: str = "upload"
+) -> ParsedSession:
     """The session in the upload's JSON bytes (in chunks), parsed as they come: a session with
     more than ``max_poses`` poses (``INVISIBLE_MAP_MAX_POSES``) is refused when pose
     ``max_poses`` + 1 is reached, so that a small gzip body that inflates to millions of poses
     costs no decoding of the rest, no build, no stored map; then :func:`check_storable`.
-    SessionFormatError (naming the field) for any fault."""
+    SessionFormatError (naming the field) for any fault; ``source`` names the document in a
+    fault of the whole (``upload is not valid JSON: …``)."""
     parsed = parse_session_stream(
-        json_chunks, max_poses=max_poses, max_poses_name="INVISIBLE_MAP_MAX_POSES"
+        json_chunks, max_poses=max_poses, max_poses_name="INVISIBLE_MAP_MAX_POSES", source=source
     )
     if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
         raise SessionFormatError(
