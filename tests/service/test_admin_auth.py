@@ -4,6 +4,8 @@ both)."""
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import re
 import shutil
 import stat
@@ -284,6 +286,53 @@ def test_forwarded_headers_from_an_untrusted_peer_do_not_change_the_source(
         )
         assert answer.status_code == 401
     assert len(holds) == 5  # the 11th to the 15th attempt were held: one source
+
+
+def test_a_client_that_disconnects_while_posting_the_login_is_one_quiet_line(
+    api: Api, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 28, finding 5: it was logged as an unhandled error with a traceback."""
+    assert api.client.get("/admin/login").status_code == 200
+    messages: list[dict[str, Any]] = [
+        {"type": "http.request", "body": b"form_token=abc&key=im_", "more_body": True},
+        {"type": "http.disconnect"},
+    ]
+    sent: list[dict[str, Any]] = []
+
+    async def receive() -> dict[str, Any]:
+        return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+    async def send(message: dict[str, Any]) -> None:
+        sent.append(message)
+
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": "POST",
+        "scheme": "http",
+        "path": "/admin/login",
+        "raw_path": b"/admin/login",
+        "query_string": b"",
+        "root_path": "",
+        "headers": [
+            (b"host", b"testserver"),
+            (b"content-type", b"application/x-www-form-urlencoded"),
+            (b"content-length", b"100"),
+        ],
+        "client": ("203.0.113.9", 50000),
+        "server": ("testserver", 80),
+        "state": {},
+    }
+    with caplog.at_level(logging.INFO):
+        asyncio.run(api.app(scope, receive, send))
+    assert not [record for record in caplog.records if record.exc_info]
+    problems = [record for record in caplog.records if record.levelno >= logging.WARNING]
+    assert problems == []
+    said = [
+        record.getMessage() for record in caplog.records if "disconnected" in record.getMessage()
+    ]
+    assert said == ["client disconnected while sending POST /admin/login"]
 
 
 # --------------------------------------------------------------------------- while logged in
