@@ -20,8 +20,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tqdm import tqdm
-
 from app.cli.common import CommandError, first_line, load_settings, open_migrated, safe_url
 
 if TYPE_CHECKING:
@@ -201,6 +199,8 @@ def _report_import(
 @contextmanager
 def _progress_bar(what: str) -> Iterator[Callable[[int, int], None]]:
     """A tqdm bar on stderr (none when stderr is not a terminal) and the callback moving it."""
+    from tqdm import tqdm
+
     with tqdm(desc=what, unit=" rows", leave=False, disable=None, file=sys.stderr) as bar:
 
         def on_progress(done: int, total: int) -> None:

@@ -21,8 +21,6 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
 from app.cli.common import CommandError, first_line, load_settings, open_migrated, safe_url
 
 
@@ -44,6 +42,7 @@ def add_firebase_commands(commands: Any) -> None:
 
 def _import_firebase(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import SQLAlchemyError
+    from tqdm import tqdm
 
     from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
     from app.services.firebase_import import ImportStatus, import_recording

@@ -9,14 +9,13 @@
     invisible-map keys revoke ID
 
 All read their settings from the environment (``app/config.py``: ``DATABASE_URL``,
-``INVISIBLE_MAP_DATA_DIR``, ``INVISIBLE_MAP_ADMIN_KEY``, …). Heavy imports (FastAPI, SQLAlchemy)
-happen inside the handlers so that the offline commands stay quick to start.
+``INVISIBLE_MAP_DATA_DIR``, ``INVISIBLE_MAP_ADMIN_KEY``, …). Heavy imports (FastAPI, SQLAlchemy,
+asyncio) happen inside the handlers so that the offline commands stay quick to start.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import errno
 import secrets
 import signal
@@ -112,6 +111,8 @@ def add_server_commands(commands: Any) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
+    import asyncio
+
     from app.config import MAX_API_PROCESSES, default_api_processes
     from workers.supervisor import WorkerSupervisor
 
