@@ -133,7 +133,6 @@ def _parser() -> argparse.ArgumentParser:
 def _process(args: argparse.Namespace) -> int:
     from app.domain.evaluation.ground_truth import load_ground_truth
     from app.domain.evaluation.table import evaluate_map
-    from app.domain.formats.map_io import map_to_json, save_json
     from app.domain.upload.session import load_session
 
     params = _params(args.param)
@@ -142,10 +141,11 @@ def _process(args: argparse.Namespace) -> int:
     result = _optimize_with_progress(session, params)
     evaluation = evaluate_map(session, result, ground_truth, dataset=args.session.stem)
 
+    if args.output or args.app_map:  # (the map formats import the path graph: networkx)
+        from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
     if args.output:
         save_json(map_to_json(result), args.output)
     if args.app_map:
-        from app.domain.formats.map_io import app_map_as_served
         from app.domain.navigation.skeleton import build_skeleton
 
         # the document the server serves for this version: the same graph (the worker's corridor

@@ -2,7 +2,7 @@
 
     export = read_firebase_export(directory)                    # app.domain.formats.firebase_export
     for entry in export.maps:
-        outcome = import_recording(db, entry, max_attempts=3, max_session_bytes=…)
+        outcome = import_recording(db, entry, max_attempts=3, max_session_bytes=…, max_poses=…)
         outcome.status        # "taken", "already_there" or "refused"; outcome.reason
 
 Each recording goes in as an upload would (``app.storage.sessions.create_session``: the session,

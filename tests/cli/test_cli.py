@@ -478,6 +478,22 @@ def test_help_is_printed_without_importing_the_core():
     assert not {name for name in imported if name.split(".")[0] in NOT_FOR_THE_PARSER}
 
 
+def test_process_imports_the_mapping_core_only():
+    """``process`` needs numpy and gtsam; the web stack, the database, plotting (without
+    ``--plot``) and the path graph (without ``-o`` or ``--app-map``) it does not import."""
+    probe = (
+        "import sys\n"
+        "from app.cli import program\n"
+        f"assert program.main(['process', {str(ONETAG)!r}]) == 0\n"
+        "heavy = ('fastapi', 'sqlalchemy', 'matplotlib', 'networkx', 'gtsam')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+    )
+    assert proc.stdout.splitlines()[-1] == "['gtsam']", proc.stdout
+
+
 # --------------------------------------------------------------------------- console script
 
 
