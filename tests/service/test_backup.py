@@ -619,8 +619,31 @@ BROKEN: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]]
         ArchiveInvalid,
         "sweep_id: sweep 99 is not in the archive",
     ),
-    # issue 28, finding 4: each of these was a traceback of the driver (or stored), and
-    # `import --check` called the archive valid
+    "newer format version": (
+        lambda a, out: rewrite(a, out / "x.zip", manifest=lambda d: set_in(d, format_version=2)),
+        ArchiveIncompatible,
+        "format version 2 is newer",
+    ),
+    "older schema": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="255ed7c85f58")
+        ),
+        ArchiveIncompatible,
+        "migrate the source deployment",
+    ),
+    "newer schema": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="0123456789ab")
+        ),
+        ArchiveIncompatible,
+        "newer invisible-map",
+    ),
+}
+
+
+#: Archives no database holds, each refused naming its row (issue 28, finding 4: each was a
+#: traceback of the driver, or was stored, and `import --check` called the archive valid).
+VALUE_CASES: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]] = {
     "an id beyond 64 bits": (
         lambda a, out: rewrite(
             a, out / "x.zip", member=jsonl_edit("map", lambda r: set_in(r, id=2**63))
@@ -693,25 +716,6 @@ BROKEN: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]]
         ArchiveInvalid,
         "id_high_water.map is 9223372036854775808, not an integer from 0 to 2147483647",
     ),
-    "newer format version": (
-        lambda a, out: rewrite(a, out / "x.zip", manifest=lambda d: set_in(d, format_version=2)),
-        ArchiveIncompatible,
-        "format version 2 is newer",
-    ),
-    "older schema": (
-        lambda a, out: rewrite(
-            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="255ed7c85f58")
-        ),
-        ArchiveIncompatible,
-        "migrate the source deployment",
-    ),
-    "newer schema": (
-        lambda a, out: rewrite(
-            a, out / "x.zip", manifest=lambda d: set_in(d, schema_revision="0123456789ab")
-        ),
-        ArchiveIncompatible,
-        "newer invisible-map",
-    ),
 }
 
 
@@ -747,11 +751,28 @@ def test_a_broken_archive_is_refused_and_nothing_is_written(
 NEEDS_A_DATABASE = {"older schema", "newer schema"}
 
 
-@pytest.mark.parametrize("case", sorted(set(BROKEN) - NEEDS_A_DATABASE))
+def test_every_value_no_database_holds_is_refused_naming_its_row(
+    source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """One database for all the cases (each import is refused whole, so it stays empty)."""
+    db = Database(database_url)
+    for case, (make, error, message) in VALUE_CASES.items():
+        with pytest.raises(error) as raised:
+            backup.import_archive(db, make(source.archive, tmp_path))
+        assert message in str(raised.value), case
+    assert set(row_counts(db).values()) == {0}
+    assert next_upload_map_id(db) == 1
+    db.dispose()
+
+
+CHECKED = {**BROKEN, **VALUE_CASES}
+
+
+@pytest.mark.parametrize("case", sorted(set(CHECKED) - NEEDS_A_DATABASE))
 def test_the_check_refuses_what_an_import_refuses(
     case: str, source: Source, tmp_path: Path
 ) -> None:
-    make, error, message = BROKEN[case]
+    make, error, message = CHECKED[case]
     with pytest.raises(error) as raised:
         backup.check_archive(make(source.archive, tmp_path))
     assert message in str(raised.value)
