@@ -12,31 +12,41 @@ nonce and an expiry. On every request both are checked again: a login ended sinc
 
 CSRF: every form carries ``csrf_token``, an HMAC of the login's nonce, checked against the cookie
 (synchronizer token; the cookie is also ``SameSite=Strict``). The login form itself, made before
-there is a login, uses a double-submit cookie. Failed logins are limited per key tried and in
-all (:class:`LoginThrottle`, in memory per process), never per client address.
+there is a login, uses a double-submit cookie. Guessing is slowed per client address and in all
+(:class:`LoginThrottle`, in memory per process): an attempt may be held before its key is
+checked, but a key is never refused for what others tried.
 """
 
 from __future__ import annotations
 
+import asyncio
 import hmac
+import logging
 import secrets
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated
 from urllib.parse import quote
 
 from fastapi import Depends, Request, Response
+from fastapi.exceptions import RequestValidationError
 from starlette.datastructures import FormData
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from app.admin.signing import Signer, load_or_create_secret
 from app.config import Settings
+from app.domain.upload.fields import text_fault
 from app.storage import admin_logins, keys
 from app.storage.db import Database
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
 from app.storage.orm import Role
 from app.web.deps import DbDep, SettingsDep
+
+logger = logging.getLogger(__name__)
 
 LOGIN_COOKIE = "im_admin_login"
 LOGIN_FORM_COOKIE = "im_admin_login_form"
@@ -45,11 +55,18 @@ COOKIE_PATH = "/admin"
 LOGIN_TTL_S = 8 * 3600
 #: How long the login form's CSRF cookie lasts, s.
 LOGIN_FORM_TTL_S = 3600
-#: Failed logins allowed per key tried per window (:class:`LoginThrottle`).
-LOGIN_ATTEMPTS = 10
-#: Failed logins allowed in all per window, per API process.
-LOGIN_ATTEMPTS_OVERALL = 100
+#: Failed logins a minute from one source (client address) before its attempts are slowed
+#: (:class:`LoginThrottle`).
+LOGIN_FREE_FAILURES_PER_SOURCE = 10
+#: Failed logins a minute from all sources before every attempt is slowed, per API process.
+LOGIN_FREE_FAILURES_OVERALL = 100
 LOGIN_WINDOW_S = 60.0
+#: The hold of the first slowed attempt, s; it doubles with each failure beyond the free ones
+#: (from one source; from all, with each ten).
+LOGIN_FIRST_HOLD_S = 0.25
+#: The longest an attempt is held before its key is checked, s: what a correct key may wait
+#: while someone guesses, never a refusal.
+LOGIN_MAX_HOLD_S = 5.0
 
 
 class LoginRequired(Exception):
@@ -70,70 +87,100 @@ class CsrfRefused(Exception):
 
 
 class LoginThrottle:
-    """Limits failed logins by what an attacker cannot vary freely: at most ``per_key`` failures
-    per key tried (an ``im_<prefix>_…`` key by its prefix; any other string, such as
-    ``INVISIBLE_MAP_ADMIN_KEY``, counts as one key) and at most ``overall`` failures in all, in
-    any ``window_s`` seconds (per API process).
+    """Slows down guessing of admin keys without ever refusing a key: an attempt may be *held*
+    before its key is checked, never answered without the check, so a correct key always logs
+    in, at worst ``max_hold_s`` later.
 
-    Not by client address: an address is free to choose for whoever can send
-    ``X-Forwarded-For`` through a trusted proxy, and one shared by many (a NAT, the proxy itself)
-    would let ten wrong tries lock the real admin out. A guesser of one key's secret is held to
-    ``per_key`` tries a window; guessing across keys is held to ``overall``; an admin whose own
-    key nobody is guessing logs in unless the overall budget is spent (a flood of wrong keys;
-    the answer says so)."""
+    - **Per source** (the client address, as the server believes it: forwarded headers only from
+      ``INVISIBLE_MAP_TRUSTED_PROXIES``): after ``free_per_source`` failed logins in
+      ``window_s``, each attempt from that source is held ``first_hold_s``, doubling with each
+      further failure, up to ``max_hold_s``.
+    - **Globally** (all sources, this API process): after ``free_overall`` failures in
+      ``window_s``, every attempt is held ``first_hold_s``, doubling with every ten further
+      failures, up to ``max_hold_s`` (an attempt is held by the longer of the two).
+
+    A guesser sending one attempt after another from one source gets at most one check per
+    ``max_hold_s`` (12 a minute) once slowed; one holding C connections open at once, C per
+    ``max_hold_s`` (connections per address are capped by ``INVISIBLE_MAP_MAX_CONNECTIONS_PER_
+    ADDRESS``). Against keys of 192 random bits (a stored key's secret) or a long
+    ``INVISIBLE_MAP_ADMIN_KEY``, that is no chance at all, and nobody else's attempts are
+    refused: the lockout it replaces (ten wrong keys from anyone locking the right key out for a
+    minute, issue 28) is gone. Holds are awaited on the event loop, no thread waits.
+
+    Memory is bounded: at most ``max_sources`` sources are remembered (the least recently failed
+    forgotten first) and ``max_failures`` failures per source and in all (a count beyond them
+    holds the longest anyway)."""
 
     def __init__(
         self,
-        per_key: int = LOGIN_ATTEMPTS,
-        overall: int = LOGIN_ATTEMPTS_OVERALL,
+        *,
+        free_per_source: int = LOGIN_FREE_FAILURES_PER_SOURCE,
+        free_overall: int = LOGIN_FREE_FAILURES_OVERALL,
         window_s: float = LOGIN_WINDOW_S,
+        first_hold_s: float = LOGIN_FIRST_HOLD_S,
+        max_hold_s: float = LOGIN_MAX_HOLD_S,
+        max_sources: int = 10_000,
+        max_failures: int = 1_000,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.per_key = per_key
-        self.overall = overall
+        self.free_per_source = free_per_source
+        self.free_overall = free_overall
         self.window_s = window_s
-        self._failures: dict[str, deque[float]] = {}
+        self.first_hold_s = first_hold_s
+        self.max_hold_s = max_hold_s
+        self.max_sources = max_sources
+        self.max_failures = max_failures
+        self._clock = clock
+        self._by_source: OrderedDict[str, deque[float]] = OrderedDict()
         self._all: deque[float] = deque()
         self._lock = threading.Lock()
 
-    @staticmethod
-    def target(key: str) -> str:
-        """What a login attempt counts against: the key's prefix, or one bucket for the rest."""
-        scheme, _, rest = key.partition("_")
-        prefix = rest.partition("_")[0]
-        return f"{scheme}_{prefix}"[:40] if scheme == keys.KEY_SCHEME and prefix else "other"
-
-    def retry_after_s(self, key: str) -> int | None:
-        """None if an attempt with ``key`` may be checked now, else the seconds to wait."""
-        now_s = time.monotonic()
+    def hold_s(self, source: str) -> float:
+        """How long an attempt from ``source`` is held before its key is checked, s."""
+        now_s = self._clock()
         with self._lock:
             self._forget(now_s)
-            waits = [
-                times[0] + self.window_s - now_s
-                for times, limit in (
-                    (self._failures.get(self.target(key), deque()), self.per_key),
-                    (self._all, self.overall),
-                )
-                if len(times) >= limit
-            ]
-        return max(1, int(max(waits) + 1)) if waits else None
+            times = self._by_source.get(source, deque())
+            while times and times[0] <= now_s - self.window_s:
+                times.popleft()
+            from_source, overall = len(times), len(self._all)
+        return max(
+            self._hold(from_source - self.free_per_source, 1),
+            self._hold(overall - self.free_overall, 10),
+        )
 
-    def failed(self, key: str) -> None:
-        """Record a failed attempt with ``key``."""
-        now_s = time.monotonic()
+    def failed(self, source: str) -> None:
+        """Record a failed attempt from ``source``."""
+        now_s = self._clock()
         with self._lock:
-            self._failures.setdefault(self.target(key), deque()).append(now_s)
+            times = self._by_source.pop(source, None) or deque(maxlen=self.max_failures)
+            times.append(now_s)
+            self._by_source[source] = times  # the most recent last
+            while len(self._by_source) > self.max_sources:
+                self._by_source.popitem(last=False)
             self._all.append(now_s)
+            while len(self._all) > self.max_failures:
+                self._all.popleft()
+
+    def _hold(self, beyond_free: int, per_doubling: int) -> float:
+        if beyond_free < 0:
+            return 0.0
+        doublings = min(beyond_free // per_doubling, 64)
+        return min(self.max_hold_s, self.first_hold_s * 2.0**doublings)
 
     def _forget(self, now_s: float) -> None:
+        """Drop the failures older than the window: in all, and every source whose last failure
+        is (sources are kept in the order of their last failure, so this stops at the first
+        source still remembered: the cost is what is forgotten)."""
         horizon_s = now_s - self.window_s
         while self._all and self._all[0] <= horizon_s:
             self._all.popleft()
-        for target in list(self._failures):
-            times = self._failures[target]
-            while times and times[0] <= horizon_s:
-                times.popleft()
-            if not times:
-                del self._failures[target]
+        while self._by_source:
+            oldest = next(iter(self._by_source))
+            times = self._by_source[oldest]
+            if times and times[-1] > horizon_s:
+                break
+            del self._by_source[oldest]
 
 
 class AdminState:
@@ -159,6 +206,23 @@ def admin_state(request: Request) -> AdminState:
 
 
 AdminStateDep = Annotated[AdminState, Depends(admin_state)]
+
+
+def login_source(request: Request) -> str:
+    """Where a login attempt comes from: the client's address (behind a trusted proxy, the one
+    it forwards), or "unknown"."""
+    return request.client.host if request.client is not None else "unknown"
+
+
+async def hold_login(request: Request, state: AdminStateDep) -> None:
+    """The login form's dependency: wait as long as :meth:`LoginThrottle.hold_s` says before the
+    key is checked (on the event loop: no thread waits)."""
+    hold_s = state.throttle.hold_s(login_source(request))
+    if hold_s > 0:
+        await asyncio.sleep(hold_s)
+
+
+LoginHoldDep = Annotated[None, Depends(hold_login)]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -313,8 +377,9 @@ DashboardUserDep = Annotated[DashboardUser, Depends(dashboard_user)]
 
 
 async def posted_form(request: Request) -> FormData:
-    """The posted form, unchecked (only the login form, which has no login yet, uses it)."""
-    return await request.form()
+    """The posted form, without a CSRF check (only the login form, which has no login yet,
+    uses it); its text is checked (:func:`read_form`)."""
+    return await read_form(request)
 
 
 PostedFormDep = Annotated[FormData, Depends(posted_form)]
@@ -322,7 +387,7 @@ PostedFormDep = Annotated[FormData, Depends(posted_form)]
 
 async def checked_form(request: Request, user: DashboardUserDep) -> FormData:
     """The posted form, if it carries the login's CSRF token; CsrfRefused (403) otherwise."""
-    form = await request.form()
+    form = await read_form(request)
     token = form.get("csrf_token")
     if not isinstance(token, str) or not hmac.compare_digest(token, user.csrf_token):
         raise CsrfRefused("the form's security token is missing or wrong")
@@ -330,6 +395,26 @@ async def checked_form(request: Request, user: DashboardUserDep) -> FormData:
 
 
 CheckedFormDep = Annotated[FormData, Depends(checked_form)]
+
+
+async def read_form(request: Request) -> FormData:
+    """The posted form. Every field's name and text value must be text a database can hold
+    (:func:`app.domain.upload.fields.text_fault`, the rule of every stored text): a NUL is a
+    422 naming the field (RequestValidationError, a page) before anything else happens. A client
+    that disconnects while sending it is one line of the log (info) and a 400 nobody reads, not
+    an unhandled error (issue 28, finding 5)."""
+    try:
+        form = await request.form()
+    except ClientDisconnect:  # the browser went away while sending it: nobody to answer
+        logger.info("client disconnected while sending %s %s", request.method, request.url.path)
+        raise StarletteHTTPException(400, "the form did not arrive whole") from None
+    for name, value in form.multi_items():
+        reason = text_fault(name) or (text_fault(value) if isinstance(value, str) else None)
+        if reason is not None:
+            raise RequestValidationError(
+                [{"loc": ("body", name), "msg": f"the field {reason}", "type": "value_error"}]
+            )
+    return form
 
 
 def safe_next(next_url: str | None) -> str:

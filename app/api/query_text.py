@@ -2,9 +2,10 @@
 
 A NUL character (``%00``) in a query parameter reached PostgreSQL as a search pattern and failed
 there (500: text cannot contain NUL). Every parameter of every route (the API's and the
-dashboard's) is checked once, before its route runs: a NUL (or a lone surrogate, should one ever
-get through the URL decoding, which turns invalid UTF-8 into U+FFFD) is a 422 naming the
-parameter. Path ids are integers, which FastAPI already refuses with the parameter's name.
+dashboard's) is checked once, before its route runs, by the rule every stored text follows
+(:func:`app.domain.upload.fields.text_fault`): a NUL (or a lone surrogate, should one ever get
+through the URL decoding, which turns invalid UTF-8 into U+FFFD) is a 422 naming the parameter.
+Path ids are integers, which FastAPI already refuses with the parameter's name.
 """
 
 from __future__ import annotations
@@ -12,21 +13,14 @@ from __future__ import annotations
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 
-
-def unstorable(text: str) -> str | None:
-    """Why ``text`` cannot be stored or searched for, or None if it can."""
-    if "\x00" in text:
-        return "must not contain a NUL character"
-    if any("\ud800" <= char <= "\udfff" for char in text):
-        return "must not contain a lone surrogate (not valid Unicode text)"
-    return None
+from app.domain.upload.fields import text_fault
 
 
 async def refuse_unstorable_query(request: Request) -> None:
     """The app's dependency: RequestValidationError (422, the parameter named) for a query
     parameter's name or value that the database could not hold."""
     for name, value in request.query_params.multi_items():
-        why = unstorable(name) or unstorable(value)
+        why = text_fault(name) or text_fault(value)
         if why is not None:
             raise RequestValidationError(
                 [

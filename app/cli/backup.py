@@ -20,8 +20,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tqdm import tqdm
-
 from app.cli.common import CommandError, first_line, load_settings, open_migrated, safe_url
 
 if TYPE_CHECKING:
@@ -80,8 +78,9 @@ def add_backup_commands(commands: Any) -> None:
     restore.add_argument(
         "--check",
         action="store_true",
-        help="only verify the archive (every member's checksum, its format and schema "
-        "revision) and say what it holds; no database is touched",
+        help="only verify the archive (its format and schema revision, every member's size and "
+        "checksum, every row as an import would check it) and say what it holds; no database is "
+        "touched",
     )
     restore.set_defaults(handler=_import)
 
@@ -129,10 +128,16 @@ def _import(args: argparse.Namespace) -> int:
     from app.storage import backup
     from app.storage.migrate import head_revision
 
+    settings = load_settings()
+    limit = settings.max_session_bytes  # the largest upload (or other member) read whole
     try:  # the archive first: its problems do not depend on the database
-        read = backup.verify_archive if args.check else backup.read_manifest
-        manifest = read(args.archive)
+        manifest = backup.read_manifest(args.archive)
         backup.check_schema_revision(manifest.schema_revision, head_revision())
+        if args.check:
+            with _progress_bar("check") as on_progress:
+                manifest = backup.check_archive(
+                    args.archive, max_member_bytes=limit, on_progress=on_progress
+                )
     except backup.BackupError as err:
         raise CommandError(str(err)) from err
     if args.check:
@@ -141,10 +146,9 @@ def _import(args: argparse.Namespace) -> int:
             f"{args.archive}: a valid backup of {_summary(manifest.counts)} ({keys} key "
             f"hashes), exported {manifest.created_at:%Y-%m-%d %H:%M:%S} UTC from "
             f"{manifest.source_backend} at schema revision {manifest.schema_revision}; "
-            f"{len(manifest.members)} members, every checksum matches"
+            f"{len(manifest.members)} members, every checksum matches, every row fits"
         )
         return 0
-    settings = load_settings()
     database = open_migrated(settings)
     try:
         with _progress_bar("import") as on_progress:
@@ -154,6 +158,7 @@ def _import(args: argparse.Namespace) -> int:
                 include_keys=args.include_keys,
                 merge=args.merge,
                 on_progress=on_progress,
+                max_member_bytes=limit,
             )
     except backup.BackupError as err:
         raise CommandError(f"nothing imported: {err}") from err
@@ -194,6 +199,8 @@ def _report_import(
 @contextmanager
 def _progress_bar(what: str) -> Iterator[Callable[[int, int], None]]:
     """A tqdm bar on stderr (none when stderr is not a terminal) and the callback moving it."""
+    from tqdm import tqdm
+
     with tqdm(desc=what, unit=" rows", leave=False, disable=None, file=sys.stderr) as bar:
 
         def on_progress(done: int, total: int) -> None:

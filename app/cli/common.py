@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.domain.errors import ParameterError
-from app.domain.mapping.params import SlamParams
 
 if TYPE_CHECKING:
     from app.config import Settings
+    from app.domain.mapping.params import SlamParams
     from app.storage.db import Database
 
 PROGRAM = "invisible-map"
@@ -124,6 +124,8 @@ def add_param_option(parser: argparse.ArgumentParser) -> None:
 
 
 def slam_params(pairs: Sequence[str]) -> SlamParams:
+    from app.domain.mapping.params import SlamParams
+
     overrides = {}
     for pair in pairs:
         name, sep, value = pair.partition("=")

@@ -21,9 +21,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
-from app.cli.common import CommandError, load_settings, open_migrated, safe_url
+from app.cli.common import CommandError, first_line, load_settings, open_migrated, safe_url
 
 
 def add_firebase_commands(commands: Any) -> None:
@@ -43,6 +41,9 @@ def add_firebase_commands(commands: Any) -> None:
 
 
 def _import_firebase(args: argparse.Namespace) -> int:
+    from sqlalchemy.exc import SQLAlchemyError
+    from tqdm import tqdm
+
     from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
     from app.services.firebase_import import ImportStatus, import_recording
 
@@ -58,32 +59,46 @@ def _import_firebase(args: argparse.Namespace) -> int:
             export.maps, desc="import", unit=" maps", leave=False, disable=None, file=sys.stderr
         ) as bar:
             for entry in bar:
-                bar.set_postfix_str(entry.key[:40], refresh=False)
+                bar.set_postfix_str(shown(entry.key)[:40], refresh=False)
                 outcomes.append(
                     import_recording(
                         database,
                         entry,
                         max_attempts=settings.max_attempts,
                         max_session_bytes=settings.max_session_bytes,
+                        max_poses=settings.max_poses,
                     )
                 )
+    except SQLAlchemyError as err:  # the database itself (a bad recording is refused, not this)
+        raise CommandError(
+            f"stopped after {len(outcomes)} of {len(export.maps)} recording(s) (those are "
+            f"imported; run it again to go on): {first_line(err)}"
+        ) from err
     finally:
         database.dispose()
 
     counts = Counter(outcome.status for outcome in outcomes)
     for note in export.notes:
-        print(f"note: {note}")
+        print(f"note: {shown(note)}")
     for outcome in outcomes:
         if outcome.status == ImportStatus.TAKEN:
             print(
-                f"taken: {outcome.key} → session {outcome.session_id}, map {outcome.map_id} "
-                f"({outcome.picture})"
+                f"taken: {shown(outcome.key)} → session {outcome.session_id}, map "
+                f"{outcome.map_id} ({outcome.picture})"
             )
         elif outcome.status == ImportStatus.REFUSED:
-            print(f"refused: {outcome.key}: {outcome.reason}")
+            print(f"refused: {shown(outcome.key)}: {shown(outcome.reason or '')}")
     print(
         f"{len(outcomes)} recording(s) in {args.directory} → {safe_url(settings)}: "
         f"{counts[ImportStatus.TAKEN]} taken, {counts[ImportStatus.ALREADY_THERE]} already "
         f"there, {counts[ImportStatus.REFUSED]} refused"
     )
     return 1 if counts[ImportStatus.REFUSED] else 0
+
+
+def shown(text: str) -> str:
+    """``text`` as printed: what the export names (user ids, map ids, names) may hold control
+    characters (a NUL, a terminal's escape sequences, a newline), written as escapes."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)

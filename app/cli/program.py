@@ -16,6 +16,12 @@
 
 Every failure on bad input is one line on stderr, ``invisible-map: error: …``, and exit status 1
 (2 for a malformed command line, as argparse does).
+
+Building the parser imports no library heavier than the standard one: each handler imports what
+its command needs when it runs (the mapping core with numpy and gtsam for ``process``, the web
+stack and the database for ``serve``, plotting for ``--plot``), so that ``--help`` and the light
+commands start at once (``tests/cli/test_cli.py`` checks ``sys.modules``; ``bench/cli_start.py``
+measures it).
 """
 
 from __future__ import annotations
@@ -26,8 +32,7 @@ import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from app.cli.backup import add_backup_commands
 from app.cli.common import DATA_DIR, DEMO_SESSIONS, PROGRAM, CommandError
@@ -38,16 +43,13 @@ from app.cli.server import add_server_commands
 from app.cli.tables import render_markdown_table
 from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
-from app.domain.evaluation.ground_truth import load_ground_truth
-from app.domain.evaluation.table import Evaluation, evaluate_joint, evaluate_map
-from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
-from app.domain.frames import FloatArray
-from app.domain.mapping.joint import optimize_sessions
-from app.domain.mapping.map_result import MapResult
-from app.domain.mapping.params import SlamParams
-from app.domain.mapping.slam import optimize_session
-from app.domain.navigation.skeleton import build_skeleton
-from app.domain.upload.session import Session, load_session
+
+if TYPE_CHECKING:
+    from app.domain.evaluation.table import Evaluation
+    from app.domain.frames import FloatArray
+    from app.domain.mapping.map_result import MapResult
+    from app.domain.mapping.params import SlamParams
+    from app.domain.upload.session import Session
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -129,15 +131,23 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _process(args: argparse.Namespace) -> int:
+    from app.domain.evaluation.ground_truth import load_ground_truth
+    from app.domain.evaluation.table import evaluate_map
+    from app.domain.upload.session import load_session
+
     params = _params(args.param)
     ground_truth = load_ground_truth(args.gt) if args.gt else None
     session = load_session(args.session, correct_poi_pose_id=not args.no_poi_correction)
     result = _optimize_with_progress(session, params)
     evaluation = evaluate_map(session, result, ground_truth, dataset=args.session.stem)
 
+    if args.output or args.app_map:  # (the map formats import the path graph: networkx)
+        from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
     if args.output:
         save_json(map_to_json(result), args.output)
     if args.app_map:
+        from app.domain.navigation.skeleton import build_skeleton
+
         # the document the server serves for this version: the same graph (the worker's corridor
         # skeleton), the same exporter
         save_json(app_map_as_served(result, path_graph=build_skeleton(result)), args.app_map)
@@ -177,6 +187,10 @@ def _process(args: argparse.Namespace) -> int:
 
 
 def _optimize_with_progress(session: Session, params: SlamParams) -> MapResult:
+    from tqdm import tqdm
+
+    from app.domain.mapping.slam import optimize_session
+
     with tqdm(
         desc="optimizing", unit=" it", leave=False, disable=None, file=sys.stderr
     ) as progress:
@@ -192,6 +206,10 @@ def _optimize_with_progress(session: Session, params: SlamParams) -> MapResult:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from app.domain.evaluation.ground_truth import load_ground_truth
+
     params = _params(args.param)
     ground_truth_paths: list[Path] = args.gt
     if len(ground_truth_paths) not in (1, len(args.sessions)):
@@ -222,6 +240,11 @@ def _evaluate_joint(
     args: argparse.Namespace, params: SlamParams, truths: dict[Path, dict[int, FloatArray]]
 ) -> int:
     """Each session alone, then the joint map of all of them (``--joint``)."""
+    from app.domain.evaluation.table import evaluate_joint, evaluate_map
+    from app.domain.mapping.joint import optimize_sessions
+    from app.domain.mapping.slam import optimize_session
+    from app.domain.upload.session import load_session
+
     if len(truths) != 1:
         raise CommandError("--joint compares every session with one ground truth: give one --gt")
     ground_truth = next(iter(truths.values()))
@@ -270,6 +293,10 @@ def _dataset_name(path: Path) -> str:
 def _evaluate_one(
     session_path: Path, params: SlamParams, ground_truth: dict[int, FloatArray] | None
 ) -> Evaluation:
+    from app.domain.evaluation.table import evaluate_map
+    from app.domain.mapping.slam import optimize_session
+    from app.domain.upload.session import load_session
+
     session = load_session(session_path)
     result = optimize_session(session, params)
     return evaluate_map(session, result, ground_truth, dataset=_dataset_name(session_path))
@@ -316,8 +343,17 @@ def format_table(rows: Sequence[Evaluation]) -> str:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    params = _params(args.param)
+    from tqdm import tqdm
+
+    from app.domain.evaluation.ground_truth import load_ground_truth
+    from app.domain.evaluation.table import evaluate_map
+    from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
+    from app.domain.mapping.slam import optimize_session
+    from app.domain.navigation.skeleton import build_skeleton
+    from app.domain.upload.session import load_session
     from app.render.map_plot import render_map_png
+
+    params = _params(args.param)
 
     sessions_dir, truth_dir = DATA_DIR / "sessions", DATA_DIR / "ground_truth"
     if not sessions_dir.is_dir():

@@ -9,14 +9,13 @@
     invisible-map keys revoke ID
 
 All read their settings from the environment (``app/config.py``: ``DATABASE_URL``,
-``INVISIBLE_MAP_DATA_DIR``, ``INVISIBLE_MAP_ADMIN_KEY``, …). Heavy imports (FastAPI, SQLAlchemy)
-happen inside the handlers so that the offline commands stay quick to start.
+``INVISIBLE_MAP_DATA_DIR``, ``INVISIBLE_MAP_ADMIN_KEY``, …). Heavy imports (FastAPI, SQLAlchemy,
+asyncio) happen inside the handlers so that the offline commands stay quick to start.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import errno
 import secrets
 import signal
@@ -112,6 +111,8 @@ def add_server_commands(commands: Any) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
+    import asyncio
+
     from app.config import MAX_API_PROCESSES, default_api_processes
     from workers.supervisor import WorkerSupervisor
 
@@ -270,6 +271,7 @@ def _migrate(_args: argparse.Namespace) -> int:
 
 
 def _keys_create(args: argparse.Namespace) -> int:
+    from app.domain.upload.fields import text_fault
     from app.storage import keys
     from app.storage.orm import Role, utc_now
 
@@ -280,6 +282,8 @@ def _keys_create(args: argparse.Namespace) -> int:
         )
     if len(args.name) > 100:
         raise CommandError(f"--name is {len(args.name)} characters; at most 100")
+    if (reason := text_fault(args.name)) is not None:  # e.g. bytes that are no UTF-8
+        raise CommandError(f"--name {reason}")
     expires_at = utc_now() + timedelta(days=args.expires_in_days) if args.expires_in_days else None
     database = open_migrated(load_settings())
     with database.transaction() as db_session:

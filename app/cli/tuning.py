@@ -14,32 +14,29 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
-
-from tqdm import tqdm
+from typing import TYPE_CHECKING, Any
 
 from app.cli.common import add_param_option, slam_params
 from app.domain.errors import ParameterError
-from app.domain.evaluation.ground_truth import load_ground_truth
-from app.domain.evaluation.simulate import (
-    SimulatedSession,
-    SimulationConfig,
-    simulate_along_trajectory,
-    simulate_session,
-)
-from app.domain.evaluation.sweep_plan import SweepPlan
-from app.domain.evaluation.tuning import SearchSpace, TuningTarget, sweep_result
-from app.domain.formats.map_io import save_json
-from app.domain.mapping.slam import optimize_session
-from app.domain.upload.session import load_session, parse_session
-from workers.sweep_pool import run_sweep
 
-#: ``--noise`` may set these fields of SimulationConfig.
-NOISE_FIELDS = tuple(
-    f.name
-    for f in dataclasses.fields(SimulationConfig)
-    if f.name.startswith(("odom_", "tag_position_noise", "tag_depth_noise", "tag_rotation_noise"))
-    or f.name in ("corner_noise_px", "outlier_fraction")
+if TYPE_CHECKING:  # the mapping core is imported by the handlers, when they run
+    from tqdm import tqdm
+
+    from app.domain.evaluation.simulate import SimulatedSession
+    from app.domain.evaluation.tuning import SearchSpace
+
+#: ``--noise`` may set these fields of ``SimulationConfig`` (its noise levels; written out so
+#: that the parser does not import the simulator: ``tests/cli/test_tuning_cli.py`` checks them).
+NOISE_FIELDS = (
+    "odom_translation_drift_m_per_sqrt_s",
+    "odom_vertical_drift_m_per_sqrt_s",
+    "odom_rotation_drift_rad_per_sqrt_s",
+    "odom_tilt_error_rad",
+    "tag_position_noise_m_at_1m",
+    "tag_depth_noise_ratio",
+    "tag_rotation_noise_rad",
+    "corner_noise_px",
+    "outlier_fraction",
 )
 
 
@@ -107,7 +104,15 @@ def add_sweep_commands(commands: Any) -> None:
 
 
 def sweep_command(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from app.cli.common import CommandError
+    from app.domain.evaluation.ground_truth import load_ground_truth
+    from app.domain.evaluation.sweep_plan import SweepPlan
+    from app.domain.evaluation.tuning import SearchSpace, TuningTarget, sweep_result
+    from app.domain.formats.map_io import save_json
+    from app.domain.upload.session import load_session
+    from workers.sweep_pool import run_sweep
 
     base_params = slam_params(args.param)
     ground_truth = load_ground_truth(args.gt) if args.gt else None
@@ -215,6 +220,8 @@ def _print_summary(report: dict[str, Any]) -> None:
 
 def _space(text: str) -> SearchSpace:
     """``--space``: a JSON object, or the path of a file holding one."""
+    from app.domain.evaluation.tuning import SearchSpace
+
     source = (
         text
         if text.lstrip().startswith(("{", "[")) or not Path(text).exists()
@@ -230,6 +237,10 @@ def _space(text: str) -> SearchSpace:
 
 
 def simulate_command(args: argparse.Namespace) -> int:
+    from app.domain.evaluation.simulate import SimulationConfig, simulate_session
+    from app.domain.formats.map_io import save_json
+    from app.domain.upload.session import parse_session
+
     noise = _noise(args.noise)
     if args.sessions != 1:
         return _simulate_building(args, noise)
@@ -251,7 +262,10 @@ def simulate_command(args: argparse.Namespace) -> int:
 def _simulate_building(args: argparse.Namespace, noise: dict[str, Any]) -> int:
     from app.cli.common import CommandError
     from app.domain.evaluation.ground_truth import ground_truth_to_json
+    from app.domain.evaluation.simulate import SimulationConfig
     from app.domain.evaluation.simulate_building import simulate_building_sessions
+    from app.domain.formats.map_io import save_json
+    from app.domain.upload.session import parse_session
 
     if args.sessions < 1 or args.sessions > 100:
         raise CommandError(f"--sessions must be 1–100, got {args.sessions}")
@@ -292,6 +306,10 @@ def _noise(pairs: list[str]) -> dict[str, Any]:
 
 def _simulate_from_session(path: Path, noise: dict[str, Any], seed: int) -> SimulatedSession:
     """The paper's simulation: the optimized map of a real session is the truth."""
+    from app.domain.evaluation.simulate import SimulationConfig, simulate_along_trajectory
+    from app.domain.mapping.slam import optimize_session
+    from app.domain.upload.session import load_session
+
     session = load_session(path)
     result = optimize_session(session, slam_params([]))
     used = result.residuals.tag_detection_index

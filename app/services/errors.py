@@ -18,6 +18,7 @@ pages) answer the same error with the same status.
 from __future__ import annotations
 
 from app.domain.errors import ParameterError, SessionFormatError
+from app.domain.upload.fields import text_fault
 from app.storage.keys import KeyNotFound
 from app.storage.maps import MapNotFound
 from app.storage.navigation import LocalizationNotFound
@@ -75,6 +76,15 @@ class InvalidInput(ServiceError):
     """A value of the request is wrong; ``field`` names it."""
 
     status_code = 422
+
+
+def require_text(field: str, value: str) -> None:
+    """InvalidInput (422 ``validation_error`` naming ``field``) if ``value`` is no text the
+    database can hold: the one rule of every text that reaches it
+    (:func:`app.domain.upload.fields.text_fault`)."""
+    reason = text_fault(value)
+    if reason is not None:
+        raise InvalidInput("validation_error", f"{field} {reason}", field=field)
 
 
 class Unavailable(ServiceError):

@@ -2,7 +2,7 @@
 
     export = read_firebase_export(directory)                    # app.domain.formats.firebase_export
     for entry in export.maps:
-        outcome = import_recording(db, entry, max_attempts=3, max_session_bytes=…)
+        outcome = import_recording(db, entry, max_attempts=3, max_session_bytes=…, max_poses=…)
         outcome.status        # "taken", "already_there" or "refused"; outcome.reason
 
 Each recording goes in as an upload would (``app.storage.sessions.create_session``: the session,
@@ -16,22 +16,32 @@ its raw bytes exactly as stored in Firebase, its map and its build job, in one t
 - its **name** as typed in the app (``maps/<uid>/<mapId>/name``) as the map's display name, and
   its **picture** (``<mapId>.jpg``) when the export has a valid JPEG of it.
 
-A recording the server cannot take (no file, not valid JSON, not a session, too large) is
-``refused`` with the reason, as an upload would be told; the others are still imported.
+A recording the server cannot take is ``refused`` with the reason, as an upload would be told,
+and the others are still imported: no file; a file that is no file of the export's own (a link
+leading out of the folder, a FIFO or a device); a file, or its gzip, larger than the server's
+limit on an upload (checked before it is read, read and inflated no further); not JSON, nested
+too deeply, not a session; what an upload is refused for at the door (text no database holds in
+its ``map_id`` or a point of interest's name, tag ids beyond the database's column, too many
+poses); a typed name holding such text; anything else the database refuses of it. A picture that
+cannot be taken is skipped, the recording imported without it.
 """
 
 from __future__ import annotations
 
 import enum
 import hashlib
+import zlib
 from dataclasses import dataclass
 
+from sqlalchemy.exc import DBAPIError
+
 from app.domain.errors import SessionFormatError
-from app.domain.formats.firebase_export import FirebaseMap
-from app.domain.json_values import gunzip_if_compressed
-from app.domain.upload.session import decode_json_bytes, parse_session
+from app.domain.formats.firebase_export import ExportFileRefused, FirebaseMap, read_export_file
+from app.domain.json_values import GZIP_MAGIC
+from app.domain.upload.fields import text_fault
+from app.services.uploads import parse_upload
 from app.storage import images, sessions
-from app.storage.db import Database
+from app.storage.db import Database, database_fault, first_line
 from app.storage.sessions import (
     MAX_IDEMPOTENCY_KEY_LENGTH,
     MAX_MAP_NAME_LENGTH,
@@ -85,10 +95,17 @@ def idempotency_key_of(entry: FirebaseMap) -> str:
 
 
 def import_recording(
-    db: Database, entry: FirebaseMap, *, max_attempts: int, max_session_bytes: int
+    db: Database, entry: FirebaseMap, *, max_attempts: int, max_session_bytes: int, max_poses: int
 ) -> ImportOutcome:
     """Upload one recording of the export (see the module docstring); never raises for a
-    recording the server cannot take (it is ``refused``)."""
+    recording the server cannot take (it is ``refused`` with the reason): its file is read as
+    :func:`~app.domain.formats.firebase_export.read_export_file` allows (no link leading out of
+    the export, no FIFO, no file beyond ``max_session_bytes``, checked before it is read), it is
+    inflated no further than ``max_session_bytes`` and parsed with the door rules of an upload
+    (:func:`app.services.uploads.parse_upload`: at most ``max_poses`` poses, text by the one
+    rule, ids the database holds), and its name must be text too. A value the database refuses
+    all the same refuses the recording, not the import; only a fault of the database itself
+    (unreachable, full: ``app.storage.db.database_fault``) is raised."""
 
     def refused(reason: str) -> ImportOutcome:
         return ImportOutcome(key=entry.key, status=ImportStatus.REFUSED, reason=reason)
@@ -96,23 +113,16 @@ def import_recording(
     if entry.problem is not None or entry.raw_path is None:
         return refused(entry.problem or "no session file")
     try:
-        raw = entry.raw_path.read_bytes()
-    except OSError as err:
-        return refused(f"cannot read {entry.raw_path.name}: {err.strerror or err}")
-    if len(raw) > max_session_bytes:
-        return refused(f"the session ({len(raw)} bytes) is larger than {max_session_bytes} bytes")
+        raw = read_export_file(entry.export_folder, entry.raw_path, max_bytes=max_session_bytes)
+        plain = _gunzipped(raw, entry.raw_path.name, max_bytes=max_session_bytes)
+    except ExportFileRefused as err:
+        return refused(str(err))
     try:
-        plain = gunzip_if_compressed(raw)
-    except ValueError as err:
-        return refused(f"{entry.raw_path.name} is not valid gzip: {err}")
-    if len(plain) > max_session_bytes:
-        return refused(f"the session ({len(plain)} bytes) is larger than {max_session_bytes} bytes")
-    try:
-        parsed = parse_session(decode_json_bytes(plain, source=entry.raw_path.name))
+        parsed = parse_upload([plain], max_poses=max_poses, source=entry.raw_path.name)
     except SessionFormatError as err:
         return refused(f"not a session the server takes: {err}")
-    if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
-        return refused(f"map_id is longer than {MAX_MAP_NAME_LENGTH} characters")
+    if (reason := text_fault(entry.name)) is not None:
+        return refused(f"its name (maps/<uid>/<mapId>/name) {reason}")
     upload = StoredUpload.of(plain)
     picture_bytes, picture = _picture(entry)
     try:
@@ -139,6 +149,10 @@ def import_recording(
                 )
     except IdempotencyConflict as err:
         return refused(f"imported before from a different file ({err.reason})")
+    except DBAPIError as err:
+        if database_fault(err) is not None:
+            raise
+        return refused(f"the database refused it: {first_line(err)}")
     return ImportOutcome(
         key=entry.key,
         status=ImportStatus.TAKEN,
@@ -148,14 +162,38 @@ def import_recording(
     )
 
 
+def _gunzipped(raw: bytes, name: str, *, max_bytes: int) -> bytes:
+    """``raw``, inflated if it is gzip (every member), no further than ``max_bytes``;
+    ExportFileRefused if it is corrupt or inflates further."""
+    if raw[:2] != GZIP_MAGIC:
+        return raw
+    pieces, size, rest = [], 0, raw
+    try:
+        while rest:
+            inflater = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
+            piece = inflater.decompress(rest, max_bytes + 1 - size)
+            pieces.append(piece)
+            size += len(piece)
+            if size > max_bytes or inflater.unconsumed_tail:
+                raise ExportFileRefused(f"{name} inflates to more than {max_bytes} bytes")
+            if not inflater.eof:
+                raise ExportFileRefused(f"{name} is not valid gzip: cut short")
+            rest = inflater.unused_data
+    except zlib.error as err:
+        raise ExportFileRefused(f"{name} is not valid gzip: {err}") from None
+    return b"".join(pieces)
+
+
 def _picture(entry: FirebaseMap) -> tuple[bytes | None, str]:
     """The recording's JPEG (None if absent or unusable) and what became of it, for the summary."""
     if entry.image_path is None:
         return None, "no picture in the export"
     try:
-        data = entry.image_path.read_bytes()
-    except OSError as err:
-        return None, f"picture unreadable: {err.strerror or err}"
+        data = read_export_file(
+            entry.export_folder, entry.image_path, max_bytes=images.MAX_IMAGE_BYTES
+        )
+    except ExportFileRefused as err:
+        return None, f"picture skipped: {err}"
     problem = images.jpeg_problem(data)
     if problem is not None:
         return None, f"picture skipped: {problem}"

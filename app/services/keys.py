@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 
 from sqlalchemy.orm import Session
 
-from app.services.errors import InvalidInput
+from app.services.errors import InvalidInput, require_text
 from app.storage import keys
 from app.storage.changes import KEY_CHANGES
 from app.storage.orm import Role, utc_now
@@ -113,12 +113,7 @@ def create_checked_key(
     if not name or len(name) > MAX_KEY_NAME_CHARS:
         bound = f"at most {MAX_KEY_NAME_CHARS} characters" if name else "at least 1 character"
         raise InvalidInput("validation_error", f"name: String should have {bound}", field="name")
-    if "\x00" in name or _has_surrogate(name):
-        raise InvalidInput(
-            "validation_error",
-            "name: holds a NUL or a lone surrogate, which is no text",
-            field="name",
-        )
+    require_text("name", name)
     if expires_at is not None:
         try:
             expires_at = expires_at.astimezone(UTC)
@@ -129,7 +124,3 @@ def create_checked_key(
         if expires_at <= datetime.now(UTC):
             raise InvalidInput("validation_error", "expires_at is in the past", field="expires_at")
     return keys.create_key(db_session, name=name, role=role, expires_at=expires_at)
-
-
-def _has_surrogate(text: str) -> bool:
-    return any("\ud800" <= char <= "\udfff" for char in text)

@@ -19,7 +19,7 @@ from app.domain.errors import ParameterError
 from app.domain.formats.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
 from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.mapping.params import SlamParams
-from app.services.errors import Conflict, InvalidInput, NotFound
+from app.services.errors import Conflict, InvalidInput, NotFound, require_text
 from app.services.version_cache import VersionCache, size_in_bytes
 from app.storage import images, maps, queue, sessions
 from app.storage.changes import MAP_CHANGES
@@ -578,6 +578,7 @@ def rename_map(db_session: Session, map_id: int, display_name: str) -> MapInfo:
     """Set the name people see (surrounding spaces dropped); 422 naming ``display_name`` if it
     is empty or too long. Raises MapNotFound."""
     name = display_name.strip()
+    require_text("display_name", name)
     if not name:
         raise InvalidInput("validation_error", "display_name is empty", field="display_name")
     if len(name) > MAX_DISPLAY_NAME_LENGTH:

@@ -14,6 +14,7 @@ from app.domain.errors import InvisibleMapError, ParameterError
 from app.domain.evaluation.ground_truth import parse_ground_truth_json
 from app.domain.evaluation.sweep_plan import SweepPlan
 from app.domain.evaluation.tuning import SearchSpace, best_trial, check_objective
+from app.domain.upload.fields import json_text_fault
 from app.services.errors import Conflict, InvalidInput
 from app.services.maps import checked_overrides, enqueue_rebuild
 from app.storage import sweeps
@@ -48,6 +49,10 @@ def checked_plan(
             parse_ground_truth_json(ground_truth)
         except InvisibleMapError as err:
             raise InvalidInput("invalid_ground_truth", str(err), field="ground_truth") from err
+        if (fault := json_text_fault(ground_truth)) is not None:  # it is stored as it came
+            raise InvalidInput(
+                "invalid_ground_truth", f"{fault[0]} {fault[1]}", field="ground_truth"
+            )
     try:
         check_objective(plan.objective, has_ground_truth=ground_truth is not None)
     except ParameterError as err:

@@ -21,6 +21,7 @@ from collections.abc import Iterable
 from sqlalchemy.orm import Session
 
 from app.domain.errors import SessionFormatError
+from app.domain.upload.fields import text_fault
 from app.domain.upload.session import Session as ParsedSession
 from app.domain.upload.session import parse_session_stream
 from app.storage import sessions
@@ -30,14 +31,17 @@ from app.storage.sessions import MAX_MAP_NAME_LENGTH
 MAX_TAG_ID = 2**31 - 1
 
 
-def parse_upload(json_chunks: Iterable[bytes], *, max_poses: int) -> ParsedSession:
+def parse_upload(
+    json_chunks: Iterable[bytes], *, max_poses: int, source: str = "upload"
+) -> ParsedSession:
     """The session in the upload's JSON bytes (in chunks), parsed as they come: a session with
     more than ``max_poses`` poses (``INVISIBLE_MAP_MAX_POSES``) is refused when pose
     ``max_poses`` + 1 is reached, so that a small gzip body that inflates to millions of poses
     costs no decoding of the rest, no build, no stored map; then :func:`check_storable`.
-    SessionFormatError (naming the field) for any fault."""
+    SessionFormatError (naming the field) for any fault; ``source`` names the document in a
+    fault of the whole (``upload is not valid JSON: …``)."""
     parsed = parse_session_stream(
-        json_chunks, max_poses=max_poses, max_poses_name="INVISIBLE_MAP_MAX_POSES"
+        json_chunks, max_poses=max_poses, max_poses_name="INVISIBLE_MAP_MAX_POSES", source=source
     )
     if len(parsed.map_id) > MAX_MAP_NAME_LENGTH:
         raise SessionFormatError(
@@ -55,15 +59,11 @@ def stored_session(db_session: Session, session_id: int) -> ParsedSession:
 
 
 def check_text(field: str, value: str) -> None:
-    """SessionFormatError naming ``field`` if ``value`` cannot be stored as text everywhere."""
-    if "\x00" in value:
-        raise SessionFormatError(field, "holds a NUL character (U+0000)")
-    try:
-        value.encode("utf-8")
-    except UnicodeEncodeError as err:
-        raise SessionFormatError(
-            field, f"holds a lone surrogate (U+{ord(value[err.start]):04X}), which is no text"
-        ) from None
+    """SessionFormatError naming ``field`` if ``value`` cannot be stored as text everywhere
+    (:func:`app.domain.upload.fields.text_fault`, the rule of every text that is stored)."""
+    reason = text_fault(value)
+    if reason is not None:
+        raise SessionFormatError(field, reason)
 
 
 def check_storable(parsed: ParsedSession) -> None:

@@ -11,6 +11,8 @@ What becomes what::
     ApiError(status, code, detail, field)      as raised (401 also sends WWW-Authenticate: Bearer)
     ServiceError (NotFound, Conflict, …)       its class's status, its code, detail and field
     RequestValidationError                     422 validation_error, field = the parameter's path
+    UnstorableText (app.web.route_class)       422 validation_error, field = the JSON body's
+                                               string that no database can hold (NUL, …)
     SessionFormatError                         422 invalid_session, field = the upload's JSON path
     ParameterError                             422 invalid_parameter
     MapNotFound, JobNotFound,
@@ -123,8 +125,18 @@ def error_response(
     field: str | None = None,
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
-    body = ErrorBody(detail=detail, code=code, field=field)
+    body = ErrorBody(
+        detail=_as_text(detail), code=code, field=None if field is None else _as_text(field)
+    )
     return JSONResponse(body.model_dump(), status_code=status_code, headers=headers)
+
+
+def _as_text(text: str) -> str:
+    """``text`` with any lone surrogate (which a refused value may bring into a message) written
+    as an escape, ``\\ud800``: an answer must be UTF-8, and a surrogate has no encoding."""
+    if text.isascii():
+        return text
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -164,7 +176,8 @@ async def _http_exception(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     code = CODE_OF_STATUS.get(exc.status_code, "error")
     headers = dict(exc.headers) if exc.headers else None
-    return error_response(exc.status_code, code, str(exc.detail), headers=headers)
+    field = getattr(exc, "field", None)  # UnstorableText names the body's field
+    return error_response(exc.status_code, code, str(exc.detail), field=field, headers=headers)
 
 
 async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:

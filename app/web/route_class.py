@@ -18,7 +18,9 @@ of ``app.web.deps`` use their own short transactions for the same reason.
 
 A route with a body gets an :class:`OrjsonRequest`: FastAPI reads JSON bodies with
 ``Request.json()``, the standard library's parser, ~6× slower than orjson on a localization
-update's 2 KB (34 vs 6 µs).
+update's 2 KB (34 vs 6 µs). It is also the door of every JSON body: a string anywhere in it (a
+value or an object's key) that no database can hold as text is refused with a 422 naming its
+path (:class:`UnstorableText`), before the route runs (issue 28, finding 1).
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ import orjson
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
 from sqlalchemy.orm import Session
+from starlette.exceptions import HTTPException
 
+from app.domain.upload.fields import json_text_fault
 from app.storage.db import end_transaction
 
 
@@ -71,10 +75,30 @@ class OrjsonRequest(Request):
         if not hasattr(self, "_json"):
             body = await self.body()
             try:
-                self._json = orjson.loads(body)
+                document = orjson.loads(body)
+                # In UTF-8 JSON a NUL or a lone surrogate can only be a \u escape (a raw NUL is
+                # invalid JSON, a surrogate's bytes invalid UTF-8): without one, no walk.
+                suspect = b"\\u" in body
             except orjson.JSONDecodeError:
-                self._json = json.loads(body)
+                document = json.loads(body)  # a lone surrogate, UTF-16, NaN, …: walked
+                suspect = True
+            fault = json_text_fault(document) if suspect else None
+            if fault is not None:
+                raise UnstorableText(*fault)
+            self._json = document
         return self._json
+
+
+class UnstorableText(HTTPException):
+    """Raised (422) for a JSON body holding a string no database can hold as text (a NUL, a
+    lone surrogate: :func:`app.domain.upload.fields.text_fault`); ``field`` is its path.
+
+    An HTTPException, because FastAPI passes those on from reading a body (any other error
+    there becomes a 400 without the field)."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(422, f"{field}: {reason}" if field else reason)
+        self.field = field or None
 
 
 def ending_sessions(endpoint: Callable[..., Any]) -> Callable[..., Any]:

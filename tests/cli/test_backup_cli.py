@@ -5,6 +5,8 @@ processes. Every failure is one line on stderr, ``invisible-map: error: …``, e
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -133,7 +135,7 @@ def test_export_then_import_into_postgresql_then_merge(
         f"{archive}: a valid backup of 2 sessions, 2 maps, 2 map versions, 0 sweeps, 1 API keys "
         "(without key hashes), exported "
     )
-    assert out.rstrip().endswith("members, every checksum matches")
+    assert out.rstrip().endswith("members, every checksum matches, every row fits")
 
     status, out, err = run_main(postgres_url, "import", archive, "--merge")
     assert status == 0, err
@@ -259,6 +261,53 @@ def test_errors_are_one_line_and_write_nothing(
     assert sorted(folder.rglob("*")) == files  # no archive, not even a partial one
     if case not in UNMIGRATED:
         assert uploads_of(url) == {}
+
+
+def with_map_row(archive: Path, out: Path, **values: Any) -> Path:
+    """``archive`` with its first map row's ``values`` changed (the manifest's checksum too)."""
+    with zipfile.ZipFile(archive) as source:
+        manifest = json.loads(source.read(backup.MANIFEST))
+        members = {n: source.read(n) for n in source.namelist() if n != backup.MANIFEST}
+    rows = [json.loads(line) for line in members["tables/map.jsonl"].splitlines()]
+    rows[0].update(values)
+    members["tables/map.jsonl"] = b"".join(json.dumps(r).encode() + b"\n" for r in rows)
+    with zipfile.ZipFile(out, "w") as target:
+        for name, data in members.items():
+            target.writestr(name, data)
+            manifest["members"][name] = {
+                "size_bytes": len(data),
+                "sha256": hashlib.sha256(data).hexdigest(),
+            }
+        target.writestr(backup.MANIFEST, json.dumps(manifest))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("values", "words"),
+    [
+        ({"id": 2**63}, "id: 9223372036854775808 is beyond the column's 32-bit integers"),
+        ({"display_name": "\ud800"}, "display_name holds a lone surrogate (U+D800)"),
+    ],
+    ids=["id-2^63", "surrogate"],
+)
+def test_an_archive_no_database_holds_is_refused_by_the_check_and_the_import(
+    values: dict[str, Any],
+    words: str,
+    source_url: str,
+    sqlite_url: Callable[[str], str],
+    run_main: RunMain,
+    tmp_path: Path,
+) -> None:
+    """Issue 28, finding 4: a 46-line traceback on SQLite, and `import --check` said valid."""
+    archive = tmp_path / "backup.zip"
+    assert run_main(source_url, "export", archive)[0] == 0
+    hostile = with_map_row(archive, tmp_path / "hostile.zip", **values)
+    target = sqlite_url("target")
+    for args in (["import", hostile, "--check"], ["import", hostile]):
+        status, out, err = run_main(target, *args)
+        assert_one_line_error(status, err, "tables/map.jsonl line 1", words)
+        assert out == ""
+    assert uploads_of(target) == {}
 
 
 # --------------------------------------------------------------------------- as processes

@@ -445,6 +445,55 @@ def test_help_lists_the_subcommands(capsys):
         assert command in out
 
 
+#: What building the command's parser must not import (issue 28, finding 10: `process --help`
+#: took 0.44 s, all of it importing them): each command imports what it needs when it runs.
+NOT_FOR_THE_PARSER = (
+    "fastapi", "starlette", "uvicorn", "sqlalchemy", "alembic", "psycopg", "pydantic",
+    "matplotlib", "numpy", "gtsam", "networkx", "optuna", "tqdm", "asyncio",
+)  # fmt: skip
+
+
+def test_the_parser_imports_no_heavy_library():
+    probe = (
+        "import sys\n"
+        "from app.cli import program\n"
+        "parser = program._parser()\n"
+        "for argv in (['process', 'x.json'], ['serve'], ['sweep', 'x'], ['import', 'a.zip']):\n"
+        "    parser.parse_args(argv)\n"
+        f"print(sorted(m for m in sys.modules if m.split('.')[0] in {NOT_FOR_THE_PARSER!r}))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+    )
+    assert proc.stdout.strip() == "[]", proc.stdout
+
+
+def test_help_is_printed_without_importing_the_core():
+    proc = run_cli(
+        "process", "--help", command=[sys.executable, "-X", "importtime", "-m", "app.cli"]
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "--app-map" in proc.stdout
+    imported = {line.rsplit("|", 1)[-1].strip() for line in proc.stderr.splitlines()}
+    assert not {name for name in imported if name.split(".")[0] in NOT_FOR_THE_PARSER}
+
+
+def test_process_imports_the_mapping_core_only():
+    """``process`` needs numpy and gtsam; the web stack, the database, plotting (without
+    ``--plot``) and the path graph (without ``-o`` or ``--app-map``) it does not import."""
+    probe = (
+        "import sys\n"
+        "from app.cli import program\n"
+        f"assert program.main(['process', {str(ONETAG)!r}]) == 0\n"
+        "heavy = ('fastapi', 'sqlalchemy', 'matplotlib', 'networkx', 'gtsam')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+    )
+    assert proc.stdout.splitlines()[-1] == "['gtsam']", proc.stdout
+
+
 # --------------------------------------------------------------------------- console script
 
 

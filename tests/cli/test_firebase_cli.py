@@ -4,8 +4,10 @@ picture; a second run takes nothing twice; what cannot be taken is refused with 
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,6 +18,7 @@ from cli_support import assert_one_line_error
 from app import cli
 from app.storage import images, maps, queue, sessions
 from app.storage.db import Database
+from tests.service.helpers import session_bytes
 from tests.unit.test_firebase_export import JPEG, make_export
 
 pytestmark = pytest.mark.db
@@ -118,6 +121,213 @@ def test_the_picture_skipped_is_said_in_the_summary(
     (export / "rawMapData/alice/Lab 1700000000.jpg").write_bytes(b"\xff\xd8\xff" + b"\0" * 9)
     _, out, _ = run_main(database_url, "import-firebase", export)
     assert "picture skipped: the JPEG is cut short" in out
+
+
+def add_recording(
+    export: Path, uid: str, map_id: str, data: bytes, name: str | None = None
+) -> None:
+    """A recording in Storage, and with ``name`` an entry of the database export too."""
+    (export / "rawMapData" / uid).mkdir(parents=True, exist_ok=True)
+    (export / "rawMapData" / uid / f"{map_id}.json").write_bytes(data)
+    if name is not None:
+        database_file = export / "invisible-map-sandbox-export.json"
+        database = json.loads(database_file.read_text())
+        database["maps"].setdefault(uid, {})[map_id] = {"name": name}
+        database_file.write_text(json.dumps(database))
+
+
+def session_with(**changes: Any) -> bytes:
+    document = json.loads(session_bytes("onetag"))
+    document.update(changes)
+    return json.dumps(document).encode()
+
+
+#: recording → (how to make it, in the export folder and a folder outside it; the reason said)
+BAD_RECORDINGS: dict[str, tuple[Callable[[Path, Path], None], str]] = {
+    "mallory/linked-out": (
+        lambda export, outside: (
+            (export / "rawMapData/mallory").mkdir()
+            or (export / "rawMapData/mallory/linked-out.json").symlink_to(outside / "secret.json")
+        ),
+        "linked-out.json is a link leading out of the export folder",
+    ),
+    "trudy/in-a-linked-folder": (
+        lambda export, outside: _linked_folder(export, outside, "trudy", "in-a-linked-folder"),
+        "in-a-linked-folder.json is a link leading out of the export folder",
+    ),
+    "erin/absolute": (
+        lambda export, outside: (
+            add_recording(export, "erin", "placeholder", b"{}")
+            or _database_entry(export, "erin", "absolute", str(outside / "secret.json"))
+        ),
+        "is not in the Storage export",
+    ),
+    "erin/dotdot": (
+        lambda export, _outside: _database_entry(export, "erin", "dotdot", "../secret.json"),
+        "is not in the Storage export",
+    ),
+    "frank/fifo": (
+        lambda export, _outside: (
+            (export / "rawMapData/frank").mkdir()
+            or os.mkfifo(export / "rawMapData/frank/fifo.json")
+        ),
+        "is not a regular file",
+    ),
+    "grace/huge": (
+        lambda export, _outside: (
+            (export / "rawMapData/grace").mkdir()
+            or os.truncate(_touch(export / "rawMapData/grace/huge.json"), 64 * 2**20)
+        ),
+        "huge.json (67108864 bytes) is larger than 1048576 bytes",
+    ),
+    "heidi/gzip-bomb": (
+        lambda export, _outside: add_recording(
+            export, "heidi", "gzip-bomb", gzip.compress(b" " * (8 * 2**20))
+        ),
+        "gzip-bomb.json inflates to more than 1048576 bytes",
+    ),
+    "ivan/nul-in-the-name": (
+        lambda export, _outside: add_recording(
+            export, "ivan", "nul-in-the-name", session_with(map_id="ivan 1"), name="Lab\x003"
+        ),
+        "its name (maps/<uid>/<mapId>/name) holds a NUL character",
+    ),
+    "judy/nul-in-the-map-id": (
+        lambda export, _outside: add_recording(
+            export, "judy", "nul-in-the-map-id", session_with(map_id="judy\x00")
+        ),
+        "map_id: holds a NUL character",
+    ),
+    "ken/surrogate-in-a-poi": (
+        lambda export, _outside: add_recording(
+            export,
+            "ken",
+            "surrogate-in-a-poi",
+            session_with(
+                location_data=[
+                    {
+                        "name": "\ud800",
+                        "pose_id": 1,
+                        "timestamp": 0.0,
+                        "transform": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
+                    }
+                ]
+            ),
+        ),
+        "location_data[0].name: holds a lone surrogate",
+    ),
+    "leo/deep": (
+        lambda export, _outside: add_recording(
+            export,
+            "leo",
+            "deep",
+            b'{"map_id": "x", "extra": ' + b"[" * 200_000 + b"]" * 200_000 + b"}",
+        ),
+        "deep.json is nested too deeply to be a session",
+    ),
+    "mia/not-json": (
+        lambda export, _outside: add_recording(export, "mia", "not-json", b"\xff\xfe{"),
+        "not-json.json is not UTF-8 text",
+    ),
+}
+
+
+def _linked_folder(export: Path, outside: Path, uid: str, map_id: str) -> None:
+    """A session in a folder outside, linked into Storage as ``uid``'s folder, and named in the
+    database export too."""
+    (outside / uid).mkdir()
+    (outside / uid / f"{map_id}.json").write_bytes(session_bytes("onetag"))
+    (export / "rawMapData" / uid).symlink_to(outside / uid)
+    _database_entry(export, uid, map_id, f"rawMapData/{uid}/{map_id}.json")
+
+
+def _touch(path: Path) -> Path:
+    path.touch()
+    return path
+
+
+def _database_entry(export: Path, uid: str, map_id: str, raw_file: str) -> None:
+    database_file = export / "invisible-map-sandbox-export.json"
+    database = json.loads(database_file.read_text())
+    database["maps"].setdefault(uid, {})[map_id] = {"name": map_id, "raw_file": raw_file}
+    database_file.write_text(json.dumps(database))
+
+
+def test_every_kind_of_bad_recording_is_refused_with_its_reason_and_the_rest_imported(
+    database_url: str, tmp_path: Path, run_main: RunMain, env: pytest.MonkeyPatch
+) -> None:
+    """Issue 28, finding 3: links leading out were imported, a 1.2 GB file was read whole, a NUL
+    in a name ended the whole import with a traceback on PostgreSQL."""
+    env.setenv("INVISIBLE_MAP_MAX_SESSION_BYTES", str(2**20))
+    export, outside = make_export(tmp_path / "export"), tmp_path / "outside"
+    outside.mkdir()
+    (outside / "secret.json").write_bytes(session_with(map_id="a secret"))
+    for make, _ in BAD_RECORDINGS.values():
+        make(export, outside)
+    (export / "rawMapData/alice/Lab 1700000000.jpg").unlink()
+    (export / "rawMapData/alice/Lab 1700000000.jpg").symlink_to(outside / "secret.json")
+
+    status, out, err = run_main(database_url, "import-firebase", export)
+
+    assert status == 1, err
+    assert "Traceback" not in out + err
+    refused = dict(
+        line.removeprefix("refused: ").split(": ", 1)
+        for line in out.splitlines()
+        if line.startswith("refused: ")
+    )
+    for key, (_, reason) in BAD_RECORDINGS.items():
+        assert reason in refused.get(key, ""), (key, refused.get(key))
+    assert "erin/placeholder" in refused  # "{}" is no session
+    assert "taken: alice/Lab 1700000000 → session" in out
+    assert "picture skipped: Lab 1700000000.jpg is a link leading out of the export folder" in out
+    db = stored(database_url)
+    assert sorted(entry["owner"] for entry in db.values()) == [
+        "firebase:alice", "firebase:alice", "firebase:bob", "firebase:carol"
+    ]  # fmt: skip
+    assert "a secret" not in db
+
+
+def test_a_database_export_that_is_no_file_of_the_export_is_skipped_and_a_deep_one_refused(
+    database_url: str, tmp_path: Path, run_main: RunMain
+) -> None:
+    export, outside = make_export(tmp_path / "export"), tmp_path / "outside"
+    outside.mkdir()
+    (outside / "other.json").write_text(json.dumps({"maps": {"zoe": {"x": {"name": "x"}}}}))
+    (export / "linked.json").symlink_to(outside / "other.json")
+    os.mkfifo(export / "fifo.json")
+    status, out, err = run_main(database_url, "import-firebase", export)
+    assert status == 1, err  # dave's file is missing, as ever
+    assert "note: linked.json: skipped: linked.json is a link leading out of the export" in out
+    assert "note: fifo.json: skipped: fifo.json is not a regular file" in out
+    assert "zoe/x" not in out
+    assert "4 taken" in out
+
+    (export / "deep.json").write_bytes(b"[" * 200_000 + b"]" * 200_000)
+    status, _, err = run_main(database_url, "import-firebase", export)
+    assert_one_line_error(status, err, "deep.json is nested too deeply to be a database export")
+
+
+def test_a_value_the_database_refuses_refuses_its_recording_not_the_import(
+    database_url: str, tmp_path: Path, run_main: RunMain, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Whatever the door rules miss: the database's own refusal of one recording."""
+    from sqlalchemy.exc import DataError
+
+    from app.services import firebase_import
+
+    real_create = firebase_import.sessions.create_session
+
+    def refusing_bob(db_session: Any, **kwargs: Any) -> Any:
+        if kwargs["uploaded_by"] == "firebase:bob":
+            raise DataError("INSERT …", {}, Exception("value too long for type character"))
+        return real_create(db_session, **kwargs)
+
+    monkeypatch.setattr(firebase_import.sessions, "create_session", refusing_bob)
+    status, out, _ = run_main(database_url, "import-firebase", make_export(tmp_path / "export"))
+    assert status == 1
+    assert "refused: bob/Desk: the database refused it: value too long" in out
+    assert "3 taken, 0 already there, 2 refused" in out
 
 
 def test_a_folder_that_is_no_export_is_one_line_error(

@@ -214,6 +214,33 @@ def test_keys_create_rejects_a_bad_expiry(db: Database, run_main: RunMain, days:
         assert keys.list_keys(db_session) == []
 
 
+def test_keys_create_rejects_a_name_that_is_no_text(db: Database, tmp_path: Path) -> None:
+    """A name of bytes that are no UTF-8 reaches Python as lone surrogates (issue 28, finding 1:
+    the one rule of stored text)."""
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "keys",
+            "create",
+            "--role",
+            "device",
+            "--name",
+            b"lab \xff",
+        ],
+        cwd=REPO_ROOT,
+        env=server_env(db.url.render_as_string(hide_password=False), tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert_one_line_error(result.returncode, result.stderr, "--name holds a lone surrogate")
+    with db.read() as db_session:
+        assert keys.list_keys(db_session) == []
+
+
 def test_keys_create_rejects_an_unknown_role(
     db: Database, run_main: RunMain, capsys: pytest.CaptureFixture[str]
 ) -> None:

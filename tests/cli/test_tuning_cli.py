@@ -17,7 +17,9 @@ import pytest
 from cli_support import assert_one_line_error
 
 from app import cli
+from app.cli.tuning import NOISE_FIELDS
 from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.simulate import SimulationConfig
 from app.domain.evaluation.table import evaluate_map
 from app.domain.evaluation.tuning import PAPER_GRID_AXES, TuningTarget
 from app.domain.mapping.params import SlamParams
@@ -437,3 +439,16 @@ def test_simulate_sessions_refuses_a_real_session(tmp_path, capsys) -> None:
     argv = ["simulate", str(tmp_path / "x.json"), "--sessions", "2", "--from-session", str(session)]
     assert cli.main(argv) == 1
     assert "--sessions" in capsys.readouterr().err
+
+
+def test_the_noise_names_are_the_simulators_noise_levels() -> None:
+    """``NOISE_FIELDS`` is written out so that the parser does not import the simulator."""
+    expected = tuple(
+        field.name
+        for field in dataclasses.fields(SimulationConfig)
+        if field.name.startswith(
+            ("odom_", "tag_position_noise", "tag_depth_noise", "tag_rotation_noise")
+        )
+        or field.name in ("corner_noise_px", "outlier_fraction")
+    )
+    assert expected == NOISE_FIELDS

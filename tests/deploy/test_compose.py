@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
+from app.admin.signing import Signer, load_or_create_secret
 from app.cli import program as cli_program
 from app.config import Settings
 from workers import allocator
@@ -97,6 +98,40 @@ def test_secrets_are_required_not_defaulted(services):
     )
 
 
+def test_every_api_container_signs_logins_with_one_secret_it_is_given(services):
+    """Issue 28, finding 9: without INVISIBLE_MAP_SESSION_SECRET each API container made its own
+    secret in its own data directory, so a recreated container logged every operator out and a
+    second one did not accept the first one's logins."""
+    secret = services["api"]["environment"]["INVISIBLE_MAP_SESSION_SECRET"]
+    assert secret.startswith("${INVISIBLE_MAP_SESSION_SECRET:?")  # required, never in the file
+
+
+def test_a_login_made_by_one_api_container_opens_the_dashboard_of_another(services, tmp_path):
+    """Two API containers as the compose file makes them (each its own data directory, the
+    environment the same): a cookie one signs, the other reads."""
+    environment = {
+        name: _interpolate(value, secret="s" * 64)
+        for name, value in services["api"]["environment"].items()
+        if name.startswith("INVISIBLE_MAP_")
+    }
+    signers = [
+        Signer(load_or_create_secret(Settings(**_settings_fields(environment), data_dir=folder)))
+        for folder in (tmp_path / "api-1", tmp_path / "api-2")
+    ]
+    token = signers[0].sign("login", {"sid": "abc"}, ttl_s=60)
+    read = signers[1].unsign("login", token)
+    assert read is not None
+    assert read["sid"] == "abc"
+
+
+def test_the_apis_data_directory_outlives_its_container(compose, services):
+    data_dir = _dockerfile_env()["INVISIBLE_MAP_DATA_DIR"]
+    mounts = dict(volume.split(":", 1) for volume in services["api"]["volumes"])
+    named = {name for name, target in mounts.items() if target == data_dir}
+    assert named, f"no volume at {data_dir}"
+    assert named <= set(compose["volumes"])  # a named volume, not the container's own layer
+
+
 def test_one_image_built_once(services):
     assert services["migrate"]["build"] == "."
     images = {services[name]["image"] for name in ("migrate", "api", "worker")}
@@ -141,5 +176,23 @@ def _logical_lines(text: str) -> list[str]:
     return [line.strip() for line in text.replace("\\\n", " ").splitlines()]
 
 
-def _interpolate(value: str) -> str:
-    return re.sub(r"\$\{[^}]*\}", "secret", value)
+def _interpolate(value: str, *, secret: str = "secret") -> str:
+    return re.sub(r"\$\{[^}]*\}", secret, value)
+
+
+def _settings_fields(environment: dict[str, str]) -> dict[str, str]:
+    """Settings' fields from ``INVISIBLE_MAP_*`` variables."""
+    return {
+        name.removeprefix("INVISIBLE_MAP_").lower(): value for name, value in environment.items()
+    }
+
+
+def _dockerfile_env() -> dict[str, str]:
+    """The image's ENV variables."""
+    found: dict[str, str] = {}
+    for line in _logical_lines((REPO_ROOT / "Dockerfile").read_text()):
+        if line.upper().startswith("ENV "):
+            for pair in shlex.split(line[4:]):
+                name, _, value = pair.partition("=")
+                found[name] = value
+    return found

@@ -4,6 +4,7 @@ an in-process worker to its results, the plots as PNG, apply and cancel. SQLite 
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -210,6 +211,13 @@ def _bad_json_file() -> dict[str, Any]:
     return {"files": {"ground_truth_file": ("gt.json", b'{"poses": [', "application/json")}}
 
 
+def _file_with_a_nul() -> dict[str, Any]:
+    """A valid ground truth whose file also holds a NUL (JSONB cannot: issue 28, finding 1)."""
+    document = json.loads(GROUND_TRUTH.read_bytes())
+    document["source"] = "tape\x00measure"
+    return {"files": {"ground_truth_file": ("gt.json", json.dumps(document), "application/json")}}
+
+
 BAD_STARTS = [
     # (form changes, post kwargs, status, message, element focused)
     ({"sweep": []}, {}, 422, "The search space is empty", "start-tag_position_var_m2"),
@@ -251,6 +259,7 @@ BAD_STARTS = [
     ),
     ({"ground_truth_text": "[1, 2]"}, {}, 422, "expected a JSON object", "start-gt-text"),
     ({}, _bad_json_file(), 422, "Ground truth: not valid JSON", "start-gt-file"),
+    ({}, _file_with_a_nul(), 422, "Ground truth: source holds a NUL character", "start-gt-file"),
     (
         {"ground_truth_text": '{"poses": []}'},
         {"files": {"ground_truth_file": ("gt.json", b"{}", "application/json")}},

@@ -13,6 +13,7 @@ import gzip
 import hashlib
 import json
 import shutil
+import struct
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
+from sqlalchemy import update as sqlalchemy_update
 
 from app.domain.evaluation.sweep_plan import SweepPlan
 from app.domain.evaluation.tuning import Axis, SearchSpace, Trial
@@ -34,7 +36,7 @@ from app.storage.backup import ArchiveIncompatible, ArchiveInvalid, ImportRefuse
 from app.storage.db import Database
 from app.storage.migrate import head_revision
 from app.storage.navigation import path_graph_document
-from app.storage.orm import Base, Job, JobState, Role
+from app.storage.orm import Base, Job, JobState, MapRow, Role
 from tests.service.api_support import ADMIN, run_next_job, running_api
 from tests.service.helpers import session_bytes
 
@@ -633,7 +635,7 @@ BROKEN: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]]
             a, out / "x.zip", member=jsonl_edit("session", lambda r: set_in(r, pose_count="many"))
         ),
         ArchiveInvalid,
-        "tables/session.jsonl line 1: pose_count: expected integer, got 'many'",
+        "tables/session.jsonl line 1 (id 1): pose_count: expected integer, got 'many'",
     ),
     "row count differs": (
         lambda a, out: rewrite(
@@ -671,6 +673,84 @@ BROKEN: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]]
 }
 
 
+#: Archives no database holds, each refused naming its row (issue 28, finding 4: each was a
+#: traceback of the driver, or was stored, and `import --check` called the archive valid).
+VALUE_CASES: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]] = {
+    "an id beyond 64 bits": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("map", lambda r: set_in(r, id=2**63))
+        ),
+        ArchiveInvalid,
+        "tables/map.jsonl line 1 (id 9223372036854775808): id: 9223372036854775808 is beyond the "
+        "column's 32-bit integers",
+    ),
+    "an id beyond 32 bits (PostgreSQL's integer)": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("sweep_trial", lambda r: set_in(r, number=2**31))
+        ),
+        ArchiveInvalid,
+        "number: 2147483648 is beyond the column's 32-bit integers",
+    ),
+    "a lone surrogate in a name": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("map", lambda r: set_in(r, display_name="\ud800"))
+        ),
+        ArchiveInvalid,
+        "tables/map.jsonl line 1 (id 1): display_name holds a lone surrogate (U+D800)",
+    ),
+    "a NUL in a JSON column": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=jsonl_edit("map_version", lambda r: set_in(r, warnings=["ok", "a\x00b"])),
+        ),
+        ArchiveInvalid,
+        "tables/map_version.jsonl line 1 (id 1): warnings[1] holds a NUL character",
+    ),
+    "a name longer than its column": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("map", lambda r: set_in(r, display_name="x" * 201))
+        ),
+        ArchiveInvalid,
+        "display_name: 201 characters, more than the column's 200",
+    ),
+    "a datetime beyond the year 9999 in UTC": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=jsonl_edit("map", lambda r: set_in(r, created_at="9999-12-31T23:59:59-23:59")),
+        ),
+        ArchiveInvalid,
+        "created_at: '9999-12-31T23:59:59-23:59' is not a datetime with a UTC offset",
+    ),
+    "an upload larger than the server takes": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=jsonl_edit("session", lambda r: set_in(r, raw_size_bytes=2**31 - 1)),
+        ),
+        ArchiveInvalid,
+        "raw_size_bytes 2147483647 is not from 0 to the 268435456 bytes an upload may inflate to",
+    ),
+    "a row nested too deeply": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=lambda n, d: b"[" * 200_000 + b"]" * 200_000 if n.endswith("/map.jsonl") else d,
+        ),
+        ArchiveInvalid,
+        "tables/map.jsonl line 1: not JSON",
+    ),
+    "a high-water mark beyond 32 bits": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", manifest=lambda d: d["id_high_water"].update(map=2**63)
+        ),
+        ArchiveInvalid,
+        "id_high_water.map is 9223372036854775808, not an integer from 0 to 2147483647",
+    ),
+}
+
+
 def _write(path: Path, data: bytes) -> Path:
     path.write_bytes(data)
     return path
@@ -696,6 +776,197 @@ def test_a_broken_archive_is_refused_and_nothing_is_written(
     assert set(row_counts(db).values()) == {0}
     assert next_upload_map_id(db) == 1  # no id sequence moved either
     db.dispose()
+
+
+#: What only an import into a database refuses (`import --check` compares the schema revision
+#: with this code's, in the command).
+NEEDS_A_DATABASE = {"older schema", "newer schema"}
+
+
+def test_every_value_no_database_holds_is_refused_naming_its_row(
+    source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """One database for all the cases (each import is refused whole, so it stays empty)."""
+    db = Database(database_url)
+    for case, (make, error, message) in VALUE_CASES.items():
+        with pytest.raises(error) as raised:
+            backup.import_archive(db, make(source.archive, tmp_path))
+        assert message in str(raised.value), case
+    assert set(row_counts(db).values()) == {0}
+    assert next_upload_map_id(db) == 1
+    db.dispose()
+
+
+CHECKED = {**BROKEN, **VALUE_CASES}
+
+
+@pytest.mark.parametrize("case", sorted(set(CHECKED) - NEEDS_A_DATABASE))
+def test_the_check_refuses_what_an_import_refuses(
+    case: str, source: Source, tmp_path: Path
+) -> None:
+    make, error, message = CHECKED[case]
+    with pytest.raises(error) as raised:
+        backup.check_archive(make(source.archive, tmp_path))
+    assert message in str(raised.value)
+
+
+def test_the_check_passes_a_good_archive(source: Source) -> None:
+    for archive in (source.archive, source.archive_with_keys):
+        assert backup.check_archive(archive) == backup.read_manifest(archive)
+
+
+def with_member(
+    archive: Path, out: Path, name: str, inflated: Callable[[], Iterator[bytes]]
+) -> Path:
+    """``archive`` with member ``name`` replaced by the bytes ``inflated`` yields, deflated in the
+    zip (so a member of many MiB takes a few KiB), the manifest's size and SHA-256 of it set."""
+    with zipfile.ZipFile(archive) as source:
+        document = json.loads(source.read(backup.MANIFEST))
+        members = {n: source.read(n) for n in source.namelist() if n != backup.MANIFEST}
+    digest, size = hashlib.sha256(), 0
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as target:
+        for other, data in members.items():
+            if other != name:
+                target.writestr(other, data)
+        with target.open(name, "w") as member:
+            for chunk in inflated():
+                member.write(chunk)
+                digest.update(chunk)
+                size += len(chunk)
+        document["members"][name] = {"size_bytes": size, "sha256": digest.hexdigest()}
+        target.writestr(backup.MANIFEST, json.dumps(document))
+    return out
+
+
+def zeros(mib: int) -> Callable[[], Iterator[bytes]]:
+    return lambda: (bytes(2**20) for _ in range(mib))
+
+
+def opened_members(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The names of the members the archive reader opens from now on."""
+    opened: list[str] = []
+    real_open = backup.archive.ArchiveReader._open
+
+    def recording_open(reader: backup.archive.ArchiveReader, name: str) -> Any:
+        opened.append(name)
+        return real_open(reader, name)
+
+    monkeypatch.setattr(backup.archive.ArchiveReader, "_open", recording_open)
+    return opened
+
+
+def test_a_member_inflating_beyond_the_limit_is_refused_before_it_is_read(
+    source: Source, database_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 28, finding 4: a member inflating to 1.5 GB was read whole (3.2 GB, 32 s) before it
+    was refused. Here 8 MiB against a limit of 1 MiB, as `import` and `import --check` run."""
+    hostile = with_member(source.archive, tmp_path / "x.zip", "uploads/1.json.gz", zeros(8))
+    opened = opened_members(monkeypatch)
+    db = Database(database_url)
+    for check in (
+        lambda: backup.check_archive(hostile, max_member_bytes=2**20),
+        lambda: backup.import_archive(db, hostile, max_member_bytes=2**20),
+    ):
+        with pytest.raises(ArchiveInvalid) as raised:
+            check()
+        assert "uploads/1.json.gz inflates to 8388608 bytes, more than the 1048576" in str(
+            raised.value
+        )
+        assert "uploads/1.json.gz" not in opened
+    assert set(row_counts(db).values()) == {0}
+    db.dispose()
+
+
+def test_an_upload_is_inflated_no_further_than_its_session_says(
+    source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """A gzip bomb as an upload, its session claiming the size it inflates to (within the limit,
+    and the checksums right): refused for that size, before a byte of it is inflated; with a
+    small claim, refused after inflating one byte more than the claim."""
+    bomb = gzip.compress(bytes(4 * 2**20))
+
+    def claims(size: int) -> Callable[[str, bytes], bytes]:
+        def edit(name: str, data: bytes) -> bytes:
+            if name == "uploads/1.json.gz":
+                return bomb
+            return jsonl_edit(
+                "session", lambda r: r.update(raw_size_bytes=size) if r["id"] == 1 else None
+            )(name, data)
+
+        return edit
+
+    db = Database(database_url)
+    big = rewrite(source.archive, tmp_path / "big.zip", member=claims(4 * 2**20))
+    with pytest.raises(ArchiveInvalid, match="raw_size_bytes 4194304 is not from 0 to the 1048576"):
+        backup.import_archive(db, big, max_member_bytes=2**20)
+    small = rewrite(source.archive, tmp_path / "small.zip", member=claims(1000))
+    with pytest.raises(ArchiveInvalid, match="the upload does not match its session"):
+        backup.import_archive(db, small, max_member_bytes=2**20)
+    assert set(row_counts(db).values()) == {0}
+    db.dispose()
+
+
+def test_a_member_inflating_beyond_what_its_zip_says_fails_its_crc(
+    source: Source, tmp_path: Path
+) -> None:
+    """The zip's headers claim 1 KiB of an upload that inflates to 8 MiB: the reader stops at
+    the size claimed, and the CRC fails."""
+    hostile = with_member(source.archive, tmp_path / "x.zip", "uploads/1.json.gz", zeros(8))
+    data = bytearray(hostile.read_bytes())
+    with zipfile.ZipFile(hostile) as archive:
+        info = archive.getinfo("uploads/1.json.gz")
+    # the uncompressed size: at 22 in the local header, at 24 in the central directory's entry
+    struct.pack_into("<I", data, info.header_offset + 22, 1024)
+    central = _central_entries(bytes(data), "uploads/1.json.gz")
+    assert len(central) == 1
+    struct.pack_into("<I", data, central[0] + 24, 1024)
+    lying = tmp_path / "lying.zip"
+    lying.write_bytes(bytes(data))
+    with zipfile.ZipFile(lying) as archive:
+        assert archive.getinfo("uploads/1.json.gz").file_size == 1024
+    with pytest.raises(ArchiveInvalid, match=r"uploads/1\.json\.gz is corrupt"):
+        backup.check_archive(lying, max_member_bytes=2**20)
+
+
+def _central_entries(data: bytes, name: str) -> list[int]:
+    """Offsets of the central directory's entries for ``name``."""
+    offsets, start = [], 0
+    while (found := data.find(b"PK\x01\x02", start)) >= 0:
+        name_length = struct.unpack_from("<H", data, found + 28)[0]
+        if data[found + 46 : found + 46 + name_length] == name.encode():
+            offsets.append(found)
+        start = found + 4
+    return offsets
+
+
+def test_text_no_database_holds_in_an_old_sqlite_database_is_named_on_its_way_out(
+    sqlite_copy: Callable[[str], str], database_url: str, tmp_path: Path
+) -> None:
+    """Issue 28, finding 1: a SQLite database that stored a NUL in a display name before the
+    API refused it could not be moved to PostgreSQL, and the error named no row."""
+    old = Database(sqlite_copy("old"))
+    upload(old, "onetag", uploaded_by=keys.ENVIRONMENT_ADMIN)
+    with old.transaction() as tx:
+        tx.execute(update_display_name(1, "Lab\x003"))
+    backup.export_archive(old, tmp_path / "old.zip")
+    old.dispose()
+    db = Database(database_url)
+    for check in (
+        lambda: backup.check_archive(tmp_path / "old.zip"),
+        lambda: backup.import_archive(db, tmp_path / "old.zip"),
+    ):
+        with pytest.raises(ArchiveInvalid) as raised:
+            check()
+        assert "tables/map.jsonl line 1 (id 1): display_name holds a NUL character" in str(
+            raised.value
+        )
+        assert "export again" in str(raised.value)
+    assert set(row_counts(db).values()) == {0}
+    db.dispose()
+
+
+def update_display_name(map_id: int, name: str) -> Any:
+    return sqlalchemy_update(MapRow).where(MapRow.id == map_id).values(display_name=name)
 
 
 def test_a_schema_mismatch_names_the_side_to_migrate() -> None:

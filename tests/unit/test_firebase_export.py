@@ -4,12 +4,19 @@ from the sessions in data/, laid out as the app wrote it."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
 import pytest
 
-from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
+from app.domain.formats.firebase_export import (
+    ExportFileRefused,
+    FirebaseExportError,
+    export_file_problem,
+    read_export_file,
+    read_firebase_export,
+)
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 16 + b"\xff\xd9"
@@ -147,3 +154,65 @@ def test_malformed_database_entries_are_noted_not_fatal(tmp_path):
     assert any("maps/u/a: null" in n for n in export.notes)
     assert any("maps/v" in n for n in export.notes)
     assert any("unprocessed_maps is not an object" in n for n in export.notes)
+
+
+def test_only_the_exports_own_regular_files_are_read_and_no_further_than_asked(tmp_path):
+    """Issue 28, finding 3: links leading out of the folder were followed, a FIFO would block,
+    a 1.2 GB file was read whole before it was refused."""
+    folder, outside = tmp_path / "export", tmp_path / "outside"
+    (folder / "rawMapData" / "u").mkdir(parents=True)
+    outside.mkdir()
+    (outside / "secret.json").write_text("{}")
+    own = folder / "rawMapData" / "u" / "own.json"
+    own.write_text('{"a": 1}')
+    cases = {
+        "own": own,
+        "link inside": folder / "rawMapData" / "u" / "alias.json",
+        "link out": folder / "rawMapData" / "u" / "out.json",
+        "linked folder": folder / "rawMapData" / "v" / "secret.json",
+        "fifo": folder / "rawMapData" / "u" / "fifo.json",
+        "folder": folder / "rawMapData" / "u",
+        "missing": folder / "rawMapData" / "u" / "missing.json",
+        "large": folder / "rawMapData" / "u" / "large.json",
+    }
+    cases["link inside"].symlink_to(own)
+    cases["link out"].symlink_to(outside / "secret.json")
+    (folder / "rawMapData" / "v").symlink_to(outside)
+    os.mkfifo(cases["fifo"])
+    with cases["large"].open("wb") as sparse:
+        sparse.truncate(2**30)  # 1 GiB, no disk used
+    assert read_export_file(folder, own, max_bytes=8) == b'{"a": 1}'
+    assert read_export_file(folder, cases["link inside"], max_bytes=8) == b'{"a": 1}'
+    expected = {
+        "link out": "out.json is a link leading out of the export folder",
+        "linked folder": "secret.json is a link leading out of the export folder",
+        "fifo": "fifo.json is not a regular file",
+        "folder": "u is not a regular file",
+        "missing": "missing.json is not in the export",
+        "large": "large.json (1073741824 bytes) is larger than 1048576 bytes",
+    }
+    for case, reason in expected.items():
+        with pytest.raises(ExportFileRefused) as refused:
+            read_export_file(folder, cases[case], max_bytes=2**20)
+        assert reason in str(refused.value), case
+        assert export_file_problem(folder, cases[case]) is not None or case == "large", case
+    with pytest.raises(ExportFileRefused, match="larger than 7 bytes"):
+        read_export_file(folder, own, max_bytes=7)
+
+
+def test_a_recording_whose_file_leads_out_is_listed_with_its_problem(tmp_path):
+    root = make_export(tmp_path / "export")
+    (tmp_path / "secret.json").write_bytes((SESSIONS / "onetag.json").read_bytes())
+    (root / "rawMapData" / "eve").mkdir()
+    (root / "rawMapData" / "eve" / "x.json").symlink_to(tmp_path / "secret.json")
+    entry = next(m for m in read_firebase_export(root).maps if m.key == "eve/x")
+    assert entry.raw_path is None
+    assert entry.problem == (
+        "its session file rawMapData/eve/x.json is a link leading out of the export folder"
+    )
+
+
+def test_a_database_export_nested_too_deeply_is_refused_in_one_line(tmp_path):
+    (tmp_path / "db.json").write_bytes(b"[" * 200_000 + b"]" * 200_000)
+    with pytest.raises(FirebaseExportError, match=r"db\.json is nested too deeply"):
+        read_firebase_export(tmp_path)

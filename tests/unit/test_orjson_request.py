@@ -1,6 +1,8 @@
 """``OrjsonRequest.json()`` (the API's bodies, ``app.web.route_class``) reads every body as the
 standard library's parser, which FastAPI uses, does: the same values, down to each float's bits,
-and the same refusals; integers beyond 64 bits, the one documented difference, as floats."""
+and the same refusals; integers beyond 64 bits, the one documented difference, as floats. And it
+is the door of text: a string no database can hold (a NUL, a lone surrogate), in any encoding
+the standard library reads, is refused with its path (issue 28, finding 1)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from app.web.route_class import OrjsonRequest
+from app.web.route_class import OrjsonRequest, UnstorableText
 
 
 def read(body: bytes) -> Any:
@@ -52,12 +54,11 @@ BODIES = [
     b"[123456789012345678901234567890.5, -0.0, 1E5, 1e+5, 0.5e-3]",
     b'{"a": 1, "a": 2, "b": [true, false, null]}',
     b"[9223372036854775807, 9223372036854775808, 18446744073709551615, -9223372036854775808]",
-    b'{"s": "caf\\u00e9 \\ud83d\\ude00 \\u0000", "t": "\\u00e9"}',
+    b'{"s": "caf\\u00e9 \\ud83d\\ude00 \\u00ff", "t": "\\u00e9"}',
     # orjson refuses these; the standard library reads them
     b"[NaN, Infinity, -Infinity]",
     b"[1e400]",
     b"[" + b"1" + b"0" * 400 + b"]",
-    b'{"s": "\\ud800"}',
     '{"s": "é"}'.encode("utf-16"),
 ]
 
@@ -81,3 +82,21 @@ def test_a_malformed_body_raises_what_the_standard_library_raises(body):
 def test_an_integer_beyond_64_bits_reads_as_the_nearest_float():
     assert same(read(b"[-9223372036854775809, 1, 2.5]"), [-9223372036854775809.0, 1, 2.5])
     assert same(read(b"[18446744073709551616]"), [18446744073709551616.0])
+
+
+@pytest.mark.parametrize(
+    ("body", "field", "reason"),
+    [
+        (b'{"s": "caf\\u00e9 \\u0000"}', "s", "NUL"),
+        (b'{"a": [1, {"b": "\\ud800"}]}', "a[1].b", "lone surrogate (U+D800)"),
+        (b'{"a": {"k\\u0000": 1}}', "a", "a key holds a NUL"),
+        ('{"s": "\\u0000"}'.encode("utf-16"), "s", "NUL"),
+    ],
+    ids=["nul", "surrogate", "key", "utf-16"],
+)
+def test_a_body_holding_text_no_database_holds_is_refused_naming_it(body, field, reason):
+    json.loads(body)  # valid JSON all the same
+    with pytest.raises(UnstorableText) as raised:
+        read(body)
+    assert (raised.value.status_code, raised.value.field) == (422, field)
+    assert reason in str(raised.value.detail)

@@ -1,5 +1,6 @@
 """The number readers of ``app.domain.upload.fields``: a list of JSON numbers becomes a float64
-array; anything else is named, down to the item."""
+array; anything else is named, down to the item. And the one rule of stored text: a NUL or a lone
+surrogate, in a string or anywhere in a JSON document (keys too, at any depth), is named."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.domain.errors import SessionFormatError
-from app.domain.upload.fields import number_field, number_list
+from app.domain.upload.fields import json_text_fault, number_field, number_list, text_fault
 
 
 def item_by_item(value: Any, where: str, length: int) -> np.ndarray:
@@ -72,3 +73,45 @@ def test_an_integer_beyond_float_range_is_named_not_an_overflow():
         number_field({"timestamp": -huge}, "timestamp", "poses[3]")
     assert err.value.field == "poses[3].timestamp"
     assert number_field({"timestamp": 2**70}, "timestamp", "poses[3]") == float(2**70)
+
+
+@pytest.mark.parametrize(
+    ("text", "fault"),
+    [
+        ("Room 210", None),
+        ("Salle à manger 🚻", None),
+        ("", None),
+        ("a\x00b", "holds a NUL character (U+0000)"),
+        ("a\ud800b", "holds a lone surrogate (U+D800), which is no text"),
+        ("é\udfff", "holds a lone surrogate (U+DFFF), which is no text"),
+        ("\udc80", "holds a lone surrogate (U+DC80), which is no text"),  # undecodable argv byte
+    ],
+)
+def test_text_fault_names_what_no_database_holds(text, fault):
+    assert text_fault(text) == fault
+
+
+def test_json_text_fault_names_the_first_bad_string_by_its_path():
+    assert json_text_fault({"a": [1, "ok", {"b": None}], "c": 2.5}) is None
+    assert json_text_fault({"a": [1, "ok", {"b": "x\x00"}]}) == (
+        "a[2].b",
+        "holds a NUL character (U+0000)",
+    )
+    assert json_text_fault({"a": {"ok": 1, "k\ud800": 2}}) == (
+        "a",
+        "a key holds a lone surrogate (U+D800), which is no text",
+    )
+    assert json_text_fault({"\x00": 1}) == ("(top level)", "a key holds a NUL character (U+0000)")
+    assert json_text_fault(["a", "b\x00"], "poses") == (
+        "poses[1]",
+        "holds a NUL character (U+0000)",
+    )
+
+
+def test_json_text_fault_reads_any_depth_without_recursing():
+    deep: object = "\x00"
+    for _ in range(20_000):  # 20 times Python's recursion limit
+        deep = [deep]
+    fault = json_text_fault(deep)
+    assert fault is not None
+    assert fault[0] == "[0]" * 20_000

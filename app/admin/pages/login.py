@@ -1,10 +1,10 @@
 """``/admin/login``, ``/admin/logout`` and ``/admin/logins/end-all``.
 
 A login takes an admin API key. The answers: a device key 403 ("a device key cannot log in"), an
-unknown, revoked or expired key 401, more than :data:`~app.admin.auth.LOGIN_ATTEMPTS` failures a
-minute with one key (or :data:`~app.admin.auth.LOGIN_ATTEMPTS_OVERALL` with any) 429 with
-``Retry-After``, a form without its CSRF token 403. Success stores
+unknown, revoked or expired key 401, a form without its CSRF token 403. Success stores
 the login and sets its cookie and goes (303) to ``next`` (a dashboard path) or the overview.
+After repeated failures from one address (or from all) an attempt is held a while before its
+key is checked (:class:`~app.admin.auth.LoginThrottle`); no key is ever refused for that.
 Logging out ends the login on the server; ``/admin/logins/end-all`` (on the API keys page) ends
 every login.
 """
@@ -18,10 +18,12 @@ from fastapi import Query, Request, Response
 from app.admin.auth import (
     AdminStateDep,
     CheckedFormDep,
+    LoginHoldDep,
     PostedFormDep,
     end_login,
     login_form_token,
     login_form_token_ok,
+    login_source,
     safe_next,
     set_login_form_cookie,
     start_login,
@@ -68,7 +70,12 @@ def login_form(
 
 @router.post("/login")
 def log_in(
-    request: Request, state: AdminStateDep, settings: SettingsDep, db: DbDep, form: PostedFormDep
+    request: Request,
+    state: AdminStateDep,
+    settings: SettingsDep,
+    db: DbDep,
+    form: PostedFormDep,
+    _held: LoginHoldDep,
 ) -> Response:
     next_url = str(form.get("next") or "/admin")
     if not login_form_token_ok(request, state, form.get("form_token")):
@@ -84,22 +91,10 @@ def log_in(
         return _login_page(
             request, state, next_url=next_url, error="Enter an admin API key.", status_code=422
         )
-    wait_s = state.throttle.retry_after_s(key)
-    if wait_s is not None:
-        response = _login_page(
-            request,
-            state,
-            next_url=next_url,
-            error=f"Too many failed logins with this key, or with any key. Wait {wait_s} s and "
-            "try again.",
-            status_code=429,
-        )
-        response.headers["Retry-After"] = str(wait_s)
-        return response
     with db.read() as db_session:
         principal = keys.authenticate(db_session, key, admin_key=settings.admin_key)
     if principal is None or not principal.is_admin:
-        state.throttle.failed(key)
+        state.throttle.failed(login_source(request))
     if principal is None:
         return _login_page(
             request,

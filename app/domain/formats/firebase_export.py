@@ -19,11 +19,21 @@ found through either: an entry of the database whose file is missing is kept wit
 ``problem``; a file in Storage that the database does not list (the app stores the file first,
 then writes the database) is read too. Nothing here touches a server: the import command uploads
 what this returns.
+
+Every file is read through :func:`read_export_file`, which takes only what is the export's own: a
+regular file whose real location is inside the folder (no symbolic link, or linked folder, leading
+out; no FIFO, device or folder), no larger than asked (its size checked before it is read, and
+read bounded). A recording whose file is not is kept with its ``problem``; a database export that
+is not is skipped with a note.
+
+    data = read_export_file(export_folder, entry.raw_path, max_bytes=2**28)  # or ExportFileRefused
 """
 
 from __future__ import annotations
 
 import json
+import os
+import stat
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -42,13 +52,74 @@ class FirebaseExportError(Exception):
     export that is not JSON)."""
 
 
+class ExportFileRefused(Exception):
+    """Raised when a file of the export is not read: ``str(err)`` says why (it leaves the export
+    folder, it is not a regular file, it is too large)."""
+
+
+def export_file_problem(folder: Path, path: Path) -> str | None:
+    """Why ``path`` is not a file of the export folder ``folder`` that can be read, or None: it
+    does not exist, its real location (links followed) is outside the folder, or it is not a
+    regular file (a FIFO, a device, a folder). Reads no file."""
+    try:
+        real = path.resolve(strict=True)
+    except (OSError, RuntimeError):  # missing, a dangling link, a loop of links
+        return "is not in the export"
+    if not real.is_relative_to(folder.resolve()):
+        return "is a link leading out of the export folder"
+    try:
+        mode = real.stat().st_mode
+    except OSError as err:
+        return f"cannot be read: {err.strerror or err}"
+    if not stat.S_ISREG(mode):
+        return "is not a regular file (a FIFO, a device or a folder)"
+    return None
+
+
+def read_export_file(folder: Path, path: Path, *, max_bytes: int) -> bytes:
+    """The bytes of ``path``, a file of the export folder ``folder``, if
+    :func:`export_file_problem` finds none and it holds at most ``max_bytes``; else
+    ExportFileRefused with the reason. The file is opened without following a last link and
+    without blocking (a FIFO answers at once), its size is checked before it is read, it is read
+    no further than ``max_bytes`` + 1, and the file opened must be the one inside the folder (on
+    Linux, by the descriptor's own path)."""
+    problem = export_file_problem(folder, path)
+    if problem is not None:
+        raise ExportFileRefused(f"{path.name} {problem}")
+    real = path.resolve()
+    try:
+        descriptor = os.open(real, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as err:
+        raise ExportFileRefused(f"cannot open {path.name}: {err.strerror or err}") from None
+    with os.fdopen(descriptor, "rb") as file:
+        opened = Path(f"/proc/self/fd/{descriptor}")
+        if opened.is_symlink() and not opened.resolve().is_relative_to(folder.resolve()):
+            raise ExportFileRefused(f"{path.name} is a link leading out of the export folder")
+        status = os.fstat(descriptor)
+        if not stat.S_ISREG(status.st_mode):
+            raise ExportFileRefused(f"{path.name} is not a regular file")
+        if status.st_size > max_bytes:
+            raise ExportFileRefused(
+                f"{path.name} ({status.st_size} bytes) is larger than {max_bytes} bytes"
+            )
+        try:
+            data = file.read(max_bytes + 1)
+        except OSError as err:
+            raise ExportFileRefused(f"cannot read {path.name}: {err.strerror or err}") from None
+    if len(data) > max_bytes:  # it grew since
+        raise ExportFileRefused(f"{path.name} is larger than {max_bytes} bytes")
+    return data
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class FirebaseMap:
     """One recording of the export.
 
     uid: its owner's Firebase user id; map_id: the app's map id (Storage file name);
     name: the name the person typed (``maps/…/name``; else the map id);
-    raw_path, image_path: the files in the export (None where absent);
+    raw_path, image_path: the files in the export (None where absent; read them with
+    :func:`read_export_file` and ``export_folder``);
+    export_folder: the export's folder;
     sources: where it was found ("maps", "unprocessed_maps", "storage");
     problem: why it cannot be imported, or None.
     """
@@ -58,6 +129,7 @@ class FirebaseMap:
     name: str
     raw_path: Path | None
     image_path: Path | None
+    export_folder: Path
     sources: tuple[str, ...]
     problem: str | None = None
 
@@ -129,11 +201,16 @@ def _resolve(directory: Path, uid: str, map_id: str, item: dict[str, Any]) -> Fi
     raw_path = item.get("storage_raw") or _inside(directory, item["raw"] or default_raw)
     image = _inside(directory, item.get("image") or f"{RAW_FOLDER}/{uid}/{map_id}.jpg")
     problem = None
-    if raw_path is None or not raw_path.is_file():
+    found = None if raw_path is None else export_file_problem(directory, raw_path)
+    if raw_path is None or found == "is not in the export":
         problem = (
             f"its session file {item['raw'] or default_raw} is not in the Storage export "
             f"(download {RAW_FOLDER}/ into the folder)"
         )
+        raw_path = None
+    elif found is not None:
+        relative = _relative(directory, raw_path)
+        problem = f"its session file {relative} {found}"
         raw_path = None
     return FirebaseMap(
         uid=uid,
@@ -141,9 +218,17 @@ def _resolve(directory: Path, uid: str, map_id: str, item: dict[str, Any]) -> Fi
         name=item["name"] or map_id,
         raw_path=raw_path,
         image_path=image if image is not None and image.is_file() else None,
+        export_folder=directory,
         sources=tuple(item["sources"]),
         problem=problem,
     )
+
+
+def _relative(directory: Path, path: Path) -> str:
+    try:
+        return path.relative_to(directory).as_posix()
+    except ValueError:
+        return path.name
 
 
 def _inside(directory: Path, storage_path: str) -> Path | None:
@@ -163,13 +248,19 @@ def _database_exports(directory: Path, notes: list[str]) -> tuple[list[Path], di
     merged: dict[str, Any] = {"maps": {}, "unprocessed_maps": {}}
     files = []
     for path in sorted(directory.glob("*.json")):
-        if path.stat().st_size > MAX_DATABASE_EXPORT_BYTES:
-            notes.append(f"{path.name}: larger than {MAX_DATABASE_EXPORT_BYTES} bytes, skipped")
+        try:
+            encoded = read_export_file(directory, path, max_bytes=MAX_DATABASE_EXPORT_BYTES)
+        except ExportFileRefused as err:
+            notes.append(f"{path.name}: skipped: {err}")
             continue
         try:
-            document = json.loads(path.read_bytes())
+            document = json.loads(encoded)
         except (UnicodeDecodeError, json.JSONDecodeError) as err:
             raise FirebaseExportError(f"{path.name} is not valid JSON: {err}") from err
+        except RecursionError:
+            raise FirebaseExportError(
+                f"{path.name} is nested too deeply to be a database export"
+            ) from None
         if not isinstance(document, Mapping) or not (
             "maps" in document or "unprocessed_maps" in document
         ):

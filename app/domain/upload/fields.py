@@ -6,6 +6,15 @@
 
 Shared by the session parser (``app.domain.upload.session``) and the localizer's update parser
 (``app.domain.localize.batch``).
+
+And the one rule for every text that may reach the database (issue 28, finding 1)::
+
+    text_fault("a\\x00b")                  # "holds a NUL character (U+0000)"; None for good text
+    json_text_fault({"k": ["\\ud800"]})    # ("k[0]", "holds a lone surrogate (U+D800), …")
+
+Uploads (``app.services.uploads``), JSON bodies and query strings of the API, the dashboard's
+forms, key names, map names, the Firebase import and backup imports all ask it, each raising
+its own error with the field named.
 """
 
 from __future__ import annotations
@@ -29,6 +38,65 @@ MAX_ID = 2**53
 MAX_TRANSLATION_M = 1e5
 #: Largest focal length, principal point or corner coordinate accepted, px.
 MAX_PIXELS = 1e5
+
+
+def text_fault(text: str) -> str | None:
+    """Why ``text`` cannot be stored as text in every database we run on, or None if it can: a
+    NUL character (PostgreSQL's text and JSONB cannot hold one), or a lone surrogate such as
+    ``"\\ud800"``, which JSON and Python strings allow but UTF-8 cannot encode (so neither
+    database, nor a JSON answer, can carry it)."""
+    if "\x00" in text:
+        return "holds a NUL character (U+0000)"
+    if text.isascii():
+        return None
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as err:
+        return f"holds a lone surrogate (U+{ord(text[err.start]):04X}), which is no text"
+    return None
+
+
+#: A path inside a JSON document, as a chain of (parent chain, key or index); None: the top.
+_PathChain = tuple[Any, str | int] | None
+
+
+def json_text_fault(value: Any, where: str = "") -> tuple[str, str] | None:
+    """The first string (an object's key or a value) of a decoded JSON ``value`` that
+    :func:`text_fault` refuses, as (its path, the reason), or None. The path reads as fields do
+    (``params.tag_sizes_m``, ``poses[3].name``; a key at fault is named by its object's path).
+    Walked without recursion, and a path is spelled out only for the fault, so a document of any
+    depth is read in time proportional to its size."""
+    pending: list[tuple[Any, _PathChain]] = [(value, None)]
+    while pending:
+        item, chain = pending.pop()
+        if isinstance(item, str):
+            reason = text_fault(item)
+            if reason is not None:
+                return _spelled(chain, where), reason
+        elif isinstance(item, Mapping):
+            children = []
+            for key, child in item.items():
+                key_text = str(key)
+                reason = text_fault(key_text)
+                if reason is not None:
+                    return _spelled(chain, where) or "(top level)", f"a key {reason}"
+                children.append((child, (chain, key_text)))
+            pending.extend(reversed(children))
+        elif isinstance(item, (list, tuple)):
+            pending.extend(reversed([(child, (chain, k)) for k, child in enumerate(item)]))
+    return None
+
+
+def _spelled(chain: _PathChain, where: str) -> str:
+    """A path chain of :func:`json_text_fault` as a field path below ``where``."""
+    parts: list[str | int] = []
+    while chain is not None:
+        chain, part = chain
+        parts.append(part)
+    path = where
+    for part in reversed(parts):
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else part)
+    return path
 
 
 def require_list(value: Any, where: str) -> None:

@@ -2,6 +2,7 @@
 
     manifest = export_archive(db, Path("im-backup.zip"))                 # one consistent snapshot
     manifest = read_manifest(Path("im-backup.zip"))                      # no database needed
+    manifest = check_archive(Path("im-backup.zip"))       # every member and row, no database
     report = import_archive(other_db, Path("im-backup.zip"))             # restore: ids kept
     report = import_archive(other_db, path, merge=True)                  # add: new ids
     report.map_ids                                                        # {archive id: new id}
@@ -39,14 +40,18 @@ marked canceled. API keys are in it by name and prefix (to name the uploaders), 
 SHA-256 hashes only when asked (``include_key_hashes``; the file is created readable by its owner
 only). Live localization sessions and worker rows are not in it.
 
-**Import** runs in one transaction, and checks the whole archive (every member's size and
-SHA-256, the set of members) before it writes anything. Into a database with no sessions, maps,
-jobs or sweeps it *restores*: every id is kept (phones refer to maps by id), and the id
-sequences are raised to the source's high-water marks so that an id deleted there is never given
-out again (on PostgreSQL that is the last statement: sequences ignore rollbacks). Into a
-database with data it refuses, unless ``merge=True``: then every row gets a new id (the report
-maps old to new). Without keys imported, ``uploaded_by`` ``key:N`` becomes
-``imported:im_<prefix>``, so that no key of the new deployment owns another's sessions.
+**Import** runs in one transaction, and checks the whole archive (every member's size and SHA-256,
+the set of members; each size before anything is inflated, a member read whole at most
+``max_member_bytes``) before it writes anything, and every row before it is written (its values'
+types, integer ranges, text, references, and each upload against its session's size and SHA-256:
+``restore``'s docstring), so that any archive it cannot take is refused naming the member or row, in
+bounded memory. ``check_archive`` makes the same checks without a database. Into a database with no
+sessions, maps, jobs or sweeps it *restores*: every id is kept (phones refer to maps by id), and the
+id sequences are raised to the source's high-water marks so that an id deleted there is never given
+out again (on PostgreSQL that is the last statement: sequences ignore rollbacks). Into a database
+with data it refuses, unless ``merge=True``: then every row gets a new id (the report maps old to
+new). Without keys imported, ``uploaded_by`` ``key:N`` becomes ``imported:im_<prefix>``, so that no
+key of the new deployment owns another's sessions.
 
 Exceptions::
 
@@ -81,7 +86,7 @@ from app.storage.backup.archive import (
     verify_archive,
 )
 from app.storage.backup.export import export_archive
-from app.storage.backup.restore import import_archive
+from app.storage.backup.restore import check_archive, import_archive
 
 __all__ = [
     "FORMAT",
@@ -96,6 +101,7 @@ __all__ = [
     "Manifest",
     "Member",
     "Progress",
+    "check_archive",
     "check_schema_revision",
     "export_archive",
     "import_archive",

@@ -20,6 +20,7 @@ from sqlalchemy import (
     Table,
 )
 
+from app.domain.upload.fields import text_fault
 from app.storage.migrate import alembic_config
 from app.storage.orm import (
     ApiKey,
@@ -51,6 +52,16 @@ INSERT_BATCH_ROWS = 500
 SPOOL_MAX_BYTES = 8 * 2**20
 #: Bytes read or written at a time when copying a member.
 CHUNK_BYTES = 2**20
+#: The largest member read whole (an upload, a picture, a version's document, plot or path
+#: graph), bytes, as the zip says it inflates: the server's own limit on an upload after gunzip
+#: (``INVISIBLE_MAP_MAX_SESSION_BYTES``) by default. Checked before the member is read.
+MAX_MEMBER_BYTES = 256 * 2**20
+#: The longest row of a table (one line of ``tables/<table>.jsonl``), bytes.
+MAX_ROW_BYTES = 64 * 2**20
+#: The largest ``manifest.json``, bytes (it lists every member: ~100 bytes each).
+MAX_MANIFEST_BYTES = 64 * 2**20
+#: The largest id and count an archive may hold: ids are 32-bit integer columns.
+MAX_ID = 2**31 - 1
 #: Tables whose ids are never given out twice (``NEVER_REUSE_IDS`` in orm.py).
 ID_SEQUENCE_TABLES = (
     "api_key",
@@ -268,7 +279,10 @@ class Manifest:
             )
         try:
             members = {
-                str(name): Member(size_bytes=int(m["size_bytes"]), sha256=str(m["sha256"]))
+                str(name): Member(
+                    size_bytes=_counted(m["size_bytes"], f"members.{name}.size_bytes", 2**63 - 1),
+                    sha256=str(m["sha256"]),
+                )
                 for name, m in document["members"].items()
             }
             manifest = cls(
@@ -277,14 +291,23 @@ class Manifest:
                 created_at=datetime.fromisoformat(document["created_at"]),
                 source_backend=str(document["source_backend"]),
                 key_hashes=bool(document["key_hashes"]),
-                counts={str(k): int(v) for k, v in document["counts"].items()},
-                id_high_water={str(k): int(v) for k, v in document["id_high_water"].items()},
+                counts={
+                    str(k): _counted(v, f"counts.{k}", MAX_ID)
+                    for k, v in document["counts"].items()
+                },
+                id_high_water={
+                    str(k): _counted(v, f"id_high_water.{k}", MAX_ID)
+                    for k, v in document["id_high_water"].items()
+                },
                 members=members,
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ArchiveInvalid(
                 f"{where}: malformed manifest ({type(err).__name__}: {err})"
             ) from err
+        for name in [*manifest.members, *manifest.counts, *manifest.id_high_water]:
+            if (reason := text_fault(name)) is not None:
+                raise ArchiveInvalid(f"{where}: malformed manifest (a name {reason})")
         for spec in TABLES:
             if spec.name not in manifest.counts or spec.member not in manifest.members:
                 if spec.optional and spec.name not in manifest.counts:
@@ -319,19 +342,25 @@ def read_manifest(path: Path) -> Manifest:
         return archive.manifest
 
 
-def verify_archive(path: Path) -> Manifest:
-    """Check every member of the archive against its manifest (names, sizes, SHA-256, zip CRC);
-    returns the manifest. Raises as :func:`read_manifest` does."""
-    with ArchiveReader(Path(path)) as archive:
+def verify_archive(path: Path, *, max_member_bytes: int = MAX_MEMBER_BYTES) -> Manifest:
+    """Check every member of the archive against its manifest (names, sizes, SHA-256, zip CRC;
+    each size before anything is inflated); returns the manifest. Raises as
+    :func:`read_manifest` does. (:func:`app.storage.backup.restore.check_archive` also checks
+    every row.)"""
+    with ArchiveReader(Path(path), max_member_bytes=max_member_bytes) as archive:
         archive.verify()
         return archive.manifest
 
 
 class ArchiveReader:
-    """An open archive whose manifest has been read and checked."""
+    """An open archive whose manifest has been read and checked. A member other than a table is
+    read whole only if the zip says it inflates to at most ``max_member_bytes``, and a table's
+    rows one line of at most :data:`MAX_ROW_BYTES` at a time, so that memory stays bounded
+    whatever the archive holds."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, max_member_bytes: int = MAX_MEMBER_BYTES) -> None:
         self.path = path
+        self.max_member_bytes = max_member_bytes
         try:
             self._zip = zipfile.ZipFile(path)
         except zipfile.BadZipFile as err:
@@ -352,16 +381,23 @@ class ArchiveReader:
 
     def _read_manifest(self) -> Manifest:
         try:
-            encoded = self._zip.read(MANIFEST)
+            size_bytes = self._zip.getinfo(MANIFEST).file_size
         except KeyError as err:
             raise ArchiveInvalid(
                 f"{self.path}: not an invisible-map backup (no {MANIFEST})"
             ) from err
+        if size_bytes > MAX_MANIFEST_BYTES:
+            raise ArchiveInvalid(
+                f"{self.path}: {MANIFEST} inflates to {size_bytes} bytes, more than a manifest "
+                f"holds ({MAX_MANIFEST_BYTES})"
+            )
+        try:
+            encoded = self._zip.read(MANIFEST)
         except (zipfile.BadZipFile, zlib.error, EOFError) as err:
             raise ArchiveInvalid(f"{self.path}: {MANIFEST} is corrupt: {err}") from err
         try:
             document = json.loads(encoded)
-        except ValueError as err:
+        except (ValueError, RecursionError) as err:
             raise ArchiveInvalid(f"{self.path}: {MANIFEST} is not JSON: {err}") from err
         return Manifest.from_json(document, str(self.path))
 
@@ -376,6 +412,8 @@ class ArchiveReader:
             )
         if extra := sorted(present - listed):
             raise ArchiveInvalid(f"{self.path}: {extra[0]} is not in the manifest")
+        for name in self.manifest.members:  # every size first, before anything is inflated
+            self._check_size(name)
         for name, expected in self.manifest.members.items():
             digest, size = hashlib.sha256(), 0
             with self._open(name) as member:
@@ -390,24 +428,57 @@ class ArchiveReader:
                 )
 
     def rows(self, spec: TableSpec) -> Iterator[tuple[str, dict[str, Any]]]:
-        """The table's rows with where each is (``tables/x.jsonl line 3``)."""
+        """The table's rows with where each is (``tables/x.jsonl line 3``), a line of at most
+        :data:`MAX_ROW_BYTES` at a time."""
         with self._open(spec.member) as member:
-            for number, line in enumerate(member, start=1):
+            number = 0
+            while line := self._read_line(member, spec.member):
+                number += 1
                 where = f"{spec.member} line {number}"
+                if len(line) > MAX_ROW_BYTES:
+                    raise ArchiveInvalid(
+                        f"{self.path}: {where}: longer than a row may be ({MAX_ROW_BYTES} bytes)"
+                    )
                 try:
                     row = json.loads(line)  # UTF-8 bytes (a bad byte is a ValueError too)
-                except ValueError as err:
+                except (ValueError, RecursionError) as err:
                     raise ArchiveInvalid(f"{self.path}: {where}: not JSON: {err}") from err
                 if not isinstance(row, dict):
                     raise ArchiveInvalid(f"{self.path}: {where}: not a JSON object")
                 yield where, row
 
     def blob(self, name: str, where: str) -> bytes:
-        """A member's bytes; ``where`` names the row that refers to it."""
+        """A member's bytes (at most ``max_member_bytes``); ``where`` names the row that refers
+        to it."""
         if name not in self.manifest.members:
             raise ArchiveInvalid(f"{where}: member {name!r} is not in the archive")
+        self._check_size(name)
+        data = bytearray()
         with self._open(name) as member:
-            return b"".join(iter(lambda: self._read(member, name), b""))
+            while chunk := self._read(member, name):
+                data += chunk
+        return bytes(data)
+
+    def _check_size(self, name: str) -> None:
+        """ArchiveInvalid unless the zip says a member read whole (not a table, which is read a
+        row at a time) inflates to at most ``max_member_bytes``: checked before it is read (the
+        zip's reader stops at the size the zip says, and a member that inflates further fails
+        its CRC)."""
+        try:
+            size_bytes = self._zip.getinfo(name).file_size
+        except KeyError as err:
+            raise ArchiveInvalid(f"{self.path}: {name} is not in the archive") from err
+        if size_bytes > self.max_member_bytes and not name.startswith("tables/"):
+            raise ArchiveInvalid(
+                f"{self.path}: {name} inflates to {size_bytes} bytes, more than the "
+                f"{self.max_member_bytes} a member may (INVISIBLE_MAP_MAX_SESSION_BYTES)"
+            )
+
+    def _read_line(self, member: IO[bytes], name: str) -> bytes:
+        try:
+            return member.readline(MAX_ROW_BYTES + 1)
+        except (zipfile.BadZipFile, zlib.error, EOFError) as err:
+            raise ArchiveInvalid(f"{self.path}: {name} is corrupt: {err}") from err
 
     def _open(self, name: str) -> IO[bytes]:
         try:
@@ -454,3 +525,10 @@ def _known_revisions() -> list[str]:
 
 def is_int(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _counted(value: Any, where: str, largest: int) -> int:
+    """``value`` if it is an integer from 0 to ``largest``; ValueError naming ``where``."""
+    if not is_int(value) or not 0 <= value <= largest:
+        raise ValueError(f"{where} is {value!r}, not an integer from 0 to {largest}")
+    return value

@@ -1,4 +1,15 @@
-"""Import: an archive restored into an empty database (ids kept) or merged into one (new ids)."""
+"""Import: an archive restored into an empty database (ids kept) or merged into one (new ids);
+and the same checks of every row without a database (``import --check``).
+
+Every value of a row is checked before it is written, so that an archive a database cannot hold
+is refused naming its row (``tables/map.jsonl line 3 (id 3): display_name holds a NUL …``), not
+with a driver's traceback: the column's type, an integer within the column's range (ids are
+32-bit), text by the rule of every stored text (:func:`app.domain.upload.fields.text_fault`,
+in JSON columns too) and within the column's length, a datetime that UTC can hold, references
+to rows in the archive, and each upload, which must inflate to its session's size and SHA-256,
+a size no larger than the server takes (``INVISIBLE_MAP_MAX_SESSION_BYTES``), checked before it
+is inflated.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +18,20 @@ import hashlib
 import io
 import zlib
 from collections.abc import Callable, Mapping
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     Column,
     Float,
     Integer,
     LargeBinary,
+    SmallInteger,
     String,
     insert,
     select,
@@ -27,12 +40,14 @@ from sqlalchemy import (
 from sqlalchemy.exc import DataError, IntegrityError
 from sqlalchemy.orm import Session
 
+from app.domain.upload.fields import json_text_fault, text_fault
 from app.storage import blobs
 from app.storage.backup.archive import (
     CHUNK_BYTES,
     ID_SEQUENCE_TABLES,
     INSERT_BATCH_ROWS,
     KEY_SUBJECT,
+    MAX_MEMBER_BYTES,
     PROGRESS_TABLES,
     RESTORE_NEEDS_EMPTY,
     TABLES,
@@ -40,6 +55,7 @@ from app.storage.backup.archive import (
     ArchiveReader,
     ImportRefused,
     ImportReport,
+    Manifest,
     Progress,
     TableSpec,
     check_schema_revision,
@@ -65,15 +81,18 @@ def import_archive(
     include_keys: bool = False,
     merge: bool = False,
     on_progress: Progress | None = None,
+    max_member_bytes: int = MAX_MEMBER_BYTES,
 ) -> ImportReport:
     """Import the archive ``path`` into ``database`` in one transaction: all of it, or nothing.
 
-    The archive is verified first (:func:`verify_archive`). Without ``merge`` the database must
+    The archive is verified first (:func:`verify_archive`), and every row as it is read (the
+    module's docstring). Without ``merge`` the database must
     have no sessions, maps, jobs or sweeps (and no API keys with ``include_keys``), and every id
     is kept; with ``merge`` rows get new ids. ``include_keys`` imports the API keys' hashes (the
     archive must have them); without it no key is imported and ``uploaded_by`` names the
-    uploader's key prefix instead. Raises BackupError (see the module's docstring)."""
-    with ArchiveReader(Path(path)) as archive:
+    uploader's key prefix instead. ``max_member_bytes``: the largest upload (inflated) or other
+    member read whole. Raises BackupError (see the module's docstring)."""
+    with ArchiveReader(Path(path), max_member_bytes=max_member_bytes) as archive:
         archive.verify()
         manifest = archive.manifest
         if include_keys and not manifest.key_hashes:
@@ -104,6 +123,24 @@ def import_archive(
             raise ArchiveInvalid(
                 f"{path}: the archive's rows do not fit the database: {_first_line(err)}"
             ) from err
+
+
+def check_archive(
+    path: Path, *, max_member_bytes: int = MAX_MEMBER_BYTES, on_progress: Progress | None = None
+) -> Manifest:
+    """Check the archive as :func:`import_archive` would, without a database: every member
+    (:func:`verify_archive`) and every row (values, references, uploads; the module's
+    docstring), in bounded memory. Returns the manifest; raises BackupError."""
+    with ArchiveReader(Path(path), max_member_bytes=max_member_bytes) as archive:
+        archive.verify()
+        _ImportRun(
+            db_session=None,
+            archive=archive,
+            include_keys=archive.manifest.key_hashes,
+            merge=False,
+            on_progress=on_progress,
+        ).run()
+        return archive.manifest
 
 
 def _first_line(err: BaseException) -> str:
@@ -155,12 +192,14 @@ def _raise_id_sequences(db_session: Session, high_water: Mapping[str, int]) -> N
 
 
 class _ImportRun:
-    """One import: the tables in order, the archive's ids mapped to the database's."""
+    """One import: the tables in order, the archive's ids mapped to the database's. Without a
+    ``db_session`` it only checks (``import --check``): every row is read and checked, nothing
+    is written, and the archive's ids stand for themselves."""
 
     def __init__(
         self,
         *,
-        db_session: Session,
+        db_session: Session | None,
         archive: ArchiveReader,
         include_keys: bool,
         merge: bool,
@@ -206,8 +245,9 @@ class _ImportRun:
                 )
         # what a worker derived from each version is not in the archive: made again here, so
         # that the API serves it as stored (issue 19, finding 3)
-        for version_id in self.ids["map_version"].values():
-            add_derived_documents(self.db_session, version_id)
+        if self.db_session is not None:
+            for version_id in self.ids["map_version"].values():
+                add_derived_documents(self.db_session, version_id)
 
     def report(self) -> ImportReport:
         return ImportReport(
@@ -222,7 +262,8 @@ class _ImportRun:
 
     def _values(self, spec: TableSpec, raw: dict[str, Any], where: str) -> dict[str, Any] | None:
         """The row to insert (references mapped), or None when it is not imported."""
-        where = f"{self.archive.path}: {where}"
+        key = raw.get(spec.key)
+        where = f"{self.archive.path}: {where}" + (f" ({spec.key} {key})" if is_int(key) else "")
         columns = spec.columns()
         expected = {column.name for column in columns}
         if set(raw) != expected:
@@ -250,7 +291,10 @@ class _ImportRun:
             values[name] = self._blob(spec.table.c[name], raw[name], where)
         for name, reference in spec.blob_refs.items():  # stored as the source stores them
             data, values[name] = values[name], None
-            values[reference] = None if data is None else blobs.put_blob_in(self.db_session, data)
+            if data is not None and self.db_session is not None:
+                values[reference] = blobs.put_blob_in(self.db_session, data)
+            else:
+                values[reference] = None
         return self._adjusted(spec.name, values, raw, where)
 
     def _mapped(self, table: str, archive_id: int, where: str) -> int:
@@ -266,6 +310,12 @@ class _ImportRun:
             return None
         if not isinstance(name, str):
             raise ArchiveInvalid(f"{where}: {column.name} is not a member name")
+        if self.db_session is None and column.table.name != "session_upload":
+            # only checking: verify() has matched its bytes with the manifest; only an upload's
+            # are read again (to be inflated against its session)
+            if name not in self.archive.manifest.members:
+                raise ArchiveInvalid(f"{where}: member {name!r} is not in the archive")
+            return b""
         return self.archive.blob(name, where)
 
     def _adjusted(
@@ -275,8 +325,17 @@ class _ImportRun:
         if table == "api_key":
             return self._key(values)
         if table == "session":
+            if not 0 <= values["raw_size_bytes"] <= self.archive.max_member_bytes:
+                raise ArchiveInvalid(
+                    f"{where}: raw_size_bytes {values['raw_size_bytes']} is not from 0 to the "
+                    f"{self.archive.max_member_bytes} bytes an upload may inflate to "
+                    "(INVISIBLE_MAP_MAX_SESSION_BYTES)"
+                )
             self.uploads[values["id"]] = (values["raw_sha256"], values["raw_size_bytes"])
             values["uploaded_by"] = self._uploader(values["uploaded_by"])
+            _check_text(
+                values["uploaded_by"], f"{where}: uploaded_by", _length(SessionRow, "uploaded_by")
+            )
             if self.merge:
                 self._check_idempotency_key_free(values)
         elif table == "session_upload":
@@ -288,11 +347,12 @@ class _ImportRun:
         key_id, prefix = raw["id"], raw["prefix"]
         if not is_int(key_id) or not isinstance(prefix, str):
             raise ArchiveInvalid(f"{where}: expected an integer id and a string prefix")
+        _check_text(prefix, f"{where}: prefix", _length(ApiKey, "prefix"))
         self.key_prefixes[key_id] = prefix
 
     def _key(self, values: dict[str, Any]) -> dict[str, Any] | None:
         """The key to insert, or None when this database has it already (a merge)."""
-        if self.merge:
+        if self.merge and self.db_session is not None:
             existing = self.db_session.execute(
                 select(ApiKey.id, ApiKey.secret_sha256).where(ApiKey.prefix == values["prefix"])
             ).first()
@@ -320,7 +380,7 @@ class _ImportRun:
 
     def _check_idempotency_key_free(self, values: dict[str, Any]) -> None:
         key = values["idempotency_key"]
-        if key is None:
+        if key is None or self.db_session is None:
             return
         existing = self.db_session.scalar(
             select(SessionRow.id).where(
@@ -338,6 +398,11 @@ class _ImportRun:
 
     def _write(self, spec: TableSpec, values: dict[str, Any], batch: list[dict[str, Any]]) -> None:
         """Insert the row (batched for tables nobody refers to and without blobs)."""
+        if self.db_session is None:  # only checking: the archive's ids stand for themselves
+            if spec.allocates_ids:
+                self.ids[spec.name][values["id"]] = values["id"]
+            self.written[spec.name] += 1
+            return
         if not spec.allocates_ids and not spec.blobs:
             batch.append(values)
             if len(batch) >= INSERT_BATCH_ROWS:
@@ -362,7 +427,7 @@ class _ImportRun:
             self.queued_job_ids.append(new_id)
 
     def _flush(self, spec: TableSpec, batch: list[dict[str, Any]]) -> None:
-        if batch:
+        if batch and self.db_session is not None:
             self.db_session.execute(insert(spec.table), batch)
             self.written[spec.name] += len(batch)
             batch.clear()
@@ -378,12 +443,21 @@ def _decoded(column: Column[Any], value: Any, where: str) -> Any:
     if isinstance(kind, UTCDateTime):
         try:
             parsed = datetime.fromisoformat(value) if isinstance(value, str) else None
-        except ValueError:
+            if parsed is not None and parsed.tzinfo is not None:
+                parsed.astimezone(UTC)  # the column stores UTC
+        except (ValueError, OverflowError):
             parsed = None
         if parsed is None or parsed.tzinfo is None:
-            raise ArchiveInvalid(f"{where}: {value!r} is not a datetime with a UTC offset")
+            raise ArchiveInvalid(
+                f"{where}: {value!r} is not a datetime with a UTC offset (within years 1–9999 "
+                "in UTC)"
+            )
         return parsed
     if isinstance(kind, JSON):
+        fault = json_text_fault(value, where)
+        if fault is not None:
+            path, reason = fault  # "…: warnings[1]" "holds a NUL …"; "…: params" "a key holds …"
+            raise ArchiveInvalid(f"{path}{':' if reason.startswith('a key') else ''} {reason}")
         return value
     checks: tuple[tuple[type[Any], Callable[[Any], bool]], ...] = (
         (Boolean, lambda v: isinstance(v, bool)),
@@ -396,8 +470,52 @@ def _decoded(column: Column[Any], value: Any, where: str) -> Any:
         if isinstance(kind, type_):
             if not accepts(value):
                 raise ArchiveInvalid(f"{where}: expected {type_.__name__.lower()}, got {value!r}")
-            return float(value) if type_ is Float else value
+            if type_ is Integer:
+                _check_integer(kind, value, where)
+            elif type_ is Float:
+                try:
+                    return float(value)
+                except OverflowError:
+                    raise ArchiveInvalid(f"{where}: {value} is beyond a float's range") from None
+            elif type_ is String:
+                _check_text(value, where, getattr(kind, "length", None))
+            return value
     raise ArchiveInvalid(f"{where}: a column of type {kind} cannot be imported")
+
+
+#: The range of each integer column type, the same on SQLite and PostgreSQL (SQLite's integers
+#: are 64-bit; PostgreSQL's INTEGER is 32-bit): an archive imports into either.
+INTEGER_BITS = ((SmallInteger, 16), (BigInteger, 64), (Integer, 32))
+
+
+def _check_integer(kind: Any, value: int, where: str) -> None:
+    bits = next(bits for type_, bits in INTEGER_BITS if isinstance(kind, type_))
+    if not -(2 ** (bits - 1)) <= value < 2 ** (bits - 1):
+        raise ArchiveInvalid(
+            f"{where}: {value} is beyond the column's {bits}-bit integers "
+            f"({-(2 ** (bits - 1))} to {2 ** (bits - 1) - 1})"
+        )
+
+
+def _length(model: type[Any], column: str) -> int | None:
+    """The length of a string column."""
+    length: int | None = getattr(model.__table__.c[column].type, "length", None)
+    return length
+
+
+def _check_text(value: str, where: str, max_length: int | None) -> None:
+    """Text by the rule of every stored text, within the column's length (which PostgreSQL
+    enforces and SQLite does not)."""
+    reason = text_fault(value)
+    if reason is not None:
+        raise ArchiveInvalid(
+            f"{where} {reason}: correct it where the archive was exported (the API and the "
+            "dashboard now refuse such text) and export again"
+        )
+    if max_length is not None and len(value) > max_length:
+        raise ArchiveInvalid(
+            f"{where}: {len(value)} characters, more than the column's {max_length}"
+        )
 
 
 def _check_upload(raw_gzip: bytes | None, sha256: str, size_bytes: int, where: str) -> None:
