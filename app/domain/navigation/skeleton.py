@@ -48,7 +48,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import networkx as nx
 import numpy as np
@@ -127,11 +127,17 @@ DEFAULT_SKELETON_PARAMS = SkeletonParams()
 
 
 def build_skeleton(
-    result: MapResult, *, params: SkeletonParams = DEFAULT_SKELETON_PARAMS
+    result: MapResult,
+    *,
+    walk_starts: Sequence[int] = (0,),
+    params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
 ) -> PathGraph:
-    """The corridor skeleton of an optimized map (see :func:`build_skeleton_from_arrays`)."""
+    """The corridor skeleton of an optimized map (see :func:`build_skeleton_from_arrays`); a map
+    of several walks passes the first pose row of each (``walk_starts``), so that its skeleton is
+    fused from all of them."""
     return build_skeleton_from_arrays(
         result.world_T_phone[:, :3, 3],
+        walk_starts=walk_starts,
         tag_ids=[int(t) for t in result.tag_ids],
         tag_positions_m=result.world_T_tag[:, :3, 3],
         poi_names=result.poi_names,
@@ -143,15 +149,21 @@ def build_skeleton(
 def build_skeleton_from_arrays(
     positions_m: npt.ArrayLike,
     *,
+    walk_starts: Sequence[int] = (0,),
     tag_ids: Sequence[int] = (),
     tag_positions_m: npt.ArrayLike | None = None,
     poi_names: Sequence[str] = (),
     poi_positions_m: npt.ArrayLike | None = None,
     params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
 ) -> PathGraph:
-    """The corridor skeleton of a walk (the steps are in the module docstring).
+    """The corridor skeleton of one or several walks (the steps are in the module docstring).
 
-    positions_m: (N, 3) the walked positions in time order, map frame (y up), m.
+    positions_m: (N, 3) the walked positions in time order, map frame (y up), m; several walks
+        one after the other.
+    walk_starts: the row where each walk starts (0 is always one). No segment joins the end of
+        one walk to the start of the next, and floor changes are found walk by walk; the floors'
+        bands are drawn from all of them together, so the passes of every walk along a corridor
+        are evidence of one centreline (a *fused* skeleton, issue 26).
     tag_ids, tag_positions_m: (K,) ids and (K, 3) positions of the tags, m.
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
@@ -164,10 +176,9 @@ def build_skeleton_from_arrays(
     G: nx.Graph[int] = nx.Graph()
     if world_p_phone.shape[0] == 0:
         return PathGraph(floor_levels_m=tuple(float(v) for v in levels_m))
-    pose_floor, changes = _floor_changes(world_p_phone, levels_m, params)
-    on_floor = np.ones(max(world_p_phone.shape[0] - 1, 0), dtype=np.bool_)
-    for change in changes:
-        on_floor[change.first : change.last] = False
+    pose_floor, changes, on_floor = _walks_floor_changes(
+        world_p_phone, _walk_bounds(walk_starts, world_p_phone.shape[0]), levels_m, params
+    )
     for floor in range(len(levels_m)):
         segments = np.flatnonzero(on_floor & (pose_floor[:-1] == floor) & (pose_floor[1:] == floor))
         lone = np.flatnonzero(pose_floor == floor)
@@ -193,6 +204,39 @@ def build_skeleton_from_arrays(
 
 
 # --------------------------------------------------------------------------- floors
+
+
+def _walk_bounds(walk_starts: Sequence[int], n: int) -> list[tuple[int, int]]:
+    """(first row, end row) of each non-empty walk of ``n`` rows starting at ``walk_starts``."""
+    starts = sorted({int(s) for s in walk_starts} | {0})
+    if starts[0] < 0 or starts[-1] > n:
+        raise ParameterError(f"walk_starts must lie in [0, {n}], got {list(walk_starts)}")
+    bounds = zip(starts, [*starts[1:], n], strict=True)
+    return [(a, b) for a, b in bounds if b > a]
+
+
+def _walks_floor_changes(
+    world_p_phone: FloatArray,
+    bounds: list[tuple[int, int]],
+    levels_m: FloatArray,
+    params: SkeletonParams,
+) -> tuple[IntArray, list[_FloorChange], BoolArray]:
+    """(pose floors (N,), the floor changes (rows of the whole array), segments (N − 1,) walked on
+    one floor) of the walks ``bounds``: each walk's floor changes are its own, and the segment
+    from one walk's last pose to the next walk's first is no segment."""
+    n = world_p_phone.shape[0]
+    pose_floor = np.zeros(n, dtype=np.int64)
+    on_floor = np.zeros(max(n - 1, 0), dtype=np.bool_)
+    changes: list[_FloorChange] = []
+    for first, end in bounds:
+        floors, own = _floor_changes(world_p_phone[first:end], levels_m, params)
+        pose_floor[first:end] = floors
+        on_floor[first : end - 1] = True
+        for change in own:
+            change = replace(change, first=change.first + first, last=change.last + first)
+            on_floor[change.first : change.last] = False
+            changes.append(change)
+    return pose_floor, changes, on_floor
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
