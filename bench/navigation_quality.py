@@ -1,20 +1,25 @@
-"""Turn-by-turn quality on real maps (issue 18): before (walked-line path graph, old steps) →
-after (corridor skeleton, decision-point instructions), against ``bench.mac_floor_2_reference``.
+"""Turn-by-turn quality on real maps of floor 2 of the mac building, single walks and building maps
+(issues 18 and 26), against the hand-drawn reference ``bench.mac_floor_2_reference``.
 
     .venv/bin/python -m bench.navigation_quality        # (also printed by bench.navigation)
+    .venv/bin/python -m bench.navigation_quality --before   # with issue 18's skeleton as well
 
-Each floor-2 map is optimized with default parameters and moved into the ground truth's frame by a
-rigid fit on its tags (so both graphs and the reference share a frame); every ordered pair of its
-tags that the reference knows is routed.
+Each map is optimized with default parameters (a building map of several walks by the joint
+optimizer, ``optimize_sessions``) and moved into the ground truth's frame by a rigid fit on its
+tags, so that its skeleton and the reference share a frame; every ordered pair of its tags that
+the reference knows is routed. A building map's skeleton is fused from all its walks
+(``build_skeleton(…, walk_starts=…)``).
 """
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -25,18 +30,17 @@ sys.path.insert(0, str(REPO))
 from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.evaluation.metrics import umeyama_rigid  # noqa: E402
-from app.domain.evaluation.turn_metrics import RouteScore, agreement, score_tag_routes  # noqa: E402
+from app.domain.evaluation.turn_metrics import RouteScore, score_tag_routes  # noqa: E402
+from app.domain.mapping.joint import optimize_sessions  # noqa: E402
 from app.domain.mapping.params import SlamParams  # noqa: E402
 from app.domain.mapping.slam import optimize_session  # noqa: E402
 from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
-from app.domain.navigation.path_graph import (  # noqa: E402
-    JUNCTION,
-    WALK,
-    PathGraph,
-    build_path_graph_from_arrays,
+from app.domain.navigation.path_graph import JUNCTION, WALK, PathGraph  # noqa: E402
+from app.domain.navigation.skeleton import (  # noqa: E402
+    DEFAULT_SKELETON_PARAMS,
+    SkeletonParams,
+    build_skeleton_from_arrays,
 )
-from app.domain.navigation.routing import plan_route  # noqa: E402
-from app.domain.navigation.skeleton import build_skeleton_from_arrays  # noqa: E402
 from app.domain.upload.session import load_session  # noqa: E402
 from bench.mac_floor_2_reference import (  # noqa: E402
     FLOOR_2_Y_M,
@@ -47,6 +51,17 @@ from bench.mac_floor_2_reference import (  # noqa: E402
 SESSIONS = REPO / "data" / "sessions"
 GROUND_TRUTH = REPO / "data" / "ground_truth" / "rtabmap_mac_1_2.txt"
 FLOOR_2 = ("floor_2_straight", "desnat_straight_once", "straight_209_occam")
+#: The maps scored: each walk alone, and building maps of several (walks in upload order).
+MAPS: tuple[tuple[str, ...], ...] = (
+    ("floor_2_straight",),
+    ("desnat_straight_once",),
+    ("straight_209_occam",),
+    ("desnat_straight_once", "straight_209_occam"),
+    ("floor_2_straight", "desnat_straight_once"),
+    ("floor_2_straight", "desnat_straight_once", "straight_209_occam"),
+)
+#: The skeleton of issue 18 (before issue 26 chose its corridor width).
+ISSUE_18_PARAMS = SkeletonParams(corridor_width_m=1.8)
 #: A skeleton junction this close (x–z, m) to a reference branch point is a real one.
 JUNCTION_NEAR_M = 3.0
 #: Poses within this height of floor 2 are on it, m.
@@ -57,41 +72,80 @@ COVERED_WITHIN_M = 2.0
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AlignedMap:
-    """A map's poses and tags in the ground truth's frame."""
+    """A map's poses and tags in one frame; ``walk_starts``: the first pose row of each walk."""
 
     name: str
     positions_m: np.ndarray
     tag_ids: list[int]
     tag_positions_m: np.ndarray
+    walk_starts: tuple[int, ...] = (0,)
 
 
-def aligned_map(name: str, gt: dict[int, np.ndarray]) -> AlignedMap:
-    result = optimize_session(
-        load_session(SESSIONS / f"{name}.json"), SlamParams(compute_marginals=False)
+def map_name(walks: Sequence[str]) -> str:
+    return " + ".join(walks)
+
+
+@cache
+def own_frame_map(walks: tuple[str, ...]) -> AlignedMap:
+    """The map of ``walks`` (one: ``optimize_session``; several: the joint optimizer) in its own
+    frame."""
+    sessions = [load_session(SESSIONS / f"{name}.json") for name in walks]
+    params = SlamParams(compute_marginals=False)
+    if len(walks) == 1:
+        result, starts = optimize_session(sessions[0], params), (0,)
+    else:
+        joint = optimize_sessions(sessions, params, names=list(walks))
+        result, starts = joint.map, tuple(p.pose_rows.start for p in joint.parts)
+    return AlignedMap(
+        name=map_name(walks),
+        positions_m=result.world_T_phone[:, :3, 3],
+        tag_ids=[int(t) for t in result.tag_ids],
+        tag_positions_m=result.world_T_tag[:, :3, 3],
+        walk_starts=starts,
     )
-    ids = [int(t) for t in result.tag_ids]
-    common = [t for t in ids if t in gt]
-    source = np.array([result.world_T_tag[ids.index(t)][:3, 3] for t in common])
-    target = np.array([gt[t][:3, 3] for t in common])
-    gt_T_world = umeyama_rigid(source, target)
+
+
+def moved_onto(m: AlignedMap, target: dict[int, np.ndarray]) -> AlignedMap:
+    """``m`` moved by the rigid transform that best fits its tags onto ``target``'s (tag id →
+    (3,) position): the tags both hold give it."""
+    common = [t for t in m.tag_ids if t in target]
+    source = np.array([m.tag_positions_m[m.tag_ids.index(t)] for t in common])
+    target_T_source = umeyama_rigid(source, np.array([target[t] for t in common]))
 
     def move(p: np.ndarray) -> np.ndarray:
-        return np.asarray(p @ gt_T_world[:3, :3].T + gt_T_world[:3, 3])
+        return np.asarray(p @ target_T_source[:3, :3].T + target_T_source[:3, 3])
 
     return AlignedMap(
-        name=name,
-        positions_m=move(result.world_T_phone[:, :3, 3]),
-        tag_ids=ids,
-        tag_positions_m=move(result.world_T_tag[:, :3, 3]),
+        name=m.name,
+        positions_m=move(m.positions_m),
+        tag_ids=m.tag_ids,
+        tag_positions_m=move(m.tag_positions_m),
+        walk_starts=m.walk_starts,
     )
 
 
-def graphs(m: AlignedMap) -> dict[str, PathGraph]:
-    kwargs = {"tag_ids": m.tag_ids, "tag_positions_m": m.tag_positions_m}
-    return {
-        "before": build_path_graph_from_arrays(m.positions_m, **kwargs),  # type: ignore[arg-type]
-        "after": build_skeleton_from_arrays(m.positions_m, **kwargs),  # type: ignore[arg-type]
-    }
+def tag_positions(m: AlignedMap) -> dict[int, np.ndarray]:
+    return {t: m.tag_positions_m[k] for k, t in enumerate(m.tag_ids)}
+
+
+@cache
+def ground_truth_xyz() -> dict[int, np.ndarray]:
+    return {t: p[:3, 3] for t, p in load_ground_truth(GROUND_TRUTH).items()}
+
+
+def aligned_map(walks: tuple[str, ...]) -> AlignedMap:
+    """The map of ``walks`` in the ground truth's frame."""
+    return moved_onto(own_frame_map(walks), ground_truth_xyz())
+
+
+def skeleton(m: AlignedMap, params: SkeletonParams = DEFAULT_SKELETON_PARAMS) -> PathGraph:
+    return build_skeleton_from_arrays(
+        m.positions_m,
+        walk_starts=m.walk_starts,
+        tag_ids=m.tag_ids,
+        tag_positions_m=m.tag_positions_m,
+        params=params,
+    )
 
 
 def floor_2_index(pg: PathGraph) -> int:
@@ -145,76 +199,78 @@ def junction_stats(pg: PathGraph) -> tuple[int, float]:
     return len(junctions), (sum(near) / len(near) if near else 1.0)
 
 
-PLANNERS: dict[str, Callable[..., object]] = {"before": plan_route, "after": plan_guided_route}
+@cache
+def reference() -> PathGraph:
+    gt = {t: tuple(float(v) for v in p) for t, p in ground_truth_xyz().items()}
+    return reference_graph(gt)  # type: ignore[arg-type]
 
 
-def quality_table() -> str:
-    gt = load_ground_truth(GROUND_TRUTH)
-    gt_xyz = {t: tuple(float(v) for v in p[:3, 3]) for t, p in gt.items()}
-    reference = reference_graph(gt_xyz)  # type: ignore[arg-type]
-    scores: dict[tuple[str, str], RouteScore] = {}
-    rows = [
-        [
-            "map",
-            "graph",
-            "routes",
-            "turns told",
-            "real",
-            "precision",
-            "recall",
-            "zigzag",
-            "turn-around",
-            "length / ref",
-            "junctions",
-            "near branch",
-            "route p90 / ref",
-        ]
-    ]
-    for name in FLOOR_2:
-        m = aligned_map(name, gt)
-        tags = [t for t in m.tag_ids if t in reference.tags]
-        pairs = list(itertools.permutations(tags, 2))
-        covered_m = covered_reference_m(reference, m.positions_m)
-        for label, pg in graphs(m).items():
-            score = score_tag_routes(pg, reference, pairs, plan=PLANNERS[label])  # type: ignore[arg-type]
-            scores[(name, label)] = score
-            junctions, near = junction_stats(pg)
-            rows.append(
-                [
-                    name,
-                    label,
-                    str(score.routes),
-                    str(score.announced),
-                    str(score.real),
-                    f"{score.precision:.0%}",
-                    f"{score.recall:.0%}",
-                    f"{score.zigzag_share:.0%}",
-                    f"{score.turn_around_share:.0%}",
-                    f"{walk_length_m(pg) / covered_m:.2f}",
-                    str(junctions),
-                    f"{near:.0%}",
-                    f"{score.length_ratio_p90:.2f}",
-                ]
-            )
-    table = render_markdown_table(rows, justify="right")
-    agree = [
-        f"{a} / {b}: "
-        + " → ".join(
-            f"{agreement(scores[(a, g)], scores[(b, g)]):.0%}" for g in ("before", "after")
-        )
-        for a, b in itertools.combinations(FLOOR_2, 2)
-    ]
-    return (
-        f"{table}\n\nsame turns announced by two maps of the floor (tag pairs in both), "
-        f"before → after: {'; '.join(agree)}\n"
-        f"reference: {walk_length_m(reference):.0f} m of corridor, "
-        f"{len(branch_points_xz())} branch points, {len(reference.tags)} tags"
+def score_map(m: AlignedMap, pg: PathGraph) -> RouteScore:
+    tags = [t for t in m.tag_ids if t in reference().tags]
+    return score_tag_routes(
+        pg, reference(), list(itertools.permutations(tags, 2)), plan=plan_guided_route
     )
 
 
-def main() -> int:
-    print("turn-by-turn on floor 2 of the mac building, before → after")
-    print(quality_table())
+QUALITY_HEADER = [
+    "map",
+    "skeleton",
+    "routes",
+    "turns told",
+    "real",
+    "precision",
+    "recall",
+    "zigzag",
+    "turn-around",
+    "length / ref",
+    "junctions",
+    "near branch",
+    "route p90 / ref",
+]
+
+
+def quality_rows(label: str, m: AlignedMap, pg: PathGraph) -> list[str]:
+    score = score_map(m, pg)
+    junctions, near = junction_stats(pg)
+    covered_m = covered_reference_m(reference(), m.positions_m)
+    return [
+        m.name,
+        label,
+        str(score.routes),
+        str(score.announced),
+        str(score.real),
+        f"{score.precision:.0%}",
+        f"{score.recall:.0%}",
+        f"{score.zigzag_share:.0%}",
+        f"{score.turn_around_share:.0%}",
+        f"{walk_length_m(pg) / covered_m:.2f}",
+        str(junctions),
+        f"{near:.0%}",
+        f"{score.length_ratio_p90:.2f}",
+    ]
+
+
+def quality_table(*, before: bool = False) -> str:
+    """Table 1: every map of ``MAPS`` (with ``before``: issue 18's skeleton first)."""
+    rows = [QUALITY_HEADER]
+    for walks in MAPS:
+        m = aligned_map(walks)
+        if before:
+            rows.append(quality_rows("issue 18", m, skeleton(m, ISSUE_18_PARAMS)))
+        rows.append(quality_rows("now", m, skeleton(m)))
+    table = render_markdown_table(rows, justify="right")
+    return (
+        f"{table}\n\nreference: {walk_length_m(reference()):.0f} m of corridor, "
+        f"{len(branch_points_xz())} branch points, {len(reference().tags)} tags"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", action="store_true", help="also issue 18's skeleton")
+    args = parser.parse_args(argv)
+    print("turn-by-turn on floor 2 of the mac building (single walks and building maps)")
+    print(quality_table(before=args.before))
     return 0
 
 

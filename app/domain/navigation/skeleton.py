@@ -34,7 +34,9 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
 6. **Stairs and elevators** keep the walked poses of the floor change (simplified), joined at both
    ends to the nearest point of their floor's skeleton.
 7. **Anchors.** Each tag and point of interest is attached to the nearest point of a walk edge of
-   its own floor (the edge is split there), so a route ends beside it; its side of the corridor
+   its own floor (the edge is split there), before the stairs are linked to the floors (so a tag
+   beside the stairs is on the corridor, not on the link), so a route ends beside it; its side
+   of the corridor
    follows from where it is relative to the walking direction (see
    ``app.domain.navigation.instructions``).
 
@@ -188,15 +190,15 @@ def build_skeleton_from_arrays(
             starts = ends = p_xz[lone[:1]]
         if starts.shape[0]:
             _add_floor(G, starts, ends, floor, float(levels_m[floor]), params)
+    # tags and points of interest go on the corridors before the stairs' links to them exist: a
+    # tag beside the top of the stairs is on the corridor, not on the link (issue 26)
+    corridors_present = G.number_of_nodes() > 0
+    if corridors_present:
+        tags, pois = _attach_all(G, tag_ids, world_p_tag, poi_names, world_p_poi, levels_m)
     for change in changes:
         _add_floor_change(G, world_p_phone, levels_m, change, params)
-    tags = {
-        int(t): attach_anchor(G, str(t), p, levels_m)
-        for t, p in zip(tag_ids, world_p_tag, strict=True)
-    }
-    pois = tuple(
-        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
-    )
+    if not corridors_present:
+        tags, pois = _attach_all(G, tag_ids, world_p_tag, poi_names, world_p_poi, levels_m)
     _mark_junctions(G)
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
@@ -312,7 +314,9 @@ def _add_floor(
     samples = densify(starts_xz, ends_xz, cell / 2)
     grow_px = (params.corridor_width_m / 2 + params.close_m) / cell
     margin = math.ceil(grow_px) + 3
-    origin = samples.min(axis=0) - margin * cell
+    # the grid's cells sit on multiples of cell_m in the map frame, wherever the walks reach: a
+    # walk added elsewhere does not shift the raster under the corridors already walked
+    origin = (np.floor(samples.min(axis=0) / cell) - margin) * cell
     index = np.floor((samples - origin) / cell).astype(np.int64)
     shape = (int(index[:, 0].max()) + margin + 1, int(index[:, 1].max()) + margin + 1)
     band = np.zeros(shape, dtype=np.bool_)
@@ -490,6 +494,24 @@ def attach_anchor(G: nx.Graph[int], name: str, world_p: FloatArray, levels_m: Fl
     assert node is not None
     x, y, z = (float(c) for c in world_p)
     return Anchor(name=name, node=node, position_m=(x, y, z), floor=floor)
+
+
+def _attach_all(
+    G: nx.Graph[int],
+    tag_ids: Sequence[int],
+    world_p_tag: FloatArray,
+    poi_names: Sequence[str],
+    world_p_poi: FloatArray,
+    levels_m: FloatArray,
+) -> tuple[dict[int, Anchor], tuple[Anchor, ...]]:
+    tags = {
+        int(t): attach_anchor(G, str(t), p, levels_m)
+        for t, p in zip(tag_ids, world_p_tag, strict=True)
+    }
+    pois = tuple(
+        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
+    )
+    return tags, pois
 
 
 def _mark_junctions(G: nx.Graph[int]) -> None:
