@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 from functools import cache
 
 import networkx as nx
@@ -15,7 +16,9 @@ from app.domain.evaluation.simulate_building import simulate_building_sessions
 from app.domain.formats.app_model import check_app_map
 from app.domain.formats.map_io import map_to_app_format
 from app.domain.mapping.joint import JointMap, optimize_sessions
+from app.domain.navigation.instructions import plan_guided_route
 from app.domain.navigation.path_graph import JUNCTION, WALK, PathGraph
+from app.domain.navigation.routing import TagEnd
 from app.domain.navigation.skeleton import build_skeleton, build_skeleton_from_arrays
 from app.domain.upload.session import parse_session
 from tests.unit.walks import walk
@@ -94,3 +97,43 @@ def test_the_apps_map_of_a_building_map_conforms() -> None:
 def test_walk_starts_outside_the_walk_are_refused(walk_starts) -> None:
     with pytest.raises(ParameterError, match="walk_starts"):
         build_skeleton_from_arrays(walk((0, 0), (5, 0)), walk_starts=walk_starts)
+
+
+def test_a_walk_added_elsewhere_changes_nothing_where_it_did_not_go() -> None:
+    # The first walks: a T of corridors with tags; the walk added: corridors beyond its west end,
+    # reaching farther west and south than the first walks (so the raster's extent grows).
+    first = [
+        walk((0, 0), (30, 0), (30, 25)),
+        walk((15, 0.4), (15, -20)),
+    ]
+    added = walk((-0.3, 0.2), (-25.1, 0.2), (-25.1, -23.1))
+    tag_ids = [1, 2, 3, 4, 5, 6]
+    tags = [(2, 1.4, 1.4), (14, 1.4, -1.4), (16.4, 1.4, -15), (28.6, 1.4, 12), (31.4, 1.4, 40)]
+    tags.append((-20, 1.4, 1.4))
+
+    def fused(walks):
+        starts = np.cumsum([0, *(len(w) for w in walks[:-1])]).tolist()
+        return build_skeleton_from_arrays(
+            np.concatenate(walks), walk_starts=starts, tag_ids=tag_ids, tag_positions_m=tags
+        )
+
+    before, after = fused(first), fused([*first, added])
+
+    def far_edges(pg):  # walk edges more than 6 m from the added walk: (E, 2, 3) ends, m
+        G, out = pg.graph, []
+        for u, v in G.edges:
+            ends = np.array([G.nodes[u]["position_m"], G.nodes[v]["position_m"]])
+            if min(np.hypot(*(added[:, [0, 2]] - p[[0, 2]]).T).min() for p in ends) > 6.0:
+                out.append(ends[np.lexsort(ends.T[::-1])])
+        return np.array(sorted(out, key=lambda e: tuple(e.ravel())))
+
+    # the same edges, to a few cm (a corridor's line now ends farther away: it may tilt by 1 cm)
+    np.testing.assert_allclose(far_edges(before), far_edges(after), atol=0.05)
+    for a, b in itertools.permutations([2, 3, 4, 5], 2):  # routes the added walk did not visit
+        told = [
+            [s.instruction for s in plan_guided_route(pg, TagEnd(a), TagEnd(b)).steps]
+            for pg in (before, after)
+        ]
+        assert told[0] == told[1]
+    assert walk_length_m(after) > walk_length_m(before) + 40.0  # … and the new corridors are there
+    plan_guided_route(after, TagEnd(1), TagEnd(6))  # reachable through the fused skeleton

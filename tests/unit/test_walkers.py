@@ -4,6 +4,7 @@ and the turn precision and recall of routes on the corridor skeleton of their wa
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import networkx as nx
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from app.domain.errors import ParameterError
 from app.domain.evaluation.simulate import (
+    UNSEEN_BUILDING,
     SimulationConfig,
     WalkerConfig,
     corridor_graph,
@@ -103,3 +105,64 @@ def test_the_walkers_make_the_walked_line_fail_as_real_maps_do() -> None:
     before = score_tag_routes(walked, corridor_graph(walk), pairs, plan=plan_route)
     assert before.precision < 0.8
     assert before.length_ratio_p90 > 1.2
+
+
+def test_an_oblique_walker_crosses_the_corridor_to_tags_on_both_walls() -> None:
+    walker = WalkerConfig(oblique_probability=1.0, tag_step_probability=0.0, sway_m=0.0, seed=4)
+    walk = simulate_walk(UNSEEN_BUILDING, walker)
+    calm = simulate_walk(UNSEEN_BUILDING, replace(walker, oblique_probability=0.0))
+
+    def near_wall_share(w) -> float:  # tags the walk comes within 0.8 m of
+        return float(
+            np.mean(
+                [
+                    np.hypot(*(w.positions_m[:, [0, 2]] - p[[0, 2]]).T).min() < 0.8
+                    for p in w.tag_positions_m
+                ]
+            )
+        )
+
+    assert near_wall_share(walk) >= 0.8
+    assert near_wall_share(calm) <= 0.3
+    # from the left and from the right: tags facing each other across a corridor are reached
+    normals = [
+        walk.building.world_T_tag[t][:3, 2]
+        for t, p in zip(walk.tag_ids, walk.tag_positions_m, strict=True)
+        if np.hypot(*(walk.positions_m[:, [0, 2]] - p[[0, 2]]).T).min() < 0.8
+    ]
+    assert min(float(a @ b) for a, b in itertools.combinations(normals, 2)) < -0.9
+
+
+def test_a_lobby_walker_pauses_and_loops_round_junctions() -> None:
+    walker = WalkerConfig(lobby_probability=1.0, lobby_radius_m=2.5, seed=6)
+    walk = simulate_walk(BUILDING, walker)
+    plain = simulate_walk(BUILDING, replace(walker, lobby_probability=0.0))
+    assert len(walk.positions_m) > len(plain.positions_m) + 20
+    # at the junction (15, 0) the walk goes ≥ 3 m away from both corridors (a lobby, not a corridor)
+    off_corridors = np.minimum(
+        np.abs(walk.positions_m[:, 0] - 15.0), np.abs(walk.positions_m[:, 2])
+    )
+    near_junction = np.hypot(walk.positions_m[:, 0] - 15.0, walk.positions_m[:, 2]) < 6.0
+    assert off_corridors[near_junction].max() >= 2.5
+
+
+def test_a_partial_corridor_is_walked_part_way_and_the_reference_knows_only_that_part() -> None:
+    walk = simulate_walk(BUILDING, WalkerConfig(partial_corridors=1, cut_corridors=0, seed=7))
+    ((edge, share),) = walk.partial_edges
+    a, b = walk.building.edge_polylines_m[edge][[0, -1]]
+    far_quarter = a + (b - a) * (share + (1 - share) / 2)
+    walked = np.hypot(*(walk.positions_m[:, [0, 2]] - far_quarter[[0, 2]]).T).min()
+    assert walked > 1.5  # the far part of the corridor was never walked …
+    reference = corridor_graph(walk)
+    xz = np.array([reference.graph.nodes[n]["position_m"] for n in reference.graph])[:, [0, 2]]
+    end = a + (b - a) * share
+    assert np.hypot(*(xz - end[[0, 2]]).T).min() < 1e-6  # … and the reference ends where it ended
+    assert nx.is_connected(reference.graph)
+
+
+def test_new_walker_parameters_are_checked() -> None:
+    for name in ("oblique_probability", "lobby_probability", "partial_fraction"):
+        with pytest.raises(ParameterError, match=name):
+            WalkerConfig(**{name: 1.5})
+    with pytest.raises(ParameterError, match="lobby_radius_m"):
+        WalkerConfig(lobby_radius_m=-1.0)
