@@ -1357,6 +1357,20 @@ class SimulatedWalk:
     phone_height_m: float
     partial_edges: tuple[tuple[int, float], ...] = ()
 
+    def seen_tags(self, *, within_m: float = 3.0) -> tuple[tuple[int, ...], FloatArray]:
+        """(ids (K,), positions (K, 3) m) of the tags that came within ``within_m`` (horizontally,
+        on their floor) of the walk: the tags a map of it holds (a phone detects tags up to
+        ~3 m away), as a real map has no tag its walker never saw."""
+        ids, rows = [], []
+        for k, (tag, p) in enumerate(zip(self.tag_ids, self.tag_positions_m, strict=True)):
+            above_m = p[1] - self.positions_m[:, 1]
+            same_floor = np.abs(above_m) < 2.0
+            horizontal_m = np.hypot(*(self.positions_m[same_floor][:, [0, 2]] - p[[0, 2]]).T)
+            if horizontal_m.size and float(horizontal_m.min()) <= within_m:
+                ids.append(tag)
+                rows.append(k)
+        return tuple(ids), self.tag_positions_m[rows].reshape(-1, 3)
+
 
 def simulate_walk(
     config: SimulationConfig, walker: WalkerConfig, *, building: Building | None = None
@@ -1383,8 +1397,12 @@ def simulate_walk(
         )
     if walker.corner_cut_m > 0:
         offset_m = _smooth(offset_m, walker.corner_cut_m * per_m)
-        for k in (0, 2):
-            centre[:, k] = _smooth(centre[:, k], walker.corner_cut_m * per_m)
+        rounded = np.column_stack(
+            [_smooth(centre[:, k], walker.corner_cut_m * per_m) for k in (0, 2)]
+        )
+        # a walker rounds corners but walks to the end of a dead end before turning back
+        keep = _near_reversals(vertices, len(centre), walker.spacing_m, 3 * walker.corner_cut_m)
+        centre[:, [0, 2]] = keep[:, None] * centre[:, [0, 2]] + (1 - keep[:, None]) * rounded
     sway_m = _smooth_noise(rng, len(centre), walker.sway_m, walker.sway_scale_m * per_m)
     forward = np.gradient(centre[:, [0, 2]], axis=0)
     forward /= np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
@@ -1405,6 +1423,25 @@ def simulate_walk(
         phone_height_m=config.phone_height_m,
         partial_edges=partial,
     )
+
+
+def _near_reversals(
+    vertices: FloatArray, count: int, spacing_m: float, within_m: float
+) -> FloatArray:
+    """(count,) for the route's points every ``spacing_m``: 1 at a vertex where the route turns
+    back (≥ 150°), falling linearly to 0 at ``within_m`` from it along the route."""
+    keep = np.zeros(count)
+    steps = np.diff(vertices[:, [0, 2]], axis=0)
+    lengths = np.linalg.norm(steps, axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(vertices, axis=0), axis=1))])
+    along = np.arange(count) * spacing_m
+    for k in range(1, len(vertices) - 1):
+        a, b = steps[k - 1], steps[k]
+        if lengths[k - 1] < 1e-9 or lengths[k] < 1e-9:
+            continue
+        if float(a @ b) / (lengths[k - 1] * lengths[k]) <= math.cos(math.radians(150)):
+            keep = np.maximum(keep, np.clip(1 - np.abs(along - arc[k]) / within_m, 0.0, 1.0))
+    return keep
 
 
 def _flat(vertices: FloatArray) -> BoolArray:

@@ -155,14 +155,21 @@ def _centre_junctions(state: Branches, reach_px: float, max_move_px: float) -> N
         if abs(float(np.linalg.det(normal_sum))) < 1e-6:
             continue
         centre = np.asarray(np.linalg.solve(normal_sum, rhs), dtype=np.float64)
-        if float(np.linalg.norm(centre - state.key_ij[key])) > max_move_px:
+        moved_px = float(np.linalg.norm(centre - state.key_ij[key]))
+        if moved_px > max_move_px:
             continue
         state.key_ij[key] = centre
         for b, from_start in incident:
             u, v, line = state.branches[b]
-            line = line.copy()
-            line[0 if from_start else -1] = centre
-            state.branches[b] = (u, v, line)
+            line = line.copy() if from_start else line[::-1].copy()
+            # the cells the junction left behind would make a hook (a route into the old
+            # junction and back): drop those nearer the new centre than it moved, plus a margin
+            line[0] = centre
+            near = np.linalg.norm(line - centre, axis=1) < moved_px + 0.5 * reach_px
+            near[0] = near[-1] = False
+            first_far = int(np.argmin(near[1:])) + 1 if near[1:].any() else 1
+            line = np.vstack([line[:1], line[first_far:]])
+            state.branches[b] = (u, v, line if from_start else line[::-1])
 
 
 def _prune_stubs(state: Branches, stub_px: float) -> bool:
@@ -202,6 +209,10 @@ def _cut_small_loops(state: Branches, loop_px: float) -> bool:
                 break
             del state.branches[longest]
             group.pop()
+            # what is left of a loop through an open space (a lobby walked round) is its chord,
+            # not one of its sides: the way through goes straight across
+            u, v, _ = state.branches[shortest]
+            state.branches[shortest] = (u, v, np.vstack([state.key_ij[u], state.key_ij[v]]))
             changed = True
     return changed
 
