@@ -72,12 +72,14 @@ COVERED_WITHIN_M = 2.0
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AlignedMap:
-    """A map's poses and tags in one frame; ``walk_starts``: the first pose row of each walk."""
+    """A map's poses and tags in one frame (``tag_normals``: each tag's +z, out of its wall);
+    ``walk_starts``: the first pose row of each walk."""
 
     name: str
     positions_m: np.ndarray
     tag_ids: list[int]
     tag_positions_m: np.ndarray
+    tag_normals: np.ndarray
     walk_starts: tuple[int, ...] = (0,)
 
 
@@ -101,6 +103,7 @@ def own_frame_map(walks: tuple[str, ...]) -> AlignedMap:
         positions_m=result.world_T_phone[:, :3, 3],
         tag_ids=[int(t) for t in result.tag_ids],
         tag_positions_m=result.world_T_tag[:, :3, 3],
+        tag_normals=result.world_T_tag[:, :3, 2],
         walk_starts=starts,
     )
 
@@ -120,6 +123,7 @@ def moved_onto(m: AlignedMap, target: dict[int, np.ndarray]) -> AlignedMap:
         positions_m=move(m.positions_m),
         tag_ids=m.tag_ids,
         tag_positions_m=move(m.tag_positions_m),
+        tag_normals=m.tag_normals @ target_T_source[:3, :3].T,
         walk_starts=m.walk_starts,
     )
 
@@ -138,12 +142,15 @@ def aligned_map(walks: tuple[str, ...]) -> AlignedMap:
     return moved_onto(own_frame_map(walks), ground_truth_xyz())
 
 
-def skeleton(m: AlignedMap, params: SkeletonParams = DEFAULT_SKELETON_PARAMS) -> PathGraph:
+def skeleton(
+    m: AlignedMap, params: SkeletonParams = DEFAULT_SKELETON_PARAMS, *, with_normals: bool = True
+) -> PathGraph:
     return build_skeleton_from_arrays(
         m.positions_m,
         walk_starts=m.walk_starts,
         tag_ids=m.tag_ids,
         tag_positions_m=m.tag_positions_m,
+        tag_normals=m.tag_normals if with_normals else None,
         params=params,
     )
 

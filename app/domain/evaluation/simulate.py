@@ -35,7 +35,7 @@ import dataclasses
 import heapq
 import itertools
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -1356,6 +1356,10 @@ class SimulatedWalk:
     cut_edges: tuple[int, ...]
     phone_height_m: float
     partial_edges: tuple[tuple[int, float], ...] = ()
+
+    def tag_normals(self, tag_ids: Sequence[int]) -> FloatArray:
+        """(K, 3) each tag's +z axis: out of its wall, into the corridor."""
+        return np.array([self.building.world_T_tag[t][:3, 2] for t in tag_ids]).reshape(-1, 3)
 
     def seen_tags(self, *, within_m: float = 3.0) -> tuple[tuple[int, ...], FloatArray]:
         """(ids (K,), positions (K, 3) m) of the tags that came within ``within_m`` (horizontally,

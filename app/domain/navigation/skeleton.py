@@ -96,6 +96,11 @@ class SkeletonParams:
     junction_merge_m            branch points closer than this along a branch are one, m.
     gap_close_m                 dead ends this close and facing each other are joined, m.
     straight_tolerance_m        Douglas–Peucker tolerance of a branch, m.
+    tag_clearance_m             walked positions nearer a tag's wall than this (in front of the
+                                tag, within ``tag_reach_m`` along the wall) count as this far
+                                from it: a walker who stepped or veered to a tag was at the wall,
+                                not in the corridor's middle, m (needs the tags' normals).
+    tag_reach_m                 how far along the wall from a tag that holds, m.
     stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
                                 that still climb at least this steeply (rise over run), so it
                                 starts where the stairs start.
@@ -112,6 +117,8 @@ class SkeletonParams:
     junction_merge_m: float = 3.0
     gap_close_m: float = 4.0
     straight_tolerance_m: float = 0.4
+    tag_clearance_m: float = 0.8
+    tag_reach_m: float = 1.0
     stairs_min_rise_per_run: float = 0.25
     elevator_max_horizontal_m: float = 1.5
     elevator_min_rise_per_run: float = 2.0
@@ -142,6 +149,7 @@ def build_skeleton(
         walk_starts=walk_starts,
         tag_ids=[int(t) for t in result.tag_ids],
         tag_positions_m=result.world_T_tag[:, :3, 3],
+        tag_normals=result.world_T_tag[:, :3, 2],
         poi_names=result.poi_names,
         poi_positions_m=result.world_T_poi[:, :3, 3],
         params=params,
@@ -154,6 +162,7 @@ def build_skeleton_from_arrays(
     walk_starts: Sequence[int] = (0,),
     tag_ids: Sequence[int] = (),
     tag_positions_m: npt.ArrayLike | None = None,
+    tag_normals: npt.ArrayLike | None = None,
     poi_names: Sequence[str] = (),
     poi_positions_m: npt.ArrayLike | None = None,
     params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
@@ -167,6 +176,8 @@ def build_skeleton_from_arrays(
         bands are drawn from all of them together, so the passes of every walk along a corridor
         are evidence of one centreline (a *fused* skeleton, issue 26).
     tag_ids, tag_positions_m: (K,) ids and (K, 3) positions of the tags, m.
+    tag_normals: (K, 3) each tag's +z axis (out of its wall), map frame; with them, positions
+        near a tag's wall are moved out to ``params.tag_clearance_m`` (step 2).
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
@@ -174,6 +185,9 @@ def build_skeleton_from_arrays(
     world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
     if not np.all(np.isfinite(world_p_phone)):
         raise ParameterError("positions_m must be finite")
+    if tag_normals is not None:
+        world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
+        world_p_phone = _away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, params)
     levels_m = find_floor_levels(world_p_phone[:, 1])
     G: nx.Graph[int] = nx.Graph()
     if world_p_phone.shape[0] == 0:
@@ -203,6 +217,45 @@ def build_skeleton_from_arrays(
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
     )
+
+
+# --------------------------------------------------------------------------- tags on walls
+
+
+#: A tag this far above or below a position is on another floor, m.
+TAG_SAME_FLOOR_M = 1.5
+
+
+def _away_from_tag_walls(
+    world_p_phone: FloatArray,
+    world_p_tag: FloatArray,
+    world_n_tag: FloatArray,
+    params: SkeletonParams,
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with each position in front of a tag (on its floor, within
+    ``tag_reach_m`` of it along its wall) and nearer its wall than ``tag_clearance_m`` moved
+    straight out from the wall to that distance (step 2): the passes that stepped or veered to a
+    tag then draw the corridor, not the way to its wall."""
+    out = world_p_phone.copy()
+    clearance_m = params.tag_clearance_m
+    for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
+        normal = np.array([n_tag[0], n_tag[2]])
+        norm = float(np.linalg.norm(normal))
+        if norm < 0.5 or clearance_m <= 0:  # a tag on the floor or the ceiling: no wall
+            continue
+        normal /= norm
+        along_wall = np.array([-normal[1], normal[0]])
+        rel = out[:, [0, 2]] - p_tag[[0, 2]]
+        out_m, beside_m = rel @ normal, rel @ along_wall
+        near = (
+            (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
+            & (out_m > -0.5)  # a position just behind the tag's plane is still at its wall
+            & (out_m < clearance_m)
+            & (np.abs(beside_m) < params.tag_reach_m)
+        )
+        if near.any():
+            out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
+    return out
 
 
 # --------------------------------------------------------------------------- floors
