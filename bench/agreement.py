@@ -35,6 +35,7 @@ from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.evaluation.simulate import (  # noqa: E402
     UNSEEN_BUILDING,
     UNSEEN_WALKERS,
+    SimulatedWalk,
     SimulationConfig,
     WalkerConfig,
     build_building,
@@ -44,6 +45,7 @@ from app.domain.evaluation.turn_metrics import (  # noqa: E402
     Decisions,
     decisions_agreement,
     route_decisions,
+    same_way_share,
     sides_agreement,
 )
 from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
@@ -58,8 +60,9 @@ from bench.navigation_quality import (  # noqa: E402
     tag_positions,
 )
 
-#: Tag pairs routed per simulated map (sampled; the same pairs for every map of a building).
-SIMULATED_PAIRS = 200
+#: Tag pairs sampled per simulated building (the same for every map of it; a map routes those
+#: whose tags its walks saw).
+SIMULATED_PAIRS = 400
 #: Simulated buildings: (label, config, building seed).
 BUILDINGS = (
     ("one floor, 3.2 m corridors", UNSEEN_BUILDING, 0),
@@ -98,10 +101,21 @@ def _row(kind: str, first: str, second: str, a: Sides, b: Sides) -> list[str]:
         str(len(a.keys() & b.keys())),
         f"{decisions_agreement(a, b):.0%}",
         f"{strict:.0%}",
+        f"{same_way_share(a, b):.0%}",
+        f"{decisions_agreement(a, b, same_way_only=True):.0%}",
     ]
 
 
-HEADER = ["relation", "map", "other map", "tag pairs", "agreement", "strict"]
+HEADER = [
+    "relation",
+    "map",
+    "other map",
+    "tag pairs",
+    "agreement",
+    "strict",
+    "same way",
+    "agreement, same way",
+]
 
 
 def real_table() -> str:
@@ -123,11 +137,10 @@ def real_table() -> str:
     return render_markdown_table(rows, justify="right")
 
 
-def simulated_maps(config: SimulationConfig, seed: int) -> tuple[list[np.ndarray], PathGraph]:
-    """The walks of the six walkers of one building, and the building's tags (as a skeleton of
-    the first walk, for their ids and positions)."""
+def simulated_walks(config: SimulationConfig, seed: int) -> list[SimulatedWalk]:
+    """The walks of the six walkers of one building (its frame)."""
     building = build_building(dataclasses.replace(config, seed=seed), np.random.default_rng(seed))
-    walks = [
+    return [
         simulate_walk(
             config,
             dataclasses.replace(w, seed=100 * seed + k, length_m=500.0),
@@ -135,19 +148,22 @@ def simulated_maps(config: SimulationConfig, seed: int) -> tuple[list[np.ndarray
         )
         for k, (_, w) in enumerate(WALKERS)
     ]
-    return [w.positions_m for w in walks], build_skeleton_from_arrays(
-        walks[0].positions_m, tag_ids=walks[0].tag_ids, tag_positions_m=walks[0].tag_positions_m
-    )
 
 
-def fused(walks: list[np.ndarray], tags: PathGraph) -> PathGraph:
-    starts = np.cumsum([0, *(len(w) for w in walks[:-1])]).tolist()
-    ids = sorted(tags.tags)
+def fused(walks: Sequence[SimulatedWalk]) -> PathGraph:
+    """The skeleton fused from ``walks``, with the tags any of them saw (a map holds no other)."""
+    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
+    seen: dict[int, np.ndarray] = {}
+    for w in walks:
+        ids, positions = w.seen_tags()
+        seen.update(zip(ids, positions, strict=True))
+    ids = sorted(seen)
     return build_skeleton_from_arrays(
-        np.concatenate(walks),
+        np.concatenate([w.positions_m for w in walks]),
         walk_starts=starts,
         tag_ids=ids,
-        tag_positions_m=np.array([tags.tags[t].position_m for t in ids]),
+        tag_positions_m=np.array([seen[t] for t in ids]).reshape(-1, 3),
+        tag_normals=walks[0].tag_normals(ids),
     )
 
 
@@ -155,8 +171,8 @@ def simulated_table() -> str:
     rows = [HEADER]
     summary: dict[str, list[float]] = {}
     for label, config, seed in BUILDINGS:
-        walks, tags = simulated_maps(config, seed)
-        all_pairs = list(itertools.permutations(sorted(tags.tags), 2))
+        walks = simulated_walks(config, seed)
+        all_pairs = list(itertools.permutations(walks[0].tag_ids, 2))
         rng = np.random.default_rng(seed)
         chosen = rng.choice(
             len(all_pairs), size=min(SIMULATED_PAIRS, len(all_pairs)), replace=False
@@ -166,11 +182,17 @@ def simulated_table() -> str:
         def decide(pg: PathGraph, pairs: list[tuple[int, int]] = pairs) -> Sides:
             return route_decisions(pg, pairs, plan=plan_guided_route)
 
-        single = [decide(fused([w], tags)) for w in walks]
+        single = [decide(fused([w])) for w in walks]
         singles = [decisions_agreement(a, b) for a, b in itertools.combinations(single, 2)]
+        same = [
+            decisions_agreement(a, b, same_way_only=True)
+            for a, b in itertools.combinations(single, 2)
+        ]
+        ways = [same_way_share(a, b) for a, b in itertools.combinations(single, 2)]
         summary.setdefault("single walks", []).extend(singles)
-        first_three, last_three = decide(fused(walks[:3], tags)), decide(fused(walks[3:], tags))
-        added = decide(fused(walks[:4], tags))
+        summary.setdefault("single walks, same way", []).extend(same)
+        first_three, last_three = decide(fused(walks[:3])), decide(fused(walks[3:]))
+        added = decide(fused(walks[:4]))
         name = f"{label}, seed {seed}"
         rows.append(
             [
@@ -180,6 +202,8 @@ def simulated_table() -> str:
                 str(len(pairs)),
                 f"{min(singles):.0%}–{max(singles):.0%}",
                 "",
+                f"{min(ways):.0%}–{max(ways):.0%}",
+                f"{min(same):.0%}–{max(same):.0%}",
             ]
         )
         rows.append(

@@ -301,10 +301,12 @@ def agreement(first: RouteScore, second: RouteScore) -> float:
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Decisions:
     """What a map tells on one route: its told turns (≥ 45°) and its bends of at least the band's
-    lower edge (30°, told or not), for comparing two maps in one frame."""
+    lower edge (30°, told or not), for comparing two maps in one frame; ``way_xz_m``: (P, 2) the
+    route's polyline in the horizontal plane, m."""
 
     turns: tuple[Turn, ...]
     bends: tuple[Turn, ...]
+    way_xz_m: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def sides(self) -> str:
@@ -330,6 +332,7 @@ def route_decisions(
         out[(a, b)] = Decisions(
             turns=tuple(announced_turns(route, min_deg=min_deg)),
             bends=tuple(reference_turns(pg, route, min_deg=slack_deg, end_margin_m=0.0)),
+            way_xz_m=np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]],
         )
     return out
 
@@ -363,16 +366,48 @@ def decisions_agree(
     ) and match_turns(second.turns, first.bends, within_m=within_m)[0] == len(second.turns)
 
 
+#: Two routes whose polylines stay within this of each other (both ways, x–z) go the same way, m.
+SAME_WAY_WITHIN_M = 3.0
+
+
+def same_way(first: Decisions, second: Decisions, *, within_m: float = SAME_WAY_WITHIN_M) -> bool:
+    """Whether the two routes take the same corridors: every vertex of each is within
+    ``within_m`` of the other's polyline (a grid of corridors has routes of equal length round a
+    block; two maps may take either)."""
+    a, b = first.way_xz_m, second.way_xz_m
+    if len(a) == 0 or len(b) == 0:
+        return len(a) == len(b)
+    return all(_distance_to_polyline(p, b) <= within_m for p in a) and all(
+        _distance_to_polyline(p, a) <= within_m for p in b
+    )
+
+
 def decisions_agreement(
-    first: dict[tuple[int, int], Decisions], second: dict[tuple[int, int], Decisions]
+    first: dict[tuple[int, int], Decisions],
+    second: dict[tuple[int, int], Decisions],
+    *,
+    same_way_only: bool = False,
 ) -> float:
     """*Agreement* of two maps of one floor in one frame (issue 26): the share of the tag pairs
-    both route on which they tell the same decisions (:func:`decisions_agree`); nan when they
-    share none."""
-    common = first.keys() & second.keys()
+    both route on which they tell the same decisions (:func:`decisions_agree`); with
+    ``same_way_only``, of those both route the same way (:func:`same_way`). nan when there are
+    none."""
+    common = list(first.keys() & second.keys())
+    if same_way_only:
+        common = [k for k in common if same_way(first[k], second[k])]
     if not common:
         return float("nan")
     return sum(decisions_agree(first[k], second[k]) for k in common) / len(common)
+
+
+def same_way_share(
+    first: dict[tuple[int, int], Decisions], second: dict[tuple[int, int], Decisions]
+) -> float:
+    """The share of the tag pairs both route that they route the same way (nan: none)."""
+    common = first.keys() & second.keys()
+    if not common:
+        return float("nan")
+    return sum(same_way(first[k], second[k]) for k in common) / len(common)
 
 
 def map_agreement(

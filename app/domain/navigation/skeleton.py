@@ -386,6 +386,7 @@ def _add_floor(
         reach_px=params.corridor_width_m / cell,
     )
     _emit(G, state, origin, floor, height_m, params)
+    _straighten_through_junctions(G, floor, params)
     _untangle_junctions(G, floor, params.corridor_width_m)
 
 
@@ -430,6 +431,152 @@ def _emit(
         for a, b in itertools.pairwise(chain):
             if a != b:
                 _add_walk_edge(G, a, b, floor)
+
+
+#: Two branches of a junction whose directions (to their points ``THROUGH_REACH_M`` out) are
+#: within this of opposite (degrees) are one corridor through it.
+THROUGH_DEG = 20.0
+#: … and each passes within this of the other's (else the corridor jogs there: a decision), m.
+THROUGH_OFFSET_M = 1.0
+#: A branch's line runs through its points this far and twice this far out along it, m.
+THROUGH_REACH_M = 4.0
+
+
+def _straighten_through_junctions(G: nx.Graph[int], floor: int, params: SkeletonParams) -> None:
+    """A corridor that runs straight through a junction runs straight at it: where a space
+    widens there (a lobby beside a T), the centreline bows into it and the junction goes with
+    it, so a walker would be told to bear in and out. Two branches whose lines (through their
+    points ``THROUGH_REACH_M`` and twice that out) are within ``THROUGH_DEG`` of opposite and
+    ``THROUGH_OFFSET_M`` of each other are one corridor: the junction moves onto the line
+    between their nearer points, where another branch's line crosses it (by at most
+    ``junction_merge_m``; none crossing, it stays), and the branches' nodes it passes go (the
+    corridor's up to its nearer points, the others' within the move plus half a corridor
+    width)."""
+    for node in [n for n in G.nodes if G.nodes[n]["floor"] == floor and G.degree[n] >= 3]:
+        if node not in G or G.degree[node] < 3:
+            continue
+        here = np.asarray(G.nodes[node]["position_m"])
+        chains = [_chain(G, node, m) for m in G.neighbors(node)]
+        inner = [m for c in chains for m in c[:-1]]
+        if any(c[-1] == node for c in chains) or len(set(inner)) < len(inner):
+            continue  # a loop through the junction: left to the loop cutting
+        near = [_point_along(G, node, c, THROUGH_REACH_M)[[0, 2]] for c in chains]
+        far = [_point_along(G, node, c, 2 * THROUGH_REACH_M)[[0, 2]] for c in chains]
+        for j in range(len(chains)):  # a branch that ends before 1.5 × the reach has no line
+            if float(np.linalg.norm(far[j] - near[j])) < THROUGH_REACH_M / 2:
+                far[j] = near[j]
+        best: tuple[float, int, int] | None = None
+        for i, k in itertools.combinations(range(len(chains)), 2):
+            a, b = far[i] - near[i], far[k] - near[k]  # the two branches' lines, outward
+            norms = float(np.linalg.norm(a) * np.linalg.norm(b))
+            if norms == 0:
+                continue
+            angle_deg = math.degrees(math.acos(max(-1.0, min(1.0, float(a @ b) / norms))))
+            offset_m = max(  # how far each line passes from the other's near point
+                _off_line_m(near[k], near[i], far[i]), _off_line_m(near[i], near[k], far[k])
+            )
+            if (
+                angle_deg >= 180 - THROUGH_DEG
+                and offset_m <= THROUGH_OFFSET_M
+                and (best is None or angle_deg > best[0])
+            ):
+                best = (angle_deg, i, k)
+        if best is None:
+            continue
+        p, q = near[best[1]], near[best[2]]
+        t = float((here[[0, 2]] - p) @ (q - p) / max(float((q - p) @ (q - p)), 1e-12))
+        on_line = p + t * (q - p)
+        crossings = [  # where the other branches' lines cross the corridor's
+            crossing
+            for j in range(len(chains))
+            if j not in best[1:]
+            and (crossing := _crossing(p, q, near[j], far[j])) is not None
+            and float(np.linalg.norm(crossing - on_line)) <= params.junction_merge_m
+        ]
+        if not crossings:  # no corridor branches off there: the bend is the corridor's own
+            continue
+        on_line = np.mean(crossings, axis=0)
+        move_m = float(np.linalg.norm(on_line - here[[0, 2]]))
+        if move_m < 0.05 or move_m > params.junction_merge_m:
+            continue
+        G.nodes[node]["position_m"] = (float(on_line[0]), float(here[1]), float(on_line[1]))
+        clear_m = move_m + params.corridor_width_m / 2
+        for j, chain in enumerate(chains):
+            if j in best[1:]:  # the corridor runs straight to its point THROUGH_REACH_M out
+                along_m = np.cumsum(
+                    [
+                        math.dist(G.nodes[a]["position_m"], G.nodes[b]["position_m"])
+                        if a != node
+                        else float(np.linalg.norm(np.asarray(G.nodes[b]["position_m"]) - here))
+                        for a, b in itertools.pairwise([node, *chain])
+                    ]
+                )
+                passed = [
+                    m
+                    for m, _ in itertools.takewhile(
+                        lambda md: md[1] < THROUGH_REACH_M, zip(chain[:-1], along_m, strict=False)
+                    )
+                ]
+            else:
+                centre = G.nodes[node]["position_m"]
+                passed = []
+                for m in chain[:-1]:
+                    if math.dist(G.nodes[m]["position_m"], centre) >= clear_m:
+                        break
+                    passed.append(m)
+            kept = chain[len(passed)] if len(passed) < len(chain) else chain[-1]
+            for m in chain[: len(passed)]:
+                if m != kept and m in G and G.degree[m] <= 2:
+                    G.remove_node(m)
+            _add_walk_edge(G, node, kept, floor)
+        for m in list(G.neighbors(node)):
+            G.edges[node, m]["length_m"] = math.dist(
+                G.nodes[node]["position_m"], G.nodes[m]["position_m"]
+            )
+
+
+def _off_line_m(point: FloatArray, a: FloatArray, b: FloatArray) -> float:
+    """Distance of ``point`` from the line through ``a`` and ``b`` (x–z, m)."""
+    d = b - a
+    norm = float(np.linalg.norm(d))
+    if norm == 0:
+        return float(np.linalg.norm(point - a))
+    return abs(float(d[0] * (point - a)[1] - d[1] * (point - a)[0])) / norm
+
+
+def _crossing(p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray | None:
+    """Where the line through ``a`` and ``b`` crosses the line through ``p`` and ``q`` (x–z, m);
+    None when either has no direction or they are within 30° of parallel."""
+    d, e = q - p, b - a
+    cross = float(d[0] * e[1] - d[1] * e[0])
+    norms = float(np.linalg.norm(d) * np.linalg.norm(e))
+    if norms == 0 or abs(cross) < math.sin(math.radians(30)) * norms:
+        return None
+    t = float((a - p)[0] * e[1] - (a - p)[1] * e[0]) / cross
+    return np.asarray(p + t * d, dtype=np.float64)
+
+
+def _chain(G: nx.Graph[int], start: int, first: int) -> list[int]:
+    """The nodes from ``first`` on, leaving ``start``, through nodes of degree 2, up to and
+    including the first node of another degree (or ``start`` again)."""
+    chain, previous, here = [first], start, first
+    while G.degree[here] == 2 and here != start:
+        following = next(m for m in G.neighbors(here) if m != previous)
+        previous, here = here, following
+        chain.append(here)
+    return chain
+
+
+def _point_along(G: nx.Graph[int], start: int, chain: list[int], distance_m: float) -> FloatArray:
+    """The point ``distance_m`` from ``start`` along ``chain`` (its end if shorter), m."""
+    points = [np.asarray(G.nodes[n]["position_m"], dtype=np.float64) for n in [start, *chain]]
+    walked_m = 0.0
+    for a, b in itertools.pairwise(points):
+        step_m = float(np.linalg.norm(b - a))
+        if walked_m + step_m >= distance_m and step_m > 0:
+            return a + (b - a) * (distance_m - walked_m) / step_m
+        walked_m += step_m
+    return points[-1]
 
 
 #: Two edges leaving a junction less than this apart (degrees) leave it the same way.
