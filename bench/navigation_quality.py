@@ -2,7 +2,6 @@
 (issues 18 and 26), against the hand-drawn reference ``bench.mac_floor_2_reference``.
 
     .venv/bin/python -m bench.navigation_quality        # (also printed by bench.navigation)
-    .venv/bin/python -m bench.navigation_quality --before   # with issue 18's skeleton as well
 
 Each map is optimized with default parameters (a building map of several walks by the joint
 optimizer, ``optimize_sessions``) and moved into the ground truth's frame by a rigid fit on its
@@ -13,7 +12,6 @@ the reference knows is routed. A building map's skeleton is fused from all its w
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import sys
@@ -60,8 +58,6 @@ MAPS: tuple[tuple[str, ...], ...] = (
     ("floor_2_straight", "desnat_straight_once"),
     ("floor_2_straight", "desnat_straight_once", "straight_209_occam"),
 )
-#: The skeleton of issue 18 (before issue 26 chose its corridor width).
-ISSUE_18_PARAMS = SkeletonParams(corridor_width_m=1.8)
 #: A skeleton junction this close (x–z, m) to a reference branch point is a real one.
 JUNCTION_NEAR_M = 3.0
 #: Poses within this height of floor 2 are on it, m.
@@ -221,7 +217,7 @@ def score_map(m: AlignedMap, pg: PathGraph) -> RouteScore:
 
 QUALITY_HEADER = [
     "map",
-    "skeleton",
+    "walks",
     "routes",
     "turns told",
     "real",
@@ -236,13 +232,13 @@ QUALITY_HEADER = [
 ]
 
 
-def quality_rows(label: str, m: AlignedMap, pg: PathGraph) -> list[str]:
+def quality_rows(walks: str, m: AlignedMap, pg: PathGraph) -> list[str]:
     score = score_map(m, pg)
     junctions, near = junction_stats(pg)
     covered_m = covered_reference_m(reference(), m.positions_m)
     return [
         m.name,
-        label,
+        walks,
         str(score.routes),
         str(score.announced),
         str(score.real),
@@ -257,14 +253,12 @@ def quality_rows(label: str, m: AlignedMap, pg: PathGraph) -> list[str]:
     ]
 
 
-def quality_table(*, before: bool = False) -> str:
-    """Table 1: every map of ``MAPS`` (with ``before``: issue 18's skeleton first)."""
+def quality_table() -> str:
+    """Table 1: every map of ``MAPS``."""
     rows = [QUALITY_HEADER]
     for walks in MAPS:
         m = aligned_map(walks)
-        if before:
-            rows.append(quality_rows("issue 18", m, skeleton(m, ISSUE_18_PARAMS)))
-        rows.append(quality_rows("now", m, skeleton(m)))
+        rows.append(quality_rows(str(len(m.walk_starts)), m, skeleton(m)))
     table = render_markdown_table(rows, justify="right")
     return (
         f"{table}\n\nreference: {walk_length_m(reference()):.0f} m of corridor, "
@@ -272,12 +266,9 @@ def quality_table(*, before: bool = False) -> str:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", action="store_true", help="also issue 18's skeleton")
-    args = parser.parse_args(argv)
+def main() -> int:
     print("turn-by-turn on floor 2 of the mac building (single walks and building maps)")
-    print(quality_table(before=args.before))
+    print(quality_table())
     return 0
 
 

@@ -22,7 +22,7 @@ from app.domain.navigation.path_graph import (
     PathGraph,
     build_path_graph_from_arrays,
 )
-from app.domain.navigation.routing import TagEnd, plan_route
+from app.domain.navigation.routing import TagEnd, plan_walk
 from app.domain.navigation.skeleton import SkeletonParams, build_skeleton_from_arrays
 from tests.unit.walks import PHONE_Y_M, line, walk
 
@@ -90,7 +90,7 @@ def test_passes_that_do_not_meet_are_one_corridor() -> None:
     assert announced_turns(route, min_deg=30.0) == []
     # The walked line goes round (the failure this fixes).
     walked = build_path_graph_from_arrays(positions, tag_ids=[1, 2], tag_positions_m=tags)
-    assert plan_route(walked, TagEnd(1), TagEnd(2)).length_m > 1.5 * 28.0
+    assert plan_walk(walked, TagEnd(1), TagEnd(2)).length_m > 1.5 * 28.0
 
 
 def test_dead_ends_side_by_side_are_not_joined() -> None:

@@ -42,7 +42,7 @@ from app.domain.navigation.routing import (
     Route,
     RouteError,
     TagEnd,
-    plan_route,
+    plan_walk,
     signed_turn_deg,
 )
 
@@ -230,7 +230,7 @@ def score_tag_routes(
     for a, b in pairs:
         try:
             route = plan(pg, TagEnd(a), TagEnd(b))
-            truth_route = plan_route(_leaning_toward(reference, route), TagEnd(a), TagEnd(b))
+            truth_route = plan_walk(_leaning_toward(reference, route), TagEnd(a), TagEnd(b))
         except RouteError:
             continue
         turns = announced_turns(route, min_deg=min_deg)
