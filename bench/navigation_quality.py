@@ -2,6 +2,7 @@
 (issues 18 and 26), against the hand-drawn reference ``bench.mac_floor_2_reference``.
 
     .venv/bin/python -m bench.navigation_quality        # (also printed by bench.navigation)
+    .venv/bin/python -m bench.navigation_quality --plot /tmp/floor2   # and a PNG per map
 
 Each map is optimized with default parameters (a building map of several walks by the joint
 optimizer, ``optimize_sessions``) and moved into the ground truth's frame by a rigid fit on its
@@ -12,6 +13,7 @@ the reference knows is routed. A building map's skeleton is fused from all its w
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import math
 import sys
@@ -28,12 +30,27 @@ sys.path.insert(0, str(REPO))
 from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.evaluation.metrics import umeyama_rigid  # noqa: E402
-from app.domain.evaluation.turn_metrics import RouteScore, score_tag_routes  # noqa: E402
+from app.domain.evaluation.turn_metrics import (  # noqa: E402
+    END_BAND_M,
+    RouteScore,
+    Turn,
+    announced_turns,
+    leaning_toward,
+    match_turns,
+    reference_turns,
+    score_tag_routes,
+)
 from app.domain.mapping.joint import optimize_sessions  # noqa: E402
 from app.domain.mapping.params import SlamParams  # noqa: E402
 from app.domain.mapping.slam import optimize_session  # noqa: E402
-from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
+from app.domain.navigation.instructions import (  # noqa: E402
+    BEAR_MIN_DEG,
+    END_MARGIN_M,
+    TURN_MIN_DEG,
+    plan_guided_route,
+)
 from app.domain.navigation.path_graph import JUNCTION, WALK, PathGraph  # noqa: E402
+from app.domain.navigation.routing import RouteError, TagEnd, plan_walk  # noqa: E402
 from app.domain.navigation.skeleton import (  # noqa: E402
     DEFAULT_SKELETON_PARAMS,
     SkeletonParams,
@@ -266,9 +283,93 @@ def quality_table() -> str:
     )
 
 
-def main() -> int:
+def wrong_turns(m: AlignedMap, pg: PathGraph) -> tuple[list[Turn], list[Turn]]:
+    """(told turns that are not real, real turns not told) over every routed tag pair, as
+    ``score_tag_routes`` counts them."""
+    ref = reference()
+    false, missed = [], []
+    tags = [t for t in m.tag_ids if t in ref.tags]
+    for a, b in itertools.permutations(tags, 2):
+        try:
+            route = plan_guided_route(pg, TagEnd(a), TagEnd(b))
+            truth = plan_walk(leaning_toward(ref, route), TagEnd(a), TagEnd(b))
+        except RouteError:
+            continue
+        bends = reference_turns(ref, truth, min_deg=BEAR_MIN_DEG, end_margin_m=0.0)
+        real = reference_turns(
+            ref, truth, min_deg=TURN_MIN_DEG, end_margin_m=END_MARGIN_M + END_BAND_M
+        )
+        told = announced_turns(route)
+        false += [t for t in told if match_turns([t], bends)[0] == 0]
+        told_any = announced_turns(route, min_deg=BEAR_MIN_DEG)
+        missed += [t for t in real if match_turns(told_any, [t])[1] == 0]
+    return false, missed
+
+
+def plot_map(m: AlignedMap, pg: PathGraph, path: Path) -> None:
+    """A top-down PNG of floor 2: the walks (grey), the skeleton (blue, junctions as dots), the
+    reference (green, dashed), the tags, and where routes tell a false turn (red) or miss a real
+    one (orange)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 9))
+    on_floor = np.abs(m.positions_m[:, 1] - FLOOR_2_Y_M) < FLOOR_2_BAND_M
+    for first, end in itertools.pairwise([*m.walk_starts, len(m.positions_m)]):
+        walk = m.positions_m[first:end][on_floor[first:end]]
+        ax.plot(walk[:, 0], walk[:, 2], color="0.7", lw=0.4)
+    G, floor = pg.graph, floor_2_index(pg)
+    for u, v, data in G.edges(data=True):
+        if data["floor"] == floor and data["kind"] == WALK:
+            a, b = G.nodes[u]["position_m"], G.nodes[v]["position_m"]
+            ax.plot([a[0], b[0]], [a[2], b[2]], color="tab:blue", lw=1.6)
+    for _, data in G.nodes(data=True):
+        if data["kind"] == JUNCTION and data["floor"] == floor:
+            ax.plot(data["position_m"][0], data["position_m"][2], "o", color="tab:blue")
+    R = reference().graph
+    for u, v in R.edges:
+        a, b = R.nodes[u]["position_m"], R.nodes[v]["position_m"]
+        ax.plot([a[0], b[0]], [a[2], b[2]], color="tab:green", lw=0.9, ls="--")
+    for k, t in enumerate(m.tag_ids):
+        if t in reference().tags:
+            x, _, z = m.tag_positions_m[k]
+            ax.plot(x, z, "k^", ms=3)
+            ax.annotate(str(t), (x, z), fontsize=6)
+    false, missed = wrong_turns(m, pg)
+    for turns, colour, label in (
+        (false, "tab:red", "false turn"),
+        (missed, "tab:orange", "missed"),
+    ):
+        if turns:
+            xz = np.array([t.position_xz_m for t in turns])
+            ax.scatter(
+                xz[:, 0], xz[:, 1], s=30, color=colour, alpha=0.3, label=f"{label} ×{len(turns)}"
+            )
+    ax.set_aspect("equal")
+    ax.set_xlabel("x, m")
+    ax.set_ylabel("z, m")
+    ax.set_title(f"{m.name}\nskeleton (blue), reference (green)", fontsize=8)
+    if false or missed:
+        ax.legend(fontsize=7)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--plot", type=Path, help="write a PNG of each map's floor 2 here")
+    args = parser.parse_args(argv)
     print("turn-by-turn on floor 2 of the mac building (single walks and building maps)")
     print(quality_table())
+    if args.plot is not None:
+        args.plot.mkdir(parents=True, exist_ok=True)
+        for walks in MAPS:
+            m = aligned_map(walks)
+            path = args.plot / f"{'+'.join(walks)}.png"
+            plot_map(m, skeleton(m), path)
+            print(f"wrote {path}")
     return 0
 
 

@@ -218,7 +218,7 @@ def score_tag_routes(
     """Route every (start tag, goal tag) pair on ``pg`` with ``plan`` and on ``reference`` (plain
     shortest path; its turns are the corridors' turns) and compare. Pairs either graph cannot
     route are skipped. Among reference routes of (nearly) the same length, the one along the
-    route on ``pg`` is taken (:func:`_leaning_toward`): in a grid of corridors many routes tie, and
+    route on ``pg`` is taken (:func:`leaning_toward`): in a grid of corridors many routes tie, and
     the map is not wrong to pick another of them. Turns of at least ``min_deg`` are scored with a
     band below it: a told turn is real when the corridor bends at least ``slack_deg`` there, and a
     real turn is told when a turn or bear of at least ``slack_deg`` is (a 43° corner told as 47°
@@ -230,7 +230,7 @@ def score_tag_routes(
     for a, b in pairs:
         try:
             route = plan(pg, TagEnd(a), TagEnd(b))
-            truth_route = plan_walk(_leaning_toward(reference, route), TagEnd(a), TagEnd(b))
+            truth_route = plan_walk(leaning_toward(reference, route), TagEnd(a), TagEnd(b))
         except RouteError:
             continue
         turns = announced_turns(route, min_deg=min_deg)
@@ -269,7 +269,7 @@ _TIE_BREAK_M = 3.0
 _TIE_BREAK_RATIO = 0.02
 
 
-def _leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
+def leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
     """``reference`` with its edges away from ``route`` (midpoint farther than ``_TIE_BREAK_M``)
     made ``_TIE_BREAK_RATIO`` longer, so that ties between equally short routes go its way."""
     xz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
