@@ -451,9 +451,7 @@ def _straighten_through_junctions(G: nx.Graph[int], floor: int, params: Skeleton
     between their nearer points, where another branch's line crosses it (by at most
     ``junction_merge_m``; none crossing, it stays), and the branches' nodes it passes go (the
     corridor's up to its nearer points, the others' within the move plus half a corridor
-    width). With no corridor straight through, the junction moves to where the branches' lines
-    cross (within ``junction_merge_m``; lines within 30° of parallel do not cross): a lobby at a
-    corner pulls the junction in as well."""
+    width)."""
     for node in [n for n in G.nodes if G.nodes[n]["floor"] == floor and G.degree[n] >= 3]:
         if node not in G or G.degree[node] < 3:
             continue
@@ -484,39 +482,27 @@ def _straighten_through_junctions(G: nx.Graph[int], floor: int, params: Skeleton
             ):
                 best = (angle_deg, i, k)
         if best is None:
-            # no corridor straight through: the branches' lines meet at the junction's place
-            straight = {j for j in range(len(chains)) if not np.array_equal(near[j], far[j])}
-            crossings = [
-                crossing
-                for i, k in itertools.combinations(sorted(straight), 2)
-                if (crossing := _crossing(near[i], far[i], near[k], far[k])) is not None
-                and float(np.linalg.norm(crossing - here[[0, 2]])) <= params.junction_merge_m
-            ]
-            if not crossings:
-                continue
-            on_line = np.mean(crossings, axis=0)
-        else:
-            straight = set(best[1:])
-            p, q = near[best[1]], near[best[2]]
-            t = float((here[[0, 2]] - p) @ (q - p) / max(float((q - p) @ (q - p)), 1e-12))
-            on_line = p + t * (q - p)
-            crossings = [  # where the other branches' lines cross the corridor's
-                crossing
-                for j in range(len(chains))
-                if j not in best[1:]
-                and (crossing := _crossing(p, q, near[j], far[j])) is not None
-                and float(np.linalg.norm(crossing - on_line)) <= params.junction_merge_m
-            ]
-            if not crossings:  # no corridor branches off there: the bend is the corridor's own
-                continue
-            on_line = np.mean(crossings, axis=0)
+            continue
+        p, q = near[best[1]], near[best[2]]
+        t = float((here[[0, 2]] - p) @ (q - p) / max(float((q - p) @ (q - p)), 1e-12))
+        on_line = p + t * (q - p)
+        crossings = [  # where the other branches' lines cross the corridor's
+            crossing
+            for j in range(len(chains))
+            if j not in best[1:]
+            and (crossing := _crossing(p, q, near[j], far[j])) is not None
+            and float(np.linalg.norm(crossing - on_line)) <= params.junction_merge_m
+        ]
+        if not crossings:  # no corridor branches off there: the bend is the corridor's own
+            continue
+        on_line = np.mean(crossings, axis=0)
         move_m = float(np.linalg.norm(on_line - here[[0, 2]]))
         if move_m < 0.05 or move_m > params.junction_merge_m:
             continue
         G.nodes[node]["position_m"] = (float(on_line[0]), float(here[1]), float(on_line[1]))
         clear_m = move_m + params.corridor_width_m / 2
         for j, chain in enumerate(chains):
-            if j in straight:  # the corridor runs straight to its point THROUGH_REACH_M out
+            if j in best[1:]:  # the corridor runs straight to its point THROUGH_REACH_M out
                 along_m = np.cumsum(
                     [
                         math.dist(G.nodes[a]["position_m"], G.nodes[b]["position_m"])
