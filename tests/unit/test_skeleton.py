@@ -223,3 +223,23 @@ def test_a_lobby_walked_round_beside_a_junction_leaves_the_corridors_straight() 
     route = plan_guided_route(pg, TagEnd(1), TagEnd(3))
     assert [t.turn_deg > 0 for t in announced_turns(route)] == [True]  # one left turn
     assert not has_turn_around(route)
+
+
+def test_a_corridor_straight_through_a_widening_junction_runs_straight() -> None:
+    # A T: the corridor z = 0 from x = 0 to 40, a stem down from x = 20; beside the junction, on
+    # the far side from the stem, a lobby wandered through (a spiral out to 2.5 m, centred
+    # 2.5 m off the corridor's line): the band bulges there, with no hole.
+    angle = np.linspace(0.0, 6 * math.pi, 180)
+    radius = np.linspace(0.2, 2.5, 180)
+    lobby = np.column_stack(
+        [20 + radius * np.sin(angle), np.full(180, PHONE_Y_M), 2.5 - radius * np.cos(angle)]
+    )
+    positions = np.concatenate(
+        [walk((0, 0), (20, 0), (20, 2.3)), lobby, walk((20, 0), (40, 0), (20, 0), (20, -20))]
+    )
+    tags = [(2, 1.4, -1), (38, 1.4, -1), (21, 1.4, -18)]
+    pg = build_skeleton_from_arrays(positions, tag_ids=[1, 2, 3], tag_positions_m=tags)
+    for a, b in ((1, 2), (2, 1)):  # along the corridor, past the lobby: no turn, no bear
+        assert announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(b)), min_deg=30.0) == []
+    for a in (1, 2):  # into the stem: one turn
+        assert len(announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(3)))) == 1
