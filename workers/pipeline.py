@@ -59,7 +59,6 @@ from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import optimize_session
-from app.domain.navigation.joint_path_graph import build_joint_path_graph
 from app.domain.navigation.path_graph import (
     ELEVATOR,
     JUNCTION,
@@ -514,14 +513,14 @@ def path_graph(ctx: JobContext) -> None:
     """Where a pedestrian can walk: the corridor skeleton of the optimized path (passes merged
     into centrelines, junctions where corridors branch), floors, stairs and elevators, and the
     tags and points of interest attached to it (app.domain.navigation.skeleton). A map of several
-    sessions gets the walked paths of all of them, joined where they cross
-    (app.domain.navigation.joint_path_graph).
+    sessions gets one skeleton fused from all its walks (issue 26).
     """
     result = _need(ctx.result, "result")
+    walk_starts = [0] if ctx.joint is None else [p.pose_rows.start for p in ctx.joint.parts]
     graph = (
         build_skeleton(result)
-        if ctx.joint is None
-        else build_joint_path_graph(result, [part.pose_rows.start for part in ctx.joint.parts])
+        if len(walk_starts) == 1
+        else build_skeleton(result, walk_starts=walk_starts)
     )
     ctx.path_graph = path_graph_to_json(graph)
     # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
@@ -536,10 +535,15 @@ def path_graph(ctx: JobContext) -> None:
     kinds = Counter(walk.edges[u, v]["kind"] for u, v in walk.edges)
     junctions = sum(1 for node in walk.nodes if walk.nodes[node]["kind"] == JUNCTION)
     ctx.log(
-        f"path graph: corridor skeleton, {walk.number_of_nodes()} nodes ({junctions} junctions), "
+        f"path graph: corridor skeleton{_fused_from(len(walk_starts))}, "
+        f"{walk.number_of_nodes()} nodes ({junctions} junctions), "
         f"{walk.number_of_edges()} edges ({kinds[STAIRS]} stairs, {kinds[ELEVATOR]} "
         f"elevator), {len(graph.floor_levels_m)} floor(s)"
     )
+
+
+def _fused_from(walks: int) -> str:
+    return f" fused from {walks} walks" if walks > 1 else " of 1 walk"
 
 
 def derived_documents(ctx: JobContext, document: dict[str, Any]) -> maps.DerivedDocuments:

@@ -106,6 +106,11 @@ def test_merge_route_and_localize_on_the_joint_map(two_walks):
     assert api.client.get(f"/v1/maps/{second['map_id']}", headers=ADMIN).status_code == 404
     build(api)
     assert job(api, accepted["job_id"])["state"] == "succeeded"
+    # one corridor skeleton fused from both walks, and the log says so (issue 26)
+    assert (
+        "path graph: corridor skeleton fused from 2 walks"
+        in job(api, accepted["job_id"])["log_tail"]
+    )
 
     merged = get_map(api, first["map_id"])
     version = merged["current_version"]

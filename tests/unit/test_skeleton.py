@@ -22,7 +22,7 @@ from app.domain.navigation.path_graph import (
     PathGraph,
     build_path_graph_from_arrays,
 )
-from app.domain.navigation.routing import TagEnd, plan_route
+from app.domain.navigation.routing import TagEnd, plan_walk
 from app.domain.navigation.skeleton import SkeletonParams, build_skeleton_from_arrays
 from tests.unit.walks import PHONE_Y_M, line, walk
 
@@ -90,7 +90,7 @@ def test_passes_that_do_not_meet_are_one_corridor() -> None:
     assert announced_turns(route, min_deg=30.0) == []
     # The walked line goes round (the failure this fixes).
     walked = build_path_graph_from_arrays(positions, tag_ids=[1, 2], tag_positions_m=tags)
-    assert plan_route(walked, TagEnd(1), TagEnd(2)).length_m > 1.5 * 28.0
+    assert plan_walk(walked, TagEnd(1), TagEnd(2)).length_m > 1.5 * 28.0
 
 
 def test_dead_ends_side_by_side_are_not_joined() -> None:
@@ -169,3 +169,77 @@ def test_parameters_are_checked() -> None:
         SkeletonParams(corridor_width_m=0.0)
     with pytest.raises(ParameterError):
         SkeletonParams(stub_max_m=-1.0)
+
+
+def test_a_walk_veering_to_tags_on_both_walls_is_a_straight_corridor_given_their_normals() -> None:
+    # A 3.2 m wide corridor along x; tags alternate walls every 4 m and the walker crosses the
+    # corridor diagonally from one to the next, passing 0.4 m from each.
+    xs = np.arange(5.0, 40.0, 4.0)
+    sides = np.where(np.arange(len(xs)) % 2 == 0, 1.0, -1.0)
+    corners = [
+        (0.0, 0.0),
+        *((x, 1.2 * side) for x, side in zip(xs, sides, strict=True)),
+        (45.0, 0.0),
+    ]
+    positions = walk(*corners)
+    tags = [(x, 1.4, 1.6 * side) for x, side in zip(xs, sides, strict=True)]
+    normals = [(0.0, 0.0, -side) for side in sides]  # out of the wall, into the corridor
+    ids = list(range(1, len(xs) + 1))
+    without = build_skeleton_from_arrays(positions, tag_ids=ids, tag_positions_m=tags)
+    with_normals = build_skeleton_from_arrays(
+        positions, tag_ids=ids, tag_positions_m=tags, tag_normals=normals
+    )
+
+    def told_turns(pg: PathGraph) -> int:
+        route = plan_guided_route(pg, TagEnd(1), TagEnd(len(xs)))
+        return len(announced_turns(route))
+
+    assert told_turns(without) > 0  # the zigzag is told as turns …
+    assert told_turns(with_normals) == 0  # … and is a corridor once the tags' walls are known
+
+
+def test_tag_normals_must_match_the_tags() -> None:
+    with pytest.raises(ParameterError, match="tag_normals"):
+        build_skeleton_from_arrays(
+            walk((0, 0), (10, 0)), tag_ids=[1], tag_positions_m=[(5, 1.4, 1)], tag_normals=[]
+        )
+
+
+def test_a_lobby_walked_round_beside_a_junction_leaves_the_corridors_straight() -> None:
+    # A T of corridors; at the junction the walker loops round a lobby of 2.5 m radius.
+    angle = np.linspace(0.0, 2 * math.pi, 60)
+    lobby = np.column_stack(
+        [20 + 2.5 * np.sin(angle), np.full(60, PHONE_Y_M), 2.5 - 2.5 * np.cos(angle)]
+    )
+    positions = np.concatenate(
+        [walk((0, 0), (20, 0)), lobby, walk((20, 0), (40, 0), (20, 0), (20, -20))]
+    )
+    pg = build_skeleton_from_arrays(
+        positions, tag_ids=[1, 2, 3], tag_positions_m=[(2, 1.4, 1), (38, 1.4, 1), (21, 1.4, -18)]
+    )
+    assert not nx.cycle_basis(pg.graph)
+    for a, b in ((1, 2), (2, 1)):  # straight along the corridor past the lobby
+        assert announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(b))) == []
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(3))
+    assert [t.turn_deg > 0 for t in announced_turns(route)] == [True]  # one left turn
+    assert not has_turn_around(route)
+
+
+def test_a_corridor_straight_through_a_widening_junction_runs_straight() -> None:
+    # A T: the corridor z = 0 from x = 0 to 40, a stem down from x = 20; beside the junction, on
+    # the far side from the stem, a lobby wandered through (a spiral out to 2.5 m, centred
+    # 2.5 m off the corridor's line): the band bulges there, with no hole.
+    angle = np.linspace(0.0, 6 * math.pi, 180)
+    radius = np.linspace(0.2, 2.5, 180)
+    lobby = np.column_stack(
+        [20 + radius * np.sin(angle), np.full(180, PHONE_Y_M), 2.5 - radius * np.cos(angle)]
+    )
+    positions = np.concatenate(
+        [walk((0, 0), (20, 0), (20, 2.3)), lobby, walk((20, 0), (40, 0), (20, 0), (20, -20))]
+    )
+    tags = [(2, 1.4, -1), (38, 1.4, -1), (21, 1.4, -18)]
+    pg = build_skeleton_from_arrays(positions, tag_ids=[1, 2, 3], tag_positions_m=tags)
+    for a, b in ((1, 2), (2, 1)):  # along the corridor, past the lobby: no turn, no bear
+        assert announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(b)), min_deg=30.0) == []
+    for a in (1, 2):  # into the stem: one turn
+        assert len(announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(3)))) == 1

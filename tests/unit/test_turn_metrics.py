@@ -3,7 +3,18 @@ turn-arounds."""
 
 from __future__ import annotations
 
-from app.domain.evaluation.turn_metrics import Turn, has_turn_around, has_zigzag, match_turns
+import numpy as np
+
+from app.domain.evaluation.turn_metrics import (
+    Decisions,
+    Turn,
+    decisions_agree,
+    decisions_agreement,
+    has_turn_around,
+    has_zigzag,
+    match_turns,
+    sides_agreement,
+)
 from app.domain.navigation.routing import Route, Step
 
 
@@ -53,3 +64,41 @@ def test_a_reversal_mid_route_is_a_turn_around() -> None:
         floor=0,
     )
     assert has_turn_around(route([(0, 0), (10, 0), (10, 8)], [told]))
+
+
+def test_a_switchback_staircase_is_no_turn_around() -> None:
+    # up the first flight along +x, round at the landing, up the second flight back along −x
+    stairs = Route(
+        polyline_m=[(0, 0, 0), (5, 0, 0), (8, 1.6, 0), (5, 3.2, 0.3), (0, 3.2, 0.3)],
+        length_m=0.0,
+        floors=[0, 1],
+        nodes=[],
+        steps=[],
+    )
+    assert not has_turn_around(stairs)
+    flat = Route(
+        polyline_m=[(0, 0, 0), (5, 0, 0), (8, 0, 0), (5, 0, 0.3), (0, 0, 0.3)],
+        length_m=0.0,
+        floors=[0],
+        nodes=[],
+        steps=[],
+    )
+    assert has_turn_around(flat)  # the same bends on one floor are a reversal
+
+
+def test_two_maps_agree_within_the_band_and_not_beyond() -> None:
+    corner_47 = Decisions(turns=(turn(10, 0, -47),), bends=(turn(10, 0, -47),))
+    corner_43 = Decisions(turns=(), bends=(turn(10.5, 0, -43),))  # told by neither as a turn
+    straight = Decisions(turns=(), bends=())
+    other_side = Decisions(turns=(turn(10, 0, 50),), bends=(turn(10, 0, 50),))
+    elsewhere = Decisions(turns=(turn(30, 0, -47),), bends=(turn(30, 0, -47),))
+    assert decisions_agree(corner_47, corner_43)  # a 45° corner measured either side of 45°
+    assert decisions_agree(corner_43, corner_47)
+    assert not decisions_agree(corner_47, straight)  # a turn where the other goes straight
+    assert not decisions_agree(corner_47, other_side)
+    assert not decisions_agree(corner_47, elsewhere)  # 20 m apart: not the same decision
+    first = {(1, 2): corner_47, (2, 1): straight, (1, 3): straight}
+    second = {(1, 2): corner_43, (2, 1): other_side}
+    assert decisions_agreement(first, second) == 0.5  # (1, 3): routed by one map only
+    assert sides_agreement({k: d.sides for k, d in first.items()}, {(1, 2): "", (2, 1): ""}) == 0.5
+    assert np.isnan(decisions_agreement(first, {}))

@@ -5,6 +5,7 @@
     hits = match_turns(turns, truth)                # (announced that are real, real that are told)
     has_zigzag(turns), has_turn_around(route)
     score = score_tag_routes(pg, reference, pairs, plan=plan_guided_route)   # all of it, per map
+    map_agreement(first_pg, second_pg, plan=plan_guided_route)   # two maps of a floor, no reference
 
 A turn is *matched* when a reference turn of the same side lies within ``MATCH_WITHIN_M`` (x–z) of
 it; each reference turn matches at most one announced turn. Precision counts a told turn as real
@@ -14,7 +15,7 @@ the ends).
 Both use a band below the threshold (see :func:`score_tag_routes`).
 A *zigzag* is two announced turns of opposite sides at most ``ZIGZAG_WITHIN_M`` apart along the
 route. A *turn-around* is a mid-route "turn around" or a bend of the route's polyline of ≥ 150°
-away from its ends.
+away from its ends and off the stairs (a switchback staircase turns round on its landing).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from app.domain.navigation.routing import (
     Route,
     RouteError,
     TagEnd,
-    plan_route,
+    plan_walk,
     signed_turn_deg,
 )
 
@@ -144,8 +145,13 @@ def has_zigzag(turns: Sequence[Turn], *, within_m: float = ZIGZAG_WITHIN_M) -> b
     )
 
 
+#: A polyline vertex next to a segment this steep (rise over run) is on stairs or in a lift: its
+#: bends are the staircase's (a switchback turns round on its landing), not the route's.
+CLIMBING_MIN_RISE_PER_RUN = 0.25
+
+
 def has_turn_around(route: Route) -> bool:
-    """A "turn around" step, or a bend of the polyline of ≥ 150° mid-route."""
+    """A "turn around" step, or a bend of the polyline of ≥ 150° mid-route (not on stairs)."""
     if any(s.kind == "turn" and "around" in s.instruction for s in route.steps):
         return True
     xyz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)
@@ -156,7 +162,12 @@ def has_turn_around(route: Route) -> bool:
             continue
         before = xyz[k] - xyz[k - 1]
         after = xyz[k + 1] - xyz[k]
-        if np.hypot(before[0], before[2]) < 1e-9 or np.hypot(after[0], after[2]) < 1e-9:
+        run_before_m, run_after_m = np.hypot(before[0], before[2]), np.hypot(after[0], after[2])
+        if run_before_m < 1e-9 or run_after_m < 1e-9:
+            continue
+        if max(abs(before[1]) / run_before_m, abs(after[1]) / run_after_m) >= (
+            CLIMBING_MIN_RISE_PER_RUN
+        ):
             continue
         if abs(signed_turn_deg(before, after)) >= TURN_AROUND_MIN_DEG:
             return True
@@ -207,7 +218,7 @@ def score_tag_routes(
     """Route every (start tag, goal tag) pair on ``pg`` with ``plan`` and on ``reference`` (plain
     shortest path; its turns are the corridors' turns) and compare. Pairs either graph cannot
     route are skipped. Among reference routes of (nearly) the same length, the one along the
-    route on ``pg`` is taken (:func:`_leaning_toward`): in a grid of corridors many routes tie, and
+    route on ``pg`` is taken (:func:`leaning_toward`): in a grid of corridors many routes tie, and
     the map is not wrong to pick another of them. Turns of at least ``min_deg`` are scored with a
     band below it: a told turn is real when the corridor bends at least ``slack_deg`` there, and a
     real turn is told when a turn or bear of at least ``slack_deg`` is (a 43° corner told as 47°
@@ -219,7 +230,7 @@ def score_tag_routes(
     for a, b in pairs:
         try:
             route = plan(pg, TagEnd(a), TagEnd(b))
-            truth_route = plan_route(_leaning_toward(reference, route), TagEnd(a), TagEnd(b))
+            truth_route = plan_walk(leaning_toward(reference, route), TagEnd(a), TagEnd(b))
         except RouteError:
             continue
         turns = announced_turns(route, min_deg=min_deg)
@@ -258,7 +269,7 @@ _TIE_BREAK_M = 3.0
 _TIE_BREAK_RATIO = 0.02
 
 
-def _leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
+def leaning_toward(reference: PathGraph, route: Route) -> PathGraph:
     """``reference`` with its edges away from ``route`` (midpoint farther than ``_TIE_BREAK_M``)
     made ``_TIE_BREAK_RATIO`` longer, so that ties between equally short routes go its way."""
     xz = np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
@@ -284,7 +295,133 @@ def _distance_to_polyline(p: FloatArray, polyline: FloatArray) -> float:
 
 def agreement(first: RouteScore, second: RouteScore) -> float:
     """Share of the tag pairs routed in both whose announced turns have the same sides."""
-    common = first.sides.keys() & second.sides.keys()
+    return sides_agreement(first.sides, second.sides)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Decisions:
+    """What a map tells on one route: its told turns (≥ 45°) and its bends of at least the band's
+    lower edge (30°, told or not), for comparing two maps in one frame; ``way_xz_m``: (P, 2) the
+    route's polyline in the horizontal plane, m."""
+
+    turns: tuple[Turn, ...]
+    bends: tuple[Turn, ...]
+    way_xz_m: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def sides(self) -> str:
+        return turn_sides(self.turns)
+
+
+def route_decisions(
+    pg: PathGraph,
+    pairs: Sequence[tuple[int, int]],
+    *,
+    plan: RoutePlanner,
+    min_deg: float = TURN_MIN_DEG,
+    slack_deg: float = BEAR_MIN_DEG,
+) -> dict[tuple[int, int], Decisions]:
+    """(start tag, goal tag) → what ``pg`` tells on that route, for every pair it can route:
+    what a walker hears, needing no reference."""
+    out = {}
+    for a, b in pairs:
+        try:
+            route = plan(pg, TagEnd(a), TagEnd(b))
+        except RouteError:
+            continue
+        out[(a, b)] = Decisions(
+            turns=tuple(announced_turns(route, min_deg=min_deg)),
+            bends=tuple(reference_turns(pg, route, min_deg=slack_deg, end_margin_m=0.0)),
+            way_xz_m=np.asarray(route.polyline_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]],
+        )
+    return out
+
+
+def decision_sides(
+    pg: PathGraph, pairs: Sequence[tuple[int, int]], *, plan: RoutePlanner
+) -> dict[tuple[int, int], str]:
+    """(start tag, goal tag) → the sides of the turns told on ``pg`` ("LR")."""
+    return {k: d.sides for k, d in route_decisions(pg, pairs, plan=plan).items()}
+
+
+def sides_agreement(first: dict[tuple[int, int], str], second: dict[tuple[int, int], str]) -> float:
+    """*Strict agreement* of two maps of one floor: the share of the tag pairs both route whose
+    told turns have the same sides in the same order (nan when they share none)."""
+    common = first.keys() & second.keys()
     if not common:
         return float("nan")
-    return sum(first.sides[k] == second.sides[k] for k in common) / len(common)
+    return sum(first[k] == second[k] for k in common) / len(common)
+
+
+def decisions_agree(
+    first: Decisions, second: Decisions, *, within_m: float = MATCH_WITHIN_M
+) -> bool:
+    """Two maps (in one frame) tell the same decisions on a route: every turn told by one is a
+    bend of the same side within ``within_m`` in the other, both ways, one to one. So a 44°
+    corner told as a 47° turn by one map and measured 43° by the other is no disagreement (the
+    band of :func:`score_tag_routes`), while a turn one map tells and the other does not bend at
+    all, or of the other side, is."""
+    return match_turns(first.turns, second.bends, within_m=within_m)[0] == len(
+        first.turns
+    ) and match_turns(second.turns, first.bends, within_m=within_m)[0] == len(second.turns)
+
+
+#: Two routes whose polylines stay within this of each other (both ways, x–z) go the same way, m.
+SAME_WAY_WITHIN_M = 3.0
+
+
+def same_way(first: Decisions, second: Decisions, *, within_m: float = SAME_WAY_WITHIN_M) -> bool:
+    """Whether the two routes take the same corridors: every vertex of each is within
+    ``within_m`` of the other's polyline (a grid of corridors has routes of equal length round a
+    block; two maps may take either)."""
+    a, b = first.way_xz_m, second.way_xz_m
+    if len(a) == 0 or len(b) == 0:
+        return len(a) == len(b)
+    return all(_distance_to_polyline(p, b) <= within_m for p in a) and all(
+        _distance_to_polyline(p, a) <= within_m for p in b
+    )
+
+
+def decisions_agreement(
+    first: dict[tuple[int, int], Decisions],
+    second: dict[tuple[int, int], Decisions],
+    *,
+    same_way_only: bool = False,
+) -> float:
+    """*Agreement* of two maps of one floor in one frame (issue 26): the share of the tag pairs
+    both route on which they tell the same decisions (:func:`decisions_agree`); with
+    ``same_way_only``, of those both route the same way (:func:`same_way`). nan when there are
+    none."""
+    common = list(first.keys() & second.keys())
+    if same_way_only:
+        common = [k for k in common if same_way(first[k], second[k])]
+    if not common:
+        return float("nan")
+    return sum(decisions_agree(first[k], second[k]) for k in common) / len(common)
+
+
+def same_way_share(
+    first: dict[tuple[int, int], Decisions], second: dict[tuple[int, int], Decisions]
+) -> float:
+    """The share of the tag pairs both route that they route the same way (nan: none)."""
+    common = first.keys() & second.keys()
+    if not common:
+        return float("nan")
+    return sum(same_way(first[k], second[k]) for k in common) / len(common)
+
+
+def map_agreement(
+    first: PathGraph,
+    second: PathGraph,
+    *,
+    plan: RoutePlanner,
+    pairs: Sequence[tuple[int, int]] | None = None,
+) -> float:
+    """:func:`decisions_agreement` of two maps in one frame (their shared tags give the rigid
+    transform) over ``pairs`` (default: every ordered pair of the tags both maps hold)."""
+    if pairs is None:
+        shared = sorted(first.tags.keys() & second.tags.keys())
+        pairs = list(itertools.permutations(shared, 2))
+    return decisions_agreement(
+        route_decisions(first, pairs, plan=plan), route_decisions(second, pairs, plan=plan)
+    )

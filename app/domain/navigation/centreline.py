@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
@@ -18,6 +19,8 @@ from app.domain.frames import FloatArray
 
 BoolArray = npt.NDArray[np.bool_]
 
+#: A branch's line at a junction runs through its points between these multiples of the reach.
+NEAR_REACH, FAR_REACH = 0.5, 1.5
 #: At most this many rounds of cleaning (each round removes or merges at least one branch).
 _MAX_ROUNDS = 100
 
@@ -142,8 +145,8 @@ def _centre_junctions(state: Branches, reach_px: float, max_move_px: float) -> N
             line = state.branches[b][2]
             line = line if from_start else line[::-1]
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
-            near = line[int(np.searchsorted(arc, min(0.5 * reach_px, arc[-1])))]
-            far = line[int(np.searchsorted(arc, min(1.5 * reach_px, arc[-1])))]
+            near = line[int(np.searchsorted(arc, min(NEAR_REACH * reach_px, arc[-1])))]
+            far = line[int(np.searchsorted(arc, min(FAR_REACH * reach_px, arc[-1])))]
             d = far - near
             norm = float(np.linalg.norm(d))
             if norm == 0:
@@ -155,14 +158,21 @@ def _centre_junctions(state: Branches, reach_px: float, max_move_px: float) -> N
         if abs(float(np.linalg.det(normal_sum))) < 1e-6:
             continue
         centre = np.asarray(np.linalg.solve(normal_sum, rhs), dtype=np.float64)
-        if float(np.linalg.norm(centre - state.key_ij[key])) > max_move_px:
+        moved_px = float(np.linalg.norm(centre - state.key_ij[key]))
+        if moved_px > max_move_px:
             continue
         state.key_ij[key] = centre
         for b, from_start in incident:
             u, v, line = state.branches[b]
-            line = line.copy()
-            line[0 if from_start else -1] = centre
-            state.branches[b] = (u, v, line)
+            line = line.copy() if from_start else line[::-1].copy()
+            # the cells the junction left behind would make a hook (a route into the old
+            # junction and back): drop those nearer the new centre than it moved, plus a margin
+            line[0] = centre
+            near = np.linalg.norm(line - centre, axis=1) < moved_px + 0.5 * reach_px
+            near[0] = near[-1] = False
+            first_far = int(np.argmin(near[1:])) + 1 if near[1:].any() else 1
+            line = np.vstack([line[:1], line[first_far:]])
+            state.branches[b] = (u, v, line if from_start else line[::-1])
 
 
 def _prune_stubs(state: Branches, stub_px: float) -> bool:
@@ -202,8 +212,29 @@ def _cut_small_loops(state: Branches, loop_px: float) -> bool:
                 break
             del state.branches[longest]
             group.pop()
+            # what is left of a loop through an open space (a lobby walked round) is its chord,
+            # not one of its sides: the way through goes straight across
+            u, v, _ = state.branches[shortest]
+            state.branches[shortest] = (u, v, np.vstack([state.key_ij[u], state.key_ij[v]]))
             changed = True
-    return changed
+    return changed or _cut_small_cycle(state, loop_px)
+
+
+def _cut_small_cycle(state: Branches, loop_px: float) -> bool:
+    """Remove the longest branch of one cycle through three or more keys that is shorter than
+    ``loop_px`` round (a lobby walked round beside a junction): True if one was cut."""
+    keys: nx.Graph[int] = nx.Graph()
+    for b, (u, v, poly) in state.branches.items():
+        if u != v:
+            keys.add_edge(u, v, branch=b, length=polyline_length(poly))
+    for cycle in nx.cycle_basis(keys):
+        if len(cycle) < 3:
+            continue
+        edges = [keys.edges[a, c] for a, c in zip(cycle, [*cycle[1:], cycle[0]], strict=True)]
+        if sum(e["length"] for e in edges) < loop_px:
+            del state.branches[max(edges, key=lambda e: e["length"])["branch"]]
+            return True
+    return False
 
 
 def _merge_knots(state: Branches, knot_px: float) -> bool:

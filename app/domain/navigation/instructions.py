@@ -130,9 +130,8 @@ def plan_guided_route(
     style: GuidanceStyle = DEFAULT_STYLE,
     floor_labels: Sequence[str] | None = None,
 ) -> Route:
-    """:func:`app.domain.navigation.routing.plan_route` with instructions at decision points only
-    (the walk of :func:`app.domain.navigation.routing.plan_walk`: routing's own steps are not
-    made)."""
+    """The route of :func:`app.domain.navigation.routing.plan_walk` with its instructions, at
+    decision points only (the one instruction writer: issue 26 retired routing's own steps)."""
     walk = measured_walk(pg, start, goal, avoid=avoid)
     route = walk.route
     name, thing_m = _goal(pg, goal)
@@ -157,7 +156,7 @@ def _goal(pg: PathGraph, goal: Endpoint) -> tuple[str, FloatArray | None]:
         case TagEnd(tag_id=tag):
             return f"tag {tag}", np.asarray(pg.tags[tag].position_m)
         case PoiEnd(name=name):
-            found = search_pois(pg, name)  # exact names first; plan_route refused ambiguity
+            found = search_pois(pg, name)  # exact names first; plan_walk refused ambiguity
             if found:
                 return found[0].name, np.asarray(found[0].position_m)
             return name, None

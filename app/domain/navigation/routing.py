@@ -1,11 +1,11 @@
-"""Routes on a path graph: from a tag, a point of interest, a node or a position to another, with
-turn-by-turn steps a screen reader can speak (docs/architecture.md §6).
+"""Routes on a path graph: from a tag, a point of interest, a node or a position to another
+(docs/architecture.md §6). The walk only: what a walker hears on it is worded by
+:mod:`app.domain.navigation.instructions` (``plan_guided_route``), the one instruction writer
+(issue 26 retired the per-leg steps written here).
 
-    route = plan_route(pg, TagEnd(300), PoiEnd("Room 209"), avoid=frozenset({"stairs"}))
+    route = plan_walk(pg, TagEnd(300), PoiEnd("Room 209"), avoid=frozenset({"stairs"}))
     route.length_m                    # 23.4, m, along the polyline
-    [s.instruction for s in route.steps]
-    # ['go straight 12 m', 'turn left', 'go straight 9 m', 'take the elevator up to floor 2',
-    #  'go straight 2 m', 'arrive at Room 209']
+    route.polyline_m, route.floors    # the way, and the floors it visits
     search_pois(pg, "room")           # exact name first, then prefix matches, then substrings
 
 Frames and units: positions are (x, y, z) in the map frame, metres, y up (ARKit's world:
@@ -17,8 +17,7 @@ Design decisions:
 
 - **Where a route starts and ends.** A node endpoint is that node. A tag or point of interest is
   its anchor node: the polyline ends (or starts) there, on the walkable path, never at the thing
-  itself (a tag is on a wall). When the thing is at least ``ARRIVAL_OFFSET_MIN_M`` from the anchor
-  node, the arrival step says where it is ("arrive at Room 209, 2 m to your left"). A position is
+  itself (a tag is on a wall); the instructions say on which side it is. A position is
   joined to the graph at the nearest point on a walk edge of its floor (the floor whose height is
   nearest, then the nearest edge in x–z), so the route starts where the person is, not at a node.
 - **Shortest path.** networkx's bidirectional Dijkstra on ``length_m``, step for step over each
@@ -31,16 +30,7 @@ Design decisions:
   go straight along it.
 - **The polyline** is the path as walked: graph node positions plus the snapped start and goal, and
   ``length_m`` is the sum of its segment lengths (3-D, m).
-- **Steps** are computed on a simplified copy of each walked stretch (Douglas–Peucker in x–z,
-  ``SIMPLIFY_TOLERANCE_M``), so odometry noise and the junction links of an out-and-back walk give
-  no turns. A stretch shorter than ``MIN_LEG_M`` never sets a new heading (a doorway jog is not two
-  turns). Turn thresholds on the signed horizontal angle between legs: |angle| <
-  ``STRAIGHT_MAX_DEG`` (20°) goes straight on, < ``SLIGHT_MAX_DEG`` (45°) is a slight turn, ≤
-  ``TURN_MAX_DEG`` (135°) a turn, beyond that "turn around". No turn is announced at the start (the
-  person's facing is unknown) nor right after stairs or an elevator.
 - **Floors for people** are numbered from 1: floor index 0 (the lowest) is "floor 1".
-- **Distances** in "go straight N m" are whole metres, at least 1; a stretch shorter than
-  ``MIN_GO_STEP_M`` is not announced.
 
 Errors (each ``str(err)`` is one sentence fit for a person):
 
@@ -52,7 +42,6 @@ Errors (each ``str(err)`` is one sentence fit for a person):
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 import threading
@@ -67,7 +56,6 @@ import numpy.typing as npt
 from app.domain.errors import InvisibleMapError
 from app.domain.navigation.floors import assign_floors
 from app.domain.navigation.path_graph import ELEVATOR, JUNCTION, STAIRS, WALK, Anchor, PathGraph
-from app.domain.navigation.path_graph.geometry import douglas_peucker
 from app.domain.navigation.polyline import xyz_array
 from app.domain.navigation.shortest_path import Neighbours, bidirectional_dijkstra, neighbour_lists
 
@@ -84,22 +72,6 @@ AVOID_SETS: tuple[frozenset[str], ...] = (
     AVOIDABLE,
 )
 
-#: Douglas–Peucker tolerance for the instruction polyline, m: about half a corridor's width, so
-#: odometry wobble and the back-and-forth of a walked corridor give no turns (at 0.3 m a 78 m route
-#: on floor_2_straight had 16 turns, at 1 m it has 5).
-SIMPLIFY_TOLERANCE_M = 1.0
-#: A simplified leg shorter than this (horizontal, m) never sets a new heading.
-MIN_LEG_M = 2.0
-#: Below this |turn| (degrees) the way goes straight on.
-STRAIGHT_MAX_DEG = 20.0
-#: Below this |turn| (degrees) a turn is "slight".
-SLIGHT_MAX_DEG = 45.0
-#: Up to this |turn| (degrees) a turn is "turn left/right"; beyond it, "turn around".
-TURN_MAX_DEG = 135.0
-#: A walked stretch shorter than this, m, is not announced as "go straight".
-MIN_GO_STEP_M = 0.5
-#: A tag or POI at least this far (horizontal, m) from its anchor node gets a direction on arrival.
-ARRIVAL_OFFSET_MIN_M = 1.0
 #: A snapped position within this distance of an edge end, m, is that node.
 SNAP_TO_NODE_M = 1e-6
 
@@ -225,23 +197,6 @@ class Route:
 # --------------------------------------------------------------------------- public API
 
 
-def plan_route(
-    pg: PathGraph,
-    start: Endpoint,
-    goal: Endpoint,
-    *,
-    avoid: frozenset[str] = frozenset(),
-) -> Route:
-    """The shortest route on ``pg`` from ``start`` to ``goal`` that uses no edge of a kind in
-    ``avoid`` (a subset of ``{"stairs", "elevator"}``).
-
-    Raises :class:`UnknownEndpoint`, :class:`AmbiguousEndpoint`, :class:`Unreachable` or
-    :class:`RouteError` (see the module docstring).
-    """
-    walk, (floors, kinds, goal_end) = _planned_walk(pg, start, goal, avoid)
-    return dataclasses.replace(walk.route, steps=_steps(walk.xyz, floors, kinds, goal_end))
-
-
 def plan_walk(
     pg: PathGraph,
     start: Endpoint,
@@ -249,9 +204,14 @@ def plan_walk(
     *,
     avoid: frozenset[str] = frozenset(),
 ) -> Route:
-    """:func:`plan_route` without its steps (``steps`` is empty): the walk alone, for a caller
-    that words the steps itself (:mod:`app.domain.navigation.instructions`). Same refusals."""
-    return _planned_walk(pg, start, goal, avoid)[0].route
+    """The shortest route on ``pg`` from ``start`` to ``goal`` that uses no edge of a kind in
+    ``avoid`` (a subset of ``{"stairs", "elevator"}``): the walk alone (``steps`` is empty;
+    :func:`app.domain.navigation.instructions.plan_guided_route` words it).
+
+    Raises :class:`UnknownEndpoint`, :class:`AmbiguousEndpoint`, :class:`Unreachable` or
+    :class:`RouteError` (see the module docstring).
+    """
+    return _planned_walk(pg, start, goal, avoid).route
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -276,14 +236,13 @@ def measured_walk(
     """:func:`plan_walk` with its polyline as an array and its segments' lengths, so that a caller
     wording the steps (:mod:`app.domain.navigation.instructions`) need not make them again. Same
     refusals."""
-    return _planned_walk(pg, start, goal, avoid)[0]
+    return _planned_walk(pg, start, goal, avoid)
 
 
 def _planned_walk(
     pg: PathGraph, start: Endpoint, goal: Endpoint, avoid: frozenset[str]
-) -> tuple[MeasuredWalk, tuple[list[int], list[str], _Terminal]]:
-    """(the walk, its route without steps, and what routing's steps are made of besides its
-    points: the floor of each point, the kind of each segment, the goal's terminal)."""
+) -> MeasuredWalk:
+    """The walk from ``start`` to ``goal`` (see :func:`plan_walk`), measured."""
     avoid = frozenset(avoid)
     bad = avoid - AVOIDABLE
     if bad:
@@ -296,7 +255,7 @@ def _planned_walk(
     walk = _shortest_walk(index, a, b, avoid)
     if walk is None:
         raise _unreachable(index, a, b, avoid)
-    points, floors, kinds, nodes = walk
+    points, floors, _, nodes = walk
     xyz = xyz_array(points)
     step_m = np.diff(xyz, axis=0)
     segments_m = np.sqrt(np.add.reduce(step_m * step_m, axis=1))  # np.linalg.norm(…, axis=1)
@@ -307,10 +266,9 @@ def _planned_walk(
         nodes=nodes,
         steps=[],
     )
-    measured = MeasuredWalk(
+    return MeasuredWalk(
         route=route, xyz=xyz, segment_lengths_m=segments_m.tolist(), lookups=index.lookups
     )
-    return measured, (floors, kinds, b)
 
 
 def search_pois(pg: PathGraph, query: str) -> list[Anchor]:
@@ -341,20 +299,6 @@ def signed_turn_deg(heading_in: Sequence[float], heading_out: Sequence[float]) -
     cross_y = az * bx - ax * bz
     dot = ax * bx + az * bz
     return math.degrees(math.atan2(cross_y, dot))
-
-
-def turn_instruction(turn_deg: float) -> str | None:
-    """ "slight left", "turn right", "turn around"… for a signed turn (+ left), or None when the
-    turn is small enough to go straight on (see the thresholds above)."""
-    size = abs(turn_deg)
-    side = "left" if turn_deg > 0 else "right"
-    if size < STRAIGHT_MAX_DEG:
-        return None
-    if size < SLIGHT_MAX_DEG:
-        return f"slight {side}"
-    if size <= TURN_MAX_DEG:
-        return f"turn {side}"
-    return "turn around"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -388,14 +332,6 @@ ROUNDED_DECIMALS = 9
 def node_lookups(pg: PathGraph) -> NodeLookups:
     """The :class:`NodeLookups` of ``pg``, made once per graph with routing's index."""
     return _edge_index(pg).lookups
-
-
-def simplify_xz(points_m: FloatArray, tolerance_m: float = SIMPLIFY_TOLERANCE_M) -> list[int]:
-    """Douglas–Peucker on (N, 3) points (map frame, m) in the horizontal x–z plane: indices of the
-    points to keep (first and last always), so that no dropped point is farther than
-    ``tolerance_m`` from the kept segment spanning it."""
-    xz = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
-    return [int(i) for i in np.flatnonzero(douglas_peucker(xz, tolerance_m))]
 
 
 # --------------------------------------------------------------------------- endpoints → graph
@@ -741,149 +677,12 @@ def _avoid_phrase(avoid: Iterable[str]) -> str:
     return " or ".join(plural[k] for k in _KIND_ORDER if k in avoided)
 
 
-# --------------------------------------------------------------------------- steps
-
-
-def _steps(xyz: FloatArray, floors: list[int], kinds: list[str], goal: _Terminal) -> list[Step]:
-    """Turn-by-turn steps for the polyline ``xyz`` (N, 3) whose segment i has kind ``kinds[i]``."""
-    steps: list[Step] = []
-    heading: FloatArray | None = None  # (2,) x–z direction at the end of the last walked stretch
-    i = 0
-    while i < len(kinds):
-        j = i
-        while j + 1 < len(kinds) and kinds[j + 1] == kinds[i]:
-            j += 1
-        if kinds[i] == WALK:
-            heading = _walk_steps(xyz[i : j + 2], floors[i : j + 2], steps)
-        else:
-            heading = None
-            steps.append(_floor_change_step(xyz, floors, kinds[i], i, j + 1))
-        i = j + 1
-    steps.append(_arrival_step(xyz[-1], floors[-1], heading, goal))
-    return steps
-
-
-def _walk_steps(xyz: FloatArray, floors: Sequence[int], steps: list[Step]) -> FloatArray | None:
-    """Append "go straight"/turn steps for a walked stretch (N, 3); return its final heading."""
-    segment_m = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-    walked_m = np.concatenate([[0.0], np.cumsum(segment_m)])
-    kept = simplify_xz(xyz)
-    heading: FloatArray | None = None
-    go_from, go_m = 0, 0.0
-    for s, e in itertools.pairwise(kept):
-        leg_m = float(walked_m[e] - walked_m[s])
-        leg_xz = (xyz[e] - xyz[s])[[0, 2]]
-        leg_horizontal_m = float(np.linalg.norm(leg_xz))
-        if leg_horizontal_m < MIN_LEG_M:
-            go_m += leg_m
-            continue
-        direction = leg_xz / leg_horizontal_m
-        if heading is not None:
-            turn_deg = signed_turn_deg(_as_xyz(heading), _as_xyz(direction))
-            instruction = turn_instruction(turn_deg)
-            if instruction is not None:
-                _append_go(steps, xyz[go_from], floors[go_from], go_m)
-                steps.append(
-                    Step(
-                        instruction=instruction,
-                        position_m=_point(xyz[s]),
-                        kind="turn",
-                        distance_m=0.0,
-                        turn_deg=turn_deg,
-                        floor=floors[s],
-                    )
-                )
-                go_from, go_m = s, 0.0
-        heading = direction
-        go_m += leg_m
-    _append_go(steps, xyz[go_from], floors[go_from], go_m)
-    if heading is None:  # only short legs: the overall direction, if any
-        overall = (xyz[-1] - xyz[0])[[0, 2]]
-        norm = float(np.linalg.norm(overall))
-        heading = overall / norm if norm > 0 else None
-    return heading
-
-
-def _append_go(steps: list[Step], at_m: FloatArray, floor: int, distance_m: float) -> None:
-    if distance_m < MIN_GO_STEP_M:
-        return
-    metres = max(1, round(distance_m))
-    steps.append(
-        Step(
-            instruction=f"go straight {metres} m",
-            position_m=_point(at_m),
-            kind="go",
-            distance_m=distance_m,
-            turn_deg=None,
-            floor=floor,
-        )
-    )
-
-
-def _floor_change_step(
-    xyz: FloatArray, floors: Sequence[int], kind: str, first: int, last: int
-) -> Step:
-    """The step for polyline points ``first``..``last`` joined by stairs or elevator edges."""
-    floor_from, floor_to = floors[first], floors[last]
-    rise_m = float(xyz[last, 1] - xyz[first, 1])
-    if floor_to != floor_from:
-        way = " up" if floor_to > floor_from else " down"
-    else:
-        way = " up" if rise_m > 0.5 else " down" if rise_m < -0.5 else ""
-    what = "the stairs" if kind == STAIRS else "the elevator"
-    return Step(
-        instruction=f"take {what}{way} to floor {floor_to + 1}",
-        position_m=_point(xyz[first]),
-        kind="stairs" if kind == STAIRS else "elevator",
-        distance_m=float(np.linalg.norm(np.diff(xyz[first : last + 1], axis=0), axis=1).sum()),
-        turn_deg=None,
-        floor=floor_from,
-    )
-
-
-def _arrival_step(
-    at_m: FloatArray, floor: int, heading: FloatArray | None, goal: _Terminal
-) -> Step:
-    """ "arrive at …", with where the tag or POI is when it is not at the arrival point."""
-    instruction = f"arrive at {goal.name}"
-    if goal.thing_m is not None:
-        offset_xz = (np.asarray(goal.thing_m) - at_m)[[0, 2]]
-        offset_m = float(np.linalg.norm(offset_xz))
-        if offset_m >= ARRIVAL_OFFSET_MIN_M:
-            metres = round(offset_m)
-            if heading is None:
-                instruction += f", {metres} m away"
-            else:
-                bearing = signed_turn_deg(_as_xyz(heading), _as_xyz(offset_xz))
-                side = "left" if bearing > 0 else "right"
-                where = (
-                    "ahead"
-                    if abs(bearing) < SLIGHT_MAX_DEG
-                    else "behind you"
-                    if abs(bearing) > TURN_MAX_DEG
-                    else f"to your {side}"
-                )
-                instruction += f", {metres} m {where}"
-    return Step(
-        instruction=instruction,
-        position_m=_point(at_m),
-        kind="arrive",
-        distance_m=0.0,
-        turn_deg=None,
-        floor=floor,
-    )
-
-
 # --------------------------------------------------------------------------- small helpers
 
 
 def _point(values: Iterable[float]) -> Point3:
     x, y, z = (float(c) for c in values)
     return (x, y, z)
-
-
-def _as_xyz(xz: FloatArray) -> Point3:
-    return (float(xz[0]), 0.0, float(xz[1]))
 
 
 def _without_repeats(values: Iterable[int]) -> list[int]:

@@ -34,7 +34,9 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
 6. **Stairs and elevators** keep the walked poses of the floor change (simplified), joined at both
    ends to the nearest point of their floor's skeleton.
 7. **Anchors.** Each tag and point of interest is attached to the nearest point of a walk edge of
-   its own floor (the edge is split there), so a route ends beside it; its side of the corridor
+   its own floor (the edge is split there), before the stairs are linked to the floors (so a tag
+   beside the stairs is on the corridor, not on the link), so a route ends beside it; its side
+   of the corridor
    follows from where it is relative to the walking direction (see
    ``app.domain.navigation.instructions``).
 
@@ -48,7 +50,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import networkx as nx
 import numpy as np
@@ -94,6 +96,11 @@ class SkeletonParams:
     junction_merge_m            branch points closer than this along a branch are one, m.
     gap_close_m                 dead ends this close and facing each other are joined, m.
     straight_tolerance_m        Douglas–Peucker tolerance of a branch, m.
+    tag_clearance_m             walked positions nearer a tag's wall than this (in front of the
+                                tag, within ``tag_reach_m`` along the wall) count as this far
+                                from it: a walker who stepped or veered to a tag was at the wall,
+                                not in the corridor's middle, m (needs the tags' normals).
+    tag_reach_m                 how far along the wall from a tag that holds, m.
     stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
                                 that still climb at least this steeply (rise over run), so it
                                 starts where the stairs start.
@@ -106,10 +113,12 @@ class SkeletonParams:
     close_m: float = 0.6
     cell_m: float = 0.25
     stub_max_m: float = 3.0
-    loop_max_m: float = 12.0
+    loop_max_m: float = 20.0
     junction_merge_m: float = 3.0
     gap_close_m: float = 4.0
     straight_tolerance_m: float = 0.4
+    tag_clearance_m: float = 0.8
+    tag_reach_m: float = 1.0
     stairs_min_rise_per_run: float = 0.25
     elevator_max_horizontal_m: float = 1.5
     elevator_min_rise_per_run: float = 2.0
@@ -127,13 +136,20 @@ DEFAULT_SKELETON_PARAMS = SkeletonParams()
 
 
 def build_skeleton(
-    result: MapResult, *, params: SkeletonParams = DEFAULT_SKELETON_PARAMS
+    result: MapResult,
+    *,
+    walk_starts: Sequence[int] = (0,),
+    params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
 ) -> PathGraph:
-    """The corridor skeleton of an optimized map (see :func:`build_skeleton_from_arrays`)."""
+    """The corridor skeleton of an optimized map (see :func:`build_skeleton_from_arrays`); a map
+    of several walks passes the first pose row of each (``walk_starts``), so that its skeleton is
+    fused from all of them."""
     return build_skeleton_from_arrays(
         result.world_T_phone[:, :3, 3],
+        walk_starts=walk_starts,
         tag_ids=[int(t) for t in result.tag_ids],
         tag_positions_m=result.world_T_tag[:, :3, 3],
+        tag_normals=result.world_T_tag[:, :3, 2],
         poi_names=result.poi_names,
         poi_positions_m=result.world_T_poi[:, :3, 3],
         params=params,
@@ -143,16 +159,25 @@ def build_skeleton(
 def build_skeleton_from_arrays(
     positions_m: npt.ArrayLike,
     *,
+    walk_starts: Sequence[int] = (0,),
     tag_ids: Sequence[int] = (),
     tag_positions_m: npt.ArrayLike | None = None,
+    tag_normals: npt.ArrayLike | None = None,
     poi_names: Sequence[str] = (),
     poi_positions_m: npt.ArrayLike | None = None,
     params: SkeletonParams = DEFAULT_SKELETON_PARAMS,
 ) -> PathGraph:
-    """The corridor skeleton of a walk (the steps are in the module docstring).
+    """The corridor skeleton of one or several walks (the steps are in the module docstring).
 
-    positions_m: (N, 3) the walked positions in time order, map frame (y up), m.
+    positions_m: (N, 3) the walked positions in time order, map frame (y up), m; several walks
+        one after the other.
+    walk_starts: the row where each walk starts (0 is always one). No segment joins the end of
+        one walk to the start of the next, and floor changes are found walk by walk; the floors'
+        bands are drawn from all of them together, so the passes of every walk along a corridor
+        are evidence of one centreline (a *fused* skeleton, issue 26).
     tag_ids, tag_positions_m: (K,) ids and (K, 3) positions of the tags, m.
+    tag_normals: (K, 3) each tag's +z axis (out of its wall), map frame; with them, positions
+        near a tag's wall are moved out to ``params.tag_clearance_m`` (step 2).
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
@@ -160,14 +185,16 @@ def build_skeleton_from_arrays(
     world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
     if not np.all(np.isfinite(world_p_phone)):
         raise ParameterError("positions_m must be finite")
+    if tag_normals is not None:
+        world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
+        world_p_phone = _away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, params)
     levels_m = find_floor_levels(world_p_phone[:, 1])
     G: nx.Graph[int] = nx.Graph()
     if world_p_phone.shape[0] == 0:
         return PathGraph(floor_levels_m=tuple(float(v) for v in levels_m))
-    pose_floor, changes = _floor_changes(world_p_phone, levels_m, params)
-    on_floor = np.ones(max(world_p_phone.shape[0] - 1, 0), dtype=np.bool_)
-    for change in changes:
-        on_floor[change.first : change.last] = False
+    pose_floor, changes, on_floor = _walks_floor_changes(
+        world_p_phone, _walk_bounds(walk_starts, world_p_phone.shape[0]), levels_m, params
+    )
     for floor in range(len(levels_m)):
         segments = np.flatnonzero(on_floor & (pose_floor[:-1] == floor) & (pose_floor[1:] == floor))
         lone = np.flatnonzero(pose_floor == floor)
@@ -177,22 +204,94 @@ def build_skeleton_from_arrays(
             starts = ends = p_xz[lone[:1]]
         if starts.shape[0]:
             _add_floor(G, starts, ends, floor, float(levels_m[floor]), params)
+    # tags and points of interest go on the corridors before the stairs' links to them exist: a
+    # tag beside the top of the stairs is on the corridor, not on the link (issue 26)
+    corridors_present = G.number_of_nodes() > 0
+    if corridors_present:
+        tags, pois = _attach_all(G, tag_ids, world_p_tag, poi_names, world_p_poi, levels_m)
     for change in changes:
         _add_floor_change(G, world_p_phone, levels_m, change, params)
-    tags = {
-        int(t): attach_anchor(G, str(t), p, levels_m)
-        for t, p in zip(tag_ids, world_p_tag, strict=True)
-    }
-    pois = tuple(
-        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
-    )
+    if not corridors_present:
+        tags, pois = _attach_all(G, tag_ids, world_p_tag, poi_names, world_p_poi, levels_m)
     _mark_junctions(G)
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
     )
 
 
+# --------------------------------------------------------------------------- tags on walls
+
+
+#: A tag this far above or below a position is on another floor, m.
+TAG_SAME_FLOOR_M = 1.5
+
+
+def _away_from_tag_walls(
+    world_p_phone: FloatArray,
+    world_p_tag: FloatArray,
+    world_n_tag: FloatArray,
+    params: SkeletonParams,
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with each position in front of a tag (on its floor, within
+    ``tag_reach_m`` of it along its wall) and nearer its wall than ``tag_clearance_m`` moved
+    straight out from the wall to that distance (step 2): the passes that stepped or veered to a
+    tag then draw the corridor, not the way to its wall."""
+    out = world_p_phone.copy()
+    clearance_m = params.tag_clearance_m
+    for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
+        normal = np.array([n_tag[0], n_tag[2]])
+        norm = float(np.linalg.norm(normal))
+        if norm < 0.5 or clearance_m <= 0:  # a tag on the floor or the ceiling: no wall
+            continue
+        normal /= norm
+        along_wall = np.array([-normal[1], normal[0]])
+        rel = out[:, [0, 2]] - p_tag[[0, 2]]
+        out_m, beside_m = rel @ normal, rel @ along_wall
+        near = (
+            (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
+            & (out_m > -0.5)  # a position just behind the tag's plane is still at its wall
+            & (out_m < clearance_m)
+            & (np.abs(beside_m) < params.tag_reach_m)
+        )
+        if near.any():
+            out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
+    return out
+
+
 # --------------------------------------------------------------------------- floors
+
+
+def _walk_bounds(walk_starts: Sequence[int], n: int) -> list[tuple[int, int]]:
+    """(first row, end row) of each non-empty walk of ``n`` rows starting at ``walk_starts``."""
+    starts = sorted({int(s) for s in walk_starts} | {0})
+    if starts[0] < 0 or starts[-1] > n:
+        raise ParameterError(f"walk_starts must lie in [0, {n}], got {list(walk_starts)}")
+    bounds = zip(starts, [*starts[1:], n], strict=True)
+    return [(a, b) for a, b in bounds if b > a]
+
+
+def _walks_floor_changes(
+    world_p_phone: FloatArray,
+    bounds: list[tuple[int, int]],
+    levels_m: FloatArray,
+    params: SkeletonParams,
+) -> tuple[IntArray, list[_FloorChange], BoolArray]:
+    """(pose floors (N,), the floor changes (rows of the whole array), segments (N − 1,) walked on
+    one floor) of the walks ``bounds``: each walk's floor changes are its own, and the segment
+    from one walk's last pose to the next walk's first is no segment."""
+    n = world_p_phone.shape[0]
+    pose_floor = np.zeros(n, dtype=np.int64)
+    on_floor = np.zeros(max(n - 1, 0), dtype=np.bool_)
+    changes: list[_FloorChange] = []
+    for first, end in bounds:
+        floors, own = _floor_changes(world_p_phone[first:end], levels_m, params)
+        pose_floor[first:end] = floors
+        on_floor[first : end - 1] = True
+        for change in own:
+            change = replace(change, first=change.first + first, last=change.last + first)
+            on_floor[change.first : change.last] = False
+            changes.append(change)
+    return pose_floor, changes, on_floor
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -268,7 +367,9 @@ def _add_floor(
     samples = densify(starts_xz, ends_xz, cell / 2)
     grow_px = (params.corridor_width_m / 2 + params.close_m) / cell
     margin = math.ceil(grow_px) + 3
-    origin = samples.min(axis=0) - margin * cell
+    # the grid's cells sit on multiples of cell_m in the map frame, wherever the walks reach: a
+    # walk added elsewhere does not shift the raster under the corridors already walked
+    origin = (np.floor(samples.min(axis=0) / cell) - margin) * cell
     index = np.floor((samples - origin) / cell).astype(np.int64)
     shape = (int(index[:, 0].max()) + margin + 1, int(index[:, 1].max()) + margin + 1)
     band = np.zeros(shape, dtype=np.bool_)
@@ -285,6 +386,7 @@ def _add_floor(
         reach_px=params.corridor_width_m / cell,
     )
     _emit(G, state, origin, floor, height_m, params)
+    _straighten_through_junctions(G, floor, params)
 
 
 # --------------------------------------------------------------------------- branches → graph
@@ -328,6 +430,152 @@ def _emit(
         for a, b in itertools.pairwise(chain):
             if a != b:
                 _add_walk_edge(G, a, b, floor)
+
+
+#: Two branches of a junction whose directions (to their points ``THROUGH_REACH_M`` out) are
+#: within this of opposite (degrees) are one corridor through it.
+THROUGH_DEG = 20.0
+#: … and each passes within this of the other's (else the corridor jogs there: a decision), m.
+THROUGH_OFFSET_M = 1.0
+#: A branch's line runs through its points this far and twice this far out along it, m.
+THROUGH_REACH_M = 4.0
+
+
+def _straighten_through_junctions(G: nx.Graph[int], floor: int, params: SkeletonParams) -> None:
+    """A corridor that runs straight through a junction runs straight at it: where a space
+    widens there (a lobby beside a T), the centreline bows into it and the junction goes with
+    it, so a walker would be told to bear in and out. Two branches whose lines (through their
+    points ``THROUGH_REACH_M`` and twice that out) are within ``THROUGH_DEG`` of opposite and
+    ``THROUGH_OFFSET_M`` of each other are one corridor: the junction moves onto the line
+    between their nearer points, where another branch's line crosses it (by at most
+    ``junction_merge_m``; none crossing, it stays), and the branches' nodes it passes go (the
+    corridor's up to its nearer points, the others' within the move plus half a corridor
+    width)."""
+    for node in [n for n in G.nodes if G.nodes[n]["floor"] == floor and G.degree[n] >= 3]:
+        if node not in G or G.degree[node] < 3:
+            continue
+        here = np.asarray(G.nodes[node]["position_m"])
+        chains = [_chain(G, node, m) for m in G.neighbors(node)]
+        inner = [m for c in chains for m in c[:-1]]
+        if any(c[-1] == node for c in chains) or len(set(inner)) < len(inner):
+            continue  # a loop through the junction: left to the loop cutting
+        near = [_point_along(G, node, c, THROUGH_REACH_M)[[0, 2]] for c in chains]
+        far = [_point_along(G, node, c, 2 * THROUGH_REACH_M)[[0, 2]] for c in chains]
+        for j in range(len(chains)):  # a branch that ends before 1.5 × the reach has no line
+            if float(np.linalg.norm(far[j] - near[j])) < THROUGH_REACH_M / 2:
+                far[j] = near[j]
+        best: tuple[float, int, int] | None = None
+        for i, k in itertools.combinations(range(len(chains)), 2):
+            a, b = far[i] - near[i], far[k] - near[k]  # the two branches' lines, outward
+            norms = float(np.linalg.norm(a) * np.linalg.norm(b))
+            if norms == 0:
+                continue
+            angle_deg = math.degrees(math.acos(max(-1.0, min(1.0, float(a @ b) / norms))))
+            offset_m = max(  # how far each line passes from the other's near point
+                _off_line_m(near[k], near[i], far[i]), _off_line_m(near[i], near[k], far[k])
+            )
+            if (
+                angle_deg >= 180 - THROUGH_DEG
+                and offset_m <= THROUGH_OFFSET_M
+                and (best is None or angle_deg > best[0])
+            ):
+                best = (angle_deg, i, k)
+        if best is None:
+            continue
+        p, q = near[best[1]], near[best[2]]
+        t = float((here[[0, 2]] - p) @ (q - p) / max(float((q - p) @ (q - p)), 1e-12))
+        on_line = p + t * (q - p)
+        crossings = [  # where the other branches' lines cross the corridor's
+            crossing
+            for j in range(len(chains))
+            if j not in best[1:]
+            and (crossing := _crossing(p, q, near[j], far[j])) is not None
+            and float(np.linalg.norm(crossing - on_line)) <= params.junction_merge_m
+        ]
+        if not crossings:  # no corridor branches off there: the bend is the corridor's own
+            continue
+        on_line = np.mean(crossings, axis=0)
+        move_m = float(np.linalg.norm(on_line - here[[0, 2]]))
+        if move_m < 0.05 or move_m > params.junction_merge_m:
+            continue
+        G.nodes[node]["position_m"] = (float(on_line[0]), float(here[1]), float(on_line[1]))
+        clear_m = move_m + params.corridor_width_m / 2
+        for j, chain in enumerate(chains):
+            if j in best[1:]:  # the corridor runs straight to its point THROUGH_REACH_M out
+                along_m = np.cumsum(
+                    [
+                        math.dist(G.nodes[a]["position_m"], G.nodes[b]["position_m"])
+                        if a != node
+                        else float(np.linalg.norm(np.asarray(G.nodes[b]["position_m"]) - here))
+                        for a, b in itertools.pairwise([node, *chain])
+                    ]
+                )
+                passed = [
+                    m
+                    for m, _ in itertools.takewhile(
+                        lambda md: md[1] < THROUGH_REACH_M, zip(chain[:-1], along_m, strict=False)
+                    )
+                ]
+            else:
+                centre = G.nodes[node]["position_m"]
+                passed = []
+                for m in chain[:-1]:
+                    if math.dist(G.nodes[m]["position_m"], centre) >= clear_m:
+                        break
+                    passed.append(m)
+            kept = chain[len(passed)] if len(passed) < len(chain) else chain[-1]
+            for m in chain[: len(passed)]:
+                if m != kept and m in G and G.degree[m] <= 2:
+                    G.remove_node(m)
+            _add_walk_edge(G, node, kept, floor)
+        for m in list(G.neighbors(node)):
+            G.edges[node, m]["length_m"] = math.dist(
+                G.nodes[node]["position_m"], G.nodes[m]["position_m"]
+            )
+
+
+def _off_line_m(point: FloatArray, a: FloatArray, b: FloatArray) -> float:
+    """Distance of ``point`` from the line through ``a`` and ``b`` (x–z, m)."""
+    d = b - a
+    norm = float(np.linalg.norm(d))
+    if norm == 0:
+        return float(np.linalg.norm(point - a))
+    return abs(float(d[0] * (point - a)[1] - d[1] * (point - a)[0])) / norm
+
+
+def _crossing(p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray | None:
+    """Where the line through ``a`` and ``b`` crosses the line through ``p`` and ``q`` (x–z, m);
+    None when either has no direction or they are within 30° of parallel."""
+    d, e = q - p, b - a
+    cross = float(d[0] * e[1] - d[1] * e[0])
+    norms = float(np.linalg.norm(d) * np.linalg.norm(e))
+    if norms == 0 or abs(cross) < math.sin(math.radians(30)) * norms:
+        return None
+    t = float((a - p)[0] * e[1] - (a - p)[1] * e[0]) / cross
+    return np.asarray(p + t * d, dtype=np.float64)
+
+
+def _chain(G: nx.Graph[int], start: int, first: int) -> list[int]:
+    """The nodes from ``first`` on, leaving ``start``, through nodes of degree 2, up to and
+    including the first node of another degree (or ``start`` again)."""
+    chain, previous, here = [first], start, first
+    while G.degree[here] == 2 and here != start:
+        following = next(m for m in G.neighbors(here) if m != previous)
+        previous, here = here, following
+        chain.append(here)
+    return chain
+
+
+def _point_along(G: nx.Graph[int], start: int, chain: list[int], distance_m: float) -> FloatArray:
+    """The point ``distance_m`` from ``start`` along ``chain`` (its end if shorter), m."""
+    points = [np.asarray(G.nodes[n]["position_m"], dtype=np.float64) for n in [start, *chain]]
+    walked_m = 0.0
+    for a, b in itertools.pairwise(points):
+        step_m = float(np.linalg.norm(b - a))
+        if walked_m + step_m >= distance_m and step_m > 0:
+            return a + (b - a) * (distance_m - walked_m) / step_m
+        walked_m += step_m
+    return points[-1]
 
 
 def _new_node(G: nx.Graph[int], xz: FloatArray, floor: int, height_m: float) -> int:
@@ -446,6 +694,24 @@ def attach_anchor(G: nx.Graph[int], name: str, world_p: FloatArray, levels_m: Fl
     assert node is not None
     x, y, z = (float(c) for c in world_p)
     return Anchor(name=name, node=node, position_m=(x, y, z), floor=floor)
+
+
+def _attach_all(
+    G: nx.Graph[int],
+    tag_ids: Sequence[int],
+    world_p_tag: FloatArray,
+    poi_names: Sequence[str],
+    world_p_poi: FloatArray,
+    levels_m: FloatArray,
+) -> tuple[dict[int, Anchor], tuple[Anchor, ...]]:
+    tags = {
+        int(t): attach_anchor(G, str(t), p, levels_m)
+        for t, p in zip(tag_ids, world_p_tag, strict=True)
+    }
+    pois = tuple(
+        attach_anchor(G, n, p, levels_m) for n, p in zip(poi_names, world_p_poi, strict=True)
+    )
+    return tags, pois
 
 
 def _mark_junctions(G: nx.Graph[int]) -> None:
