@@ -33,7 +33,7 @@ from app.domain.navigation.path_graph import (
     path_graph_from_json,
     path_graph_to_json,
 )
-from app.domain.navigation.routing import NodeEnd, PoiEnd, TagEnd, Unreachable, plan_route
+from app.domain.navigation.routing import NodeEnd, PoiEnd, TagEnd, Unreachable, plan_walk
 from app.domain.navigation.skeleton import build_skeleton_from_arrays
 
 
@@ -159,7 +159,7 @@ def test_quiet_silences_the_turn_announced_at_that_node_only():
 
 def test_add_edge_makes_a_shortcut_and_a_door_is_walked_through():
     pg = t_building()
-    before = plan_route(pg, TagEnd(2), TagEnd(3)).length_m
+    before = plan_walk(pg, TagEnd(2), TagEnd(3)).length_m
     door = apply_new_edit(
         pg, edit({"op": "add_edge", "from": [20, 0, -20], "to": [40, 0, 0], "kind": "door"})
     )
@@ -167,7 +167,7 @@ def test_add_edge_makes_a_shortcut_and_a_door_is_walked_through():
     assert data["kind"] == WALK
     assert data["door"] is True
     assert data["length_m"] == pytest.approx(math.hypot(20, 20))
-    assert plan_route(door, TagEnd(2), TagEnd(3)).length_m == pytest.approx(math.hypot(20, 20))
+    assert plan_walk(door, TagEnd(2), TagEnd(3)).length_m == pytest.approx(math.hypot(20, 20))
     assert before == pytest.approx(40.0)
 
 
@@ -194,10 +194,10 @@ def test_stairs_join_two_floors():
     )
     assert edited.graph.edges[3, 11]["kind"] == STAIRS
     assert edited.graph.edges[3, 11]["floor"] == 0
-    route = plan_route(edited, TagEnd(3), TagEnd(4))
-    assert route.length_m < plan_route(pg, TagEnd(3), TagEnd(4)).length_m
+    route = plan_walk(edited, TagEnd(3), TagEnd(4))
+    assert route.length_m < plan_walk(pg, TagEnd(3), TagEnd(4)).length_m
     with pytest.raises(Unreachable):
-        plan_route(pg, TagEnd(3), TagEnd(4), avoid=frozenset({"stairs"}))
+        plan_walk(pg, TagEnd(3), TagEnd(4), avoid=frozenset({"stairs"}))
 
 
 @pytest.mark.parametrize(
@@ -317,7 +317,7 @@ def test_remove_edge_after_a_shortcut_keeps_everything_reachable():
     )
     pg = apply_new_edit(pg, edit({"op": "remove_edge", "from": [20, 0, 0], "to": [40, 0, 0]}))
     assert not pg.graph.has_edge(1, 3)
-    assert plan_route(pg, TagEnd(1), PoiEnd("Kitchen")).length_m == pytest.approx(
+    assert plan_walk(pg, TagEnd(1), PoiEnd("Kitchen")).length_m == pytest.approx(
         40 + math.hypot(20, 20)
     )
     assert pg.graph.nodes[1]["kind"] == NODE  # two corridors meet there now
@@ -483,7 +483,7 @@ def test_edits_are_found_again_after_a_rebuild_and_after_a_walk_is_added():
         assert all(o.applied for o in edited.outcomes), edited.outcomes
         assert len(quiet_nodes(edited.path_graph)) == 1
         assert [p.name for p in edited.path_graph.pois] == ["Lab"]
-        assert plan_route(edited.path_graph, TagEnd(2), PoiEnd("Lab")).length_m > 0
+        assert plan_walk(edited.path_graph, TagEnd(2), PoiEnd("Lab")).length_m > 0
         assert nx.is_connected(edited.path_graph.graph)
 
 
@@ -505,4 +505,4 @@ def test_a_node_route_still_works_on_an_edited_graph():
         t_building(),
         edit({"op": "add_edge", "from": [10, 0, 0], "to": [20, 0, -20], "kind": "walk"}),
     )
-    assert plan_route(pg, NodeEnd(12), TagEnd(2)).length_m == pytest.approx(math.hypot(10, 20))
+    assert plan_walk(pg, NodeEnd(12), TagEnd(2)).length_m == pytest.approx(math.hypot(10, 20))
