@@ -694,3 +694,22 @@ def test_the_listening_socket_gives_connections_tcp_nodelay() -> None:
     asyncio.run(serve_once())
     assert nodelay
     assert nodelay[0] != 0
+
+
+def test_the_logging_setup_leaves_out_the_http_clients_own_line_per_request() -> None:
+    """``serve --demo`` polls its own API with httpx, in the process whose logging
+    ``configure_logging`` sets up: the server's access line says each request already, so the
+    client's INFO line ("HTTP Request: GET …") must not say it a second time. Its warnings stay."""
+    script = (
+        "import httpx, logging\n"
+        "from workers.main import configure_logging\n"
+        "configure_logging()\n"
+        "transport = httpx.MockTransport(lambda request: httpx.Response(200))\n"
+        "httpx.Client(transport=transport).get('http://127.0.0.1:9/v1/jobs/1')\n"
+        "logging.getLogger('httpx').warning('a warning stays')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert "HTTP Request" not in done.stderr
+    assert "a warning stays" in done.stderr

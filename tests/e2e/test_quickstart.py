@@ -659,6 +659,12 @@ def test_every_quick_start_command_runs_as_printed_and_answers_as_shown(
     assert re.fullmatch(r"ADMIN=im_admin_\S+", next(c for c in commands if c.startswith("ADMIN=")))
     assert not [c for c in commands if "8000" in c and not c.startswith("HOST=")]
 
+    # Each request of the demo's polling is logged once, by the server (its access line), not a
+    # second time by the HTTP client polling in the same process.
+    polls = re.findall(r'"GET /v1/jobs/\d+ HTTP/1.1" 200', demo.log)
+    assert polls, "the demo's polls are not in its log"
+    assert "HTTP Request: GET" not in demo.log, "each poll of the demo is logged twice"
+
     problems = check_demo_output(demo)
     # Twice, in fresh shells: a reader may well run the quick start again.
     for attempt in ("first", "second"):
