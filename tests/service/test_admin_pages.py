@@ -12,11 +12,20 @@ from typing import Any
 
 import pytest
 from admin_support import assert_error_pages, csrf_token, logged_in
-from api_support import ADMIN, ONETAG, SESSIONS_DIR, Api, run_next_job, running_api, session_variant
+from api_support import (
+    ADMIN,
+    ONETAG,
+    SESSIONS_DIR,
+    Api,
+    bearer,
+    run_next_job,
+    running_api,
+    session_variant,
+)
 
 from app.admin.paging import Page
 from app.storage import queue
-from app.storage.orm import JobState
+from app.storage.orm import JobState, Role
 
 pytestmark = pytest.mark.db
 
@@ -97,6 +106,24 @@ def test_sessions_are_searched_by_map_name(api: Api) -> None:
     assert "lab_100%" in literal.text
     assert "Lobby east" not in literal.text
     assert "No session matches" in api.client.get("/admin/sessions?q=zzz").text
+
+
+def test_sessions_name_their_uploader_by_the_keys_name(api: Api) -> None:
+    """Not "key:1": the key's name and id, the environment's admin key as such, an imported
+    owner as stored; a key's name is text of the operator's, shown escaped."""
+    key_id, secret = api.create_key(Role.DEVICE, name="lab iPhone <12>")
+    by_device = api.uploaded(session_variant(ONETAG, map_id="by device"), auth=bearer(secret))
+    by_admin = api.uploaded(session_variant(ONETAG, map_id="by admin"))
+    page = api.client.get("/admin/sessions")
+    assert page.status_code == 200
+    assert f"key:{key_id}" not in page.text
+    assert f"lab iPhone &lt;12&gt; (key {key_id})" in page.text
+    assert "env-admin" not in page.text
+    assert "the admin key from INVISIBLE_MAP_ADMIN_KEY" in page.text
+    detail = api.client.get(f"/admin/sessions/{by_device['session_id']}")
+    assert f"by lab iPhone &lt;12&gt; (key {key_id})" in detail.text
+    admin_detail = api.client.get(f"/admin/sessions/{by_admin['session_id']}")
+    assert "by the admin key from INVISIBLE_MAP_ADMIN_KEY" in admin_detail.text
 
 
 def test_pages_link_to_their_neighbours() -> None:
