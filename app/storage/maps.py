@@ -32,7 +32,7 @@ from app.domain.formats.map_io import map_to_json
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.mapping.map_result import MapResult
 from app.domain.upload.session import display_name_of
-from app.storage import blobs
+from app.storage import blobs, queue
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
 from app.storage.orm import MapRow, MapSession, MapTag, MapVersion, SessionImage, utc_now
@@ -474,10 +474,12 @@ def _gzip_json(document: Any) -> bytes:
 
 
 def delete_map(db_session: Session, map_id: int) -> None:
-    """Delete a map and its versions (the session and its raw upload stay)."""
+    """Delete a map and its versions (the session and its raw upload stay, and so do its jobs,
+    with no map)."""
     if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     MAP_CHANGES.note(db_session, map_id)
+    queue.keep_jobs_of_deleted_map(db_session, map_id)  # not deleted with it
     db_session.execute(delete(MapRow).where(MapRow.id == map_id))
 
 

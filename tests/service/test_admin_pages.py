@@ -181,6 +181,23 @@ def test_cancel_then_retry_a_job_from_its_page(api: Api, upload: dict[str, Any])
         assert queue.get_job(db_session, job_id).state is JobState.QUEUED
 
 
+def test_a_jobs_page_survives_its_maps_deletion_and_says_so(
+    api: Api, upload: dict[str, Any]
+) -> None:
+    assert api.client.delete(f"/v1/maps/{upload['map_id']}", headers=ADMIN).status_code == 204
+    page = api.client.get(f"/admin/jobs/{upload['job_id']}")
+    assert page.status_code == 200
+    assert re.search(r'id="job-map">deleted \(the log says which\)<', page.text)
+    assert f"map {upload['map_id']} deleted; this job is kept" in page.text
+    assert 'data-job-state="canceled"' in page.text  # it was queued: the delete canceled it
+    assert f"Retry job {upload['job_id']}" not in page.text  # no map to build any more
+    live = api.client.get(f"/admin/live/jobs/{upload['job_id']}")
+    assert live.status_code == 200
+    assert "deleted (the log says which)" in live.text
+    listed = api.client.get("/admin/jobs")
+    assert f'href="/admin/jobs/{upload["job_id"]}"' in listed.text
+
+
 def test_jobs_are_listed_by_state(api: Api, upload: dict[str, Any]) -> None:
     assert f'data-job-id="{upload["job_id"]}"' in api.client.get("/admin/jobs?state=queued").text
     assert (

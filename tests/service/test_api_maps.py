@@ -334,7 +334,7 @@ def test_list_maps_paginated_and_by_tag(api: Api) -> None:
         assert api.client.get(f"/v1/maps?{bad}", headers=ADMIN).status_code == 422
 
 
-def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session(
+def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session_and_jobs(
     api: Api, built: dict[str, Any]
 ) -> None:
     url = built["map_url"]
@@ -348,11 +348,17 @@ def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session(
         assert api.client.get(url + path, headers=ADMIN).status_code == 404, path
     assert api.client.post(url + "/rebuild", headers=ADMIN).status_code == 404
     assert api.client.delete(url, headers=ADMIN).status_code == 404
-    for job_id in (built["job_id"], rebuild["job_id"]):
-        assert api.client.get(f"/v1/jobs/{job_id}", headers=ADMIN).status_code == 404
-    assert (api.count(MapRow), api.count(MapVersion), api.count(Job)) == (0, 0, 0)
+    # The jobs stay, with no map, saying so; one whose map is gone cannot be retried.
+    for job_id, state in ((built["job_id"], "succeeded"), (rebuild["job_id"], "canceled")):
+        kept = get(api, f"/v1/jobs/{job_id}")
+        assert (kept["state"], kept["map_id"]) == (state, None)
+        assert kept["log_tail"].endswith(f"map {built['map_id']} deleted; this job is kept\n")
+    retry = api.client.post(f"/v1/jobs/{rebuild['job_id']}/retry", headers=ADMIN)
+    assert retry.status_code == 409
+    assert retry.json()["detail"] == f"job {rebuild['job_id']}'s map was deleted: cannot retry it"
+    assert (api.count(MapRow), api.count(MapVersion), api.count(Job)) == (0, 0, 2)
     session = get(api, f"/v1/sessions/{built['session_id']}")
-    assert (session["map_id"], session["job_ids"]) == (None, [])
+    assert (session["map_id"], session["job_ids"]) == (None, [built["job_id"], rebuild["job_id"]])
     assert api.client.get(f"/v1/sessions/{built['session_id']}/raw", headers=ADMIN).content == (
         OCCAM.read_bytes()
     )
