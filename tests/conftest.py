@@ -51,6 +51,14 @@ def postgres_unavailable_reason() -> str | None:
     return None
 
 
+def pytest_report_header() -> list[str]:
+    """What will be skipped on this machine, said first (``tests/skip_report.py``; ``-q`` hides
+    it, so ``scripts/test`` says it before pytest starts)."""
+    from tests.skip_report import report
+
+    return report()
+
+
 def _database_url(name: str) -> URL:
     return make_url(POSTGRES_ADMIN_URL).set(database=name)
 
