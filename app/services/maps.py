@@ -16,7 +16,8 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.domain.errors import ParameterError
+from app.domain.errors import InvisibleMapError, ParameterError
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
 from app.domain.formats.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
 from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.mapping.params import SlamParams
@@ -179,6 +180,16 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
             field="params.max_iterations",
         )
     return {name: params[name] for name in overrides}
+
+
+def checked_ground_truth(document: dict[str, Any]) -> dict[str, Any]:
+    """``document`` if it is ground truth in the JSON form sweeps take, else a 422
+    ``invalid_ground_truth`` whose detail names the field and the reason."""
+    try:
+        parse_ground_truth_json(document)
+    except InvisibleMapError as err:
+        raise InvalidInput("invalid_ground_truth", str(err), field="ground_truth") from err
+    return document
 
 
 #: Longest display name, characters (the column's size).

@@ -398,6 +398,14 @@ def store_version(
         "shift_opt": _finite_or_none(evaluation.shift_opt),
         "shift_metric_version": SHIFT_METRIC_VERSION,
     }
+    if evaluation.tags_with_ground_truth:  # the build had ground truth (a rebuild's)
+        metrics |= {
+            "gt_metric_pre": _finite_or_none(evaluation.gt_metric_pre),
+            "gt_metric_opt": _finite_or_none(evaluation.gt_metric_opt),
+            "tag_rmse_pre_m": _finite_or_none(evaluation.tag_rmse_pre_m),
+            "tag_rmse_opt_m": _finite_or_none(evaluation.tag_rmse_opt_m),
+            "tags_with_ground_truth": evaluation.tags_with_ground_truth,
+        }
     statistics = {
         "poses": int(result.pose_id.shape[0]),
         "path_length_m": path_length_m,

@@ -48,6 +48,7 @@ from app.services.maps import (
     MapState,
     add_session_to_map,
     app_map_gzip,
+    checked_ground_truth,
     checked_overrides,
     checked_session_ids,
     chosen_version,
@@ -65,7 +66,7 @@ from app.services.version_cache import VersionCache
 from app.storage import maps
 from app.storage.db import Database
 from app.storage.maps import MapInfo, VersionInfo
-from app.storage.sessions import AUTO_TUNE_TRIALS
+from app.storage.sessions import AUTO_TUNE_TRIALS, GROUND_TRUTH
 from app.web.deps import (
     AdminPrincipal,
     DbDep,
@@ -213,8 +214,9 @@ def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> Vers
     summary="Rebuild a map",
     description="Queue a new build of the map's session, optionally with other SLAM "
     "parameters (any SlamParams field; unknown names and out-of-range values are a 422 naming "
-    "the parameter). The new version becomes current when the job succeeds; the raw session is "
-    "never modified (admin).",
+    "the parameter) and ground truth (the version then carries the ground-truth metric; a bad "
+    "one is a 422 invalid_ground_truth naming the field). The new version becomes current when "
+    "the job succeeds; the raw session is never modified (admin).",
     responses=error_responses(401, 403, 404, 422),
 )
 def rebuild_map(
@@ -228,6 +230,9 @@ def rebuild_map(
     overrides = checked_overrides(body.params if body else {})
     if body and body.auto_tune_trials:
         overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
+    answered = dict(overrides)  # the answer does not echo the ground truth
+    if body and body.ground_truth is not None:
+        overrides[GROUND_TRUTH] = checked_ground_truth(body.ground_truth)
     session_ids = body.session_ids if body else None
     if session_ids is not None:
         checked_session_ids(db_session, session_ids)
@@ -238,7 +243,7 @@ def rebuild_map(
         max_attempts=settings.max_attempts,
         session_ids=session_ids,
     )
-    accepted = RebuildAccepted.queued(info, job_id, overrides)
+    accepted = RebuildAccepted.queued(info, job_id, answered)
     if session_ids is not None:
         accepted.session_ids = session_ids
     response.headers["Location"] = accepted.job_url
