@@ -39,6 +39,10 @@ SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
 ADMIN_KEY = "im_test_admin_0123456789abcdef"
 #: The demo sessions ``serve --demo`` uploads (data/sessions and data/demo).
 DEMO_SESSION_COUNT = 8
+#: The demo's maps with ground truth in data/ground_truth, rebuilt with it (a job each).
+DEMO_TRUTH_MAPS = ("occam_room", "floor_2_straight", "straight_209_occam", "desnat_straight_once",
+                   "floor_2_pois")  # fmt: skip
+DEMO_JOB_COUNT = DEMO_SESSION_COUNT + len(DEMO_TRUTH_MAPS)
 KEY_LINE = re.compile(r"^im_[0-9a-f]{8}_[A-Za-z0-9_-]+$")
 
 
@@ -546,12 +550,12 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
             every_s=0.2,
         )
         wait_for(
-            lambda: first.count("/v1/jobs", state="succeeded") == DEMO_SESSION_COUNT,
+            lambda: first.count("/v1/jobs", state="succeeded") == DEMO_JOB_COUNT,
             timeout_s=120,
             what="the demo sessions' jobs to succeed",
             every_s=0.25,
         )
-        assert first.count("/v1/jobs") == DEMO_SESSION_COUNT
+        assert first.count("/v1/jobs") == DEMO_JOB_COUNT
         final = f"demo: {DEMO_SESSION_COUNT} of {DEMO_SESSION_COUNT} maps ready"
         wait_for(lambda: final in first.log(), timeout_s=10, what="the demo's end")
         assert first.terminate() == 0
@@ -566,12 +570,15 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
     announced = re.findall(r"^demo: map (\d+) \((\w+)\) ready: ", log, re.MULTILINE)
     assert sorted(name for _, name in announced) == sorted(uploads)
     assert log.index("ready: ") < log.index(final)
+    # The maps with ground truth were rebuilt with it: their figures are said.
+    with_truth = re.findall(r"^demo: map \d+ \((\w+)\) with ground truth \(\S+\): ", log, re.M)
+    assert sorted(with_truth) == sorted(DEMO_TRUTH_MAPS)
 
     second = DemoServer(url, tmp_path, run=2)
     try:
         wait_for(lambda: final in second.log(), timeout_s=60, what="the demo upload")
         assert second.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT
-        assert second.count("/v1/jobs") == DEMO_SESSION_COUNT  # no job queued again
+        assert second.count("/v1/jobs") == DEMO_JOB_COUNT  # no job queued again
         wait_for(
             lambda: re.search(r"worker \S+ started", second.log()),
             timeout_s=30,

@@ -14,6 +14,7 @@ import pytest
 from admin_support import assert_error_pages, csrf_token, logged_in
 from api_support import (
     ADMIN,
+    OCCAM,
     ONETAG,
     SESSIONS_DIR,
     Api,
@@ -24,6 +25,7 @@ from api_support import (
 )
 
 from app.admin.paging import Page
+from app.config import Settings
 from app.storage import queue
 from app.storage.orm import JobState, Role
 
@@ -254,6 +256,32 @@ def test_the_map_page_has_the_plot_data_tables_versions_and_downloads(
     geojson = api.client.get(f"/admin/maps/{map_id}/geojson")
     assert geojson.json() == api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN).json()
     assert "attachment" in geojson.headers["content-disposition"]
+
+
+def test_the_map_page_shows_the_ground_truth_metric_of_a_version_built_with_it(
+    api: Api, data_dir: Path
+) -> None:
+    accepted = api.uploaded(OCCAM)
+    truth = json.loads((data_dir / "ground_truth" / "occam_room_tape.json").read_text())
+    rebuild = api.client.post(
+        f"/v1/maps/{accepted['map_id']}/rebuild", headers=ADMIN, json={"ground_truth": truth}
+    )
+    assert rebuild.status_code == 202
+    from workers.main import Worker
+
+    worker = Worker(api.db, Settings(database_url="sqlite://", lease_s=60, heartbeat_s=5))
+    while worker.run_once():
+        pass
+    page = api.client.get(f"/admin/maps/{accepted['map_id']}")
+    assert page.status_code == 200
+    metrics = api.client.get(f"/v1/maps/{accepted['map_id']}", headers=ADMIN).json()[
+        "current_version"
+    ]["metrics"]
+    assert re.search(rf'id="gt-metric">{metrics["gt_metric_opt"]:.3g}<', page.text)
+    assert f"Ground-truth metric, pre-optimized</dt><dd>{metrics['gt_metric_pre']:.3g}<" in (
+        page.text
+    )
+    assert "8 tags; pre-optimized" in page.text
 
 
 def test_rebuild_queues_a_job_with_the_changed_parameters_only(
