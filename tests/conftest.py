@@ -24,6 +24,7 @@ from sqlalchemy.engine import URL
 
 from app.storage.db import Database
 from app.storage.migrate import upgrade_to_head
+from tests.demo_support import Demo, running_demo
 
 POSTGRES_ADMIN_URL = os.environ.get(
     "TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -148,3 +149,11 @@ def repo_root() -> Path:
 def data_dir() -> Path:
     """``data/``: the real sessions and ground truth shipped with the project."""
     return DATA_DIR
+
+
+@pytest.fixture(scope="session")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
+    """``invisible-map serve --demo`` as ``scripts/demo`` runs it, once per test process
+    (``tests/demo_support.py``: its users are marked ``xdist_group("demo")``)."""
+    with running_demo(tmp_path_factory.mktemp("demo")) as running:
+        yield running

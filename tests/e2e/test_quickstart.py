@@ -1,7 +1,8 @@
 """The README's quick start, run as printed against a live demo server.
 
-The test starts ``invisible-map serve --demo`` as ``scripts/demo`` does (SQLite in a fresh data
-directory, one worker process, a generated admin key), waits for the demo's maps, then runs every
+The test takes the ``demo`` fixture: ``invisible-map serve --demo`` as ``scripts/demo`` runs it
+(SQLite in a fresh data directory, one worker process, a generated admin key), once its maps are
+built (``tests/demo_support.py``; shared with serve --demo's own test), then runs every
 command of the ``bash`` blocks under the README's "## Quick start" heading, in order, in one shell
 state (variables carry over), from a scratch directory that sees the repository's ``data/``.
 It runs them twice, in fresh shells, as a reader trying it again would. Only two lines are not
@@ -24,19 +25,17 @@ import json
 import os
 import re
 import shlex
-import signal
-import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-import httpx
 import pytest
 
+from tests.demo_support import DEMO_JOBS, INVISIBLE_MAP, Demo
 from tests.e2e.doc_answers import (
     VARYING,
     ElidedJsonError,
@@ -45,17 +44,12 @@ from tests.e2e.doc_answers import (
     parse_elided_json,
 )
 
-pytestmark = pytest.mark.slow
+#: The demo is shared with serve --demo's own test (tests/demo_support.py): one process.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("demo")]
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 README = REPO_ROOT / "README.md"
 API_DOC = REPO_ROOT / "docs" / "api.md"
-#: The console script of this interpreter's environment (what ``.venv/bin/invisible-map`` is).
-INVISIBLE_MAP = Path(sys.executable).with_name("invisible-map")
-DEMO_MAPS = 8
-#: The demo's builds: one per map, and one more for each of the five with ground truth (it
-#: rebuilds them with it, so their versions carry the ground-truth metric).
-DEMO_JOBS = DEMO_MAPS + 5
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 DEMO_POIS = {"Elevator", "Room 210", "Restroom"}
 
@@ -238,92 +232,6 @@ def test_text_lines_compare_words_exactly_numbers_to_their_precision_not_duratio
         "row 'occam_room', column 'shift opt': the docs show 0.0115, output 0.0052",
     ]
     assert compare_text(["map: 9 tags …"], output) != []
-
-
-# --------------------------------------------------------------------------- the demo server
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
-@dataclass
-class Demo:
-    url: str
-    admin_key: str
-    log: str
-
-
-def wait_for(condition: Callable[[], bool], *, timeout_s: float, what: str, log: Path) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}; the server's log:\n{log.read_text()}")
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
-    """``invisible-map serve --demo`` with the embedded defaults, as ``scripts/demo`` runs it."""
-    folder = tmp_path_factory.mktemp("quickstart-demo")
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    env = {
-        name: value
-        for name, value in os.environ.items()
-        if name != "DATABASE_URL" and not name.startswith("INVISIBLE_MAP_")
-    }
-    env.update(INVISIBLE_MAP_DATA_DIR=str(folder / "var"), PYTHONUNBUFFERED="1")
-    log_path = folder / "demo.log"
-    log: IO[bytes] = log_path.open("wb")
-    process = subprocess.Popen(
-        [str(INVISIBLE_MAP), "serve", "--demo", "--port", str(port)],
-        cwd=REPO_ROOT,
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    try:
-        key: list[str] = []
-
-        def key_printed() -> bool:
-            assert process.poll() is None, f"the demo exited:\n{log_path.read_text()}"
-            key.extend(re.findall(r"^admin key for this run: (\S+)$", log_path.read_text(), re.M))
-            return bool(key)
-
-        wait_for(key_printed, timeout_s=60, what="the admin key", log=log_path)
-
-        def maps_built() -> bool:
-            assert process.poll() is None, f"the demo exited:\n{log_path.read_text()}"
-            try:
-                info = httpx.get(
-                    f"{url}/v1/info", headers={"Authorization": f"Bearer {key[0]}"}, timeout=5
-                )
-            except httpx.TransportError:
-                return False
-            # … and the demo has said so (its last line, which the README shows)
-            return (
-                info.status_code == 200
-                and info.json()["jobs_by_state"]["succeeded"] == DEMO_JOBS
-                and re.search(r"^demo: \d+ of \d+ maps ready", log_path.read_text(), re.M)
-                is not None
-            )
-
-        wait_for(maps_built, timeout_s=180, what="the demo's maps", log=log_path)
-        yield Demo(url=url, admin_key=key[0], log=log_path.read_text())
-    finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            try:
-                process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
-        log.close()
 
 
 # --------------------------------------------------------------------------- expectations
