@@ -17,7 +17,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.evaluation.ground_truth import parse_ground_truth_json
+from app.domain.evaluation.ground_truth import ground_truth_to_json, parse_ground_truth_json
 from app.domain.formats.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
 from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.mapping.params import SlamParams
@@ -183,13 +183,13 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def checked_ground_truth(document: dict[str, Any]) -> dict[str, Any]:
-    """``document`` if it is ground truth in the JSON form sweeps take, else a 422
+    """Ground truth in the JSON form sweeps take, as the job keeps it (its poses alone, numbers
+    normalized: no unknown key or text of the client's reaches the database), else a 422
     ``invalid_ground_truth`` whose detail names the field and the reason."""
     try:
-        parse_ground_truth_json(document)
+        return ground_truth_to_json(parse_ground_truth_json(document))
     except InvisibleMapError as err:
         raise InvalidInput("invalid_ground_truth", str(err), field="ground_truth") from err
-    return document
 
 
 #: Longest display name, characters (the column's size).

@@ -268,11 +268,14 @@ def test_a_rebuild_with_ground_truth_makes_a_version_with_the_ground_truth_metri
     API (and so on the map page), the same figures as ``invisible-map evaluate`` gives."""
     truth_path = data_dir / "ground_truth" / "occam_room_tape.json"
     truth = json.loads(truth_path.read_text())
+    truth["note"] = "a\u0000b"  # unknown keys are not kept (a NUL PostgreSQL would refuse)
     response = api.client.post(
         built["map_url"] + "/rebuild", headers=ADMIN, json={"ground_truth": truth}
     )
     assert response.status_code == 202, response.text
     assert response.json()["params"] == {}  # the ground truth is not echoed
+    kept = get(api, f"/v1/jobs/{response.json()['job_id']}")["params"]["ground_truth"]
+    assert set(kept) == {"poses"}
     worker = Worker(api.db, Settings(database_url="sqlite://", lease_s=60, heartbeat_s=5))
     assert worker.run_once()
 
