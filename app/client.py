@@ -226,11 +226,20 @@ class Client:
         versions: list[dict[str, Any]] = body["data"] if isinstance(body, dict) else body
         return versions
 
-    def rebuild_map(self, map_id: int, params: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Queue a new version of the map, optionally with other SLAM parameters."""
-        result: dict[str, Any] = self._json(
-            "POST", f"/v1/maps/{map_id}/rebuild", json={"params": params or {}}
-        )
+    def rebuild_map(
+        self,
+        map_id: int,
+        params: dict[str, Any] | None = None,
+        *,
+        ground_truth: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """Queue a new version of the map, optionally with other SLAM parameters, and with
+        ground truth of its tags (the JSON form; the version then carries the ground-truth
+        metric)."""
+        body: dict[str, Any] = {"params": params or {}}
+        if ground_truth is not None:
+            body["ground_truth"] = ground_truth
+        result: dict[str, Any] = self._json("POST", f"/v1/maps/{map_id}/rebuild", json=body)
         return result
 
     def app_map(self, map_id: int) -> dict[str, Any]:

@@ -16,6 +16,7 @@ import os
 import shutil
 import uuid
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,7 @@ from sqlalchemy.engine import URL
 
 from app.storage.db import Database
 from app.storage.migrate import upgrade_to_head
+from tests.demo_support import Demo, running_demo
 
 POSTGRES_ADMIN_URL = os.environ.get(
     "TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -49,6 +51,14 @@ def postgres_unavailable_reason() -> str | None:
             + (str(err).splitlines()[0])
         )
     return None
+
+
+def pytest_report_header() -> list[str]:
+    """What will be skipped on this machine, said first (``tests/skip_report.py``; ``-q`` hides
+    it, so ``scripts/test`` says it before pytest starts)."""
+    from tests.skip_report import report
+
+    return report()
 
 
 def _database_url(name: str) -> URL:
@@ -94,17 +104,66 @@ def fresh_database_url(
         shutil.copyfile(template, path)
         yield f"sqlite:///{path}"
         return
-    template_name: str = request.getfixturevalue("postgres_template")
-    name = f"im_test_{RUN_ID}_{uuid.uuid4().hex[:8]}"
-    admin = _admin_engine()
-    with admin.connect() as connection:
-        connection.execute(text(f'CREATE DATABASE "{name}" TEMPLATE "{template_name}"'))
+    databases: PostgresDatabases = request.getfixturevalue("postgres_databases")
+    name = databases.take()
     try:
         yield _database_url(name).render_as_string(hide_password=False)
     finally:
-        with admin.connect() as connection:
-            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+        databases.give_back(name)
+
+
+class PostgresDatabases:
+    """Fresh copies of the template database for this test process, made and dropped off the
+    tests' path: while a test runs, the next test's copy is made, and a finished test's is dropped
+    (``CREATE DATABASE … TEMPLATE`` and ``DROP DATABASE`` take ~0.25 s each, and some 500 tests
+    take one). One thread does both, in order; a copy that cannot be made fails the test that
+    takes it, and a drop that fails fails the run at its end."""
+
+    def __init__(self, template: str) -> None:
+        self.template = template
+        self.admin = _admin_engine()
+        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-databases")
+        self.ahead: Future[str] | None = None
+        self.failed_drops: list[str] = []
+
+    def _create(self) -> str:
+        name = f"im_test_{RUN_ID}_{uuid.uuid4().hex[:8]}"
+        with self.admin.connect() as connection:
+            connection.execute(text(f'CREATE DATABASE "{name}" TEMPLATE "{self.template}"'))
+        return name
+
+    def _drop(self, name: str) -> None:
+        try:
+            with self.admin.connect() as connection:
+                connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        except Exception as err:  # reported at the end of the run
+            self.failed_drops.append(f"{name}: {err}")
+
+    def take(self) -> str:
+        """A fresh database's name (the one made ahead, if any); starts making the next."""
+        name = self.ahead.result() if self.ahead is not None else self._create()
+        self.ahead = self.executor.submit(self._create)
+        return name
+
+    def give_back(self, name: str) -> None:
+        self.executor.submit(self._drop, name)
+
+    def close(self) -> None:
+        if self.ahead is not None:
+            try:
+                self.give_back(self.ahead.result())
+            except Exception as err:
+                self.failed_drops.append(f"the copy made ahead: {err}")
+        self.executor.shutdown(wait=True)
+        self.admin.dispose()
+        assert not self.failed_drops, f"test databases not dropped: {self.failed_drops}"
+
+
+@pytest.fixture(scope="session")
+def postgres_databases(postgres_template: str) -> Iterator[PostgresDatabases]:
+    databases = PostgresDatabases(postgres_template)
+    yield databases
+    databases.close()
 
 
 @pytest.fixture(params=[pytest.param(b, marks=pytest.mark.db) for b in ("sqlite", "postgresql")])
@@ -140,3 +199,11 @@ def repo_root() -> Path:
 def data_dir() -> Path:
     """``data/``: the real sessions and ground truth shipped with the project."""
     return DATA_DIR
+
+
+@pytest.fixture(scope="session")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
+    """``invisible-map serve --demo`` as ``scripts/demo`` runs it, once per test process
+    (``tests/demo_support.py``: its users are marked ``xdist_group("demo")``)."""
+    with running_demo(tmp_path_factory.mktemp("demo")) as running:
+        yield running

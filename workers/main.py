@@ -334,11 +334,15 @@ def _wake_only(_signum: int, _frame: FrameType | None) -> None:
 
 
 def configure_logging() -> None:
-    """Log to stderr, one line per record (if nobody configured logging yet)."""
+    """Log to stderr, one line per record (if nobody configured logging yet).
+
+    httpx's line per request (INFO) is left out: the only client in these processes is
+    ``serve --demo`` polling its own API, whose access log already has each request."""
     logging.basicConfig(
         level=logging.INFO,
         format="%(asctime)s %(levelname)s %(processName)s[%(process)d] %(name)s: %(message)s",
     )
+    logging.getLogger("httpx").setLevel(logging.WARNING)
 
 
 def run_worker(settings: Settings, *, signums: Sequence[int]) -> int:

@@ -49,12 +49,14 @@ from sqlalchemy.exc import DataError
 from sqlalchemy.orm import Session as DbSession
 
 from app.domain.errors import InvisibleMapError
+from app.domain.evaluation.ground_truth import parse_ground_truth_json
 from app.domain.evaluation.metrics import joint_shift_metric
 from app.domain.evaluation.sweep_plan import SweepPlan
 from app.domain.evaluation.table import Evaluation, evaluate_map
 from app.domain.evaluation.tuning import SearchSpace, Trial, TuningTarget, best_trial
 from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.formats.map_io import map_from_json, map_to_app_format, map_to_json
+from app.domain.frames import FloatArray
 from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.params import SlamParams
@@ -78,6 +80,7 @@ from app.storage.queue import Lease, LeaseLost
 from app.storage.sessions import (
     AUTO_TUNE_TRIALS,
     BUILD_MAP,
+    GROUND_TRUTH,
     SESSION_IDS,
     STORED_PIECE_BYTES,
     SessionNotFound,
@@ -168,6 +171,8 @@ class JobContext:
     joint: JointMap | None = None
     #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
     auto_tune_trials: int = 0
+    #: build_map with ``ground_truth``: tag id → world_T_tag, for the ground-truth metric
+    ground_truth: dict[int, FloatArray] | None = None
     #: sweep_trials jobs (``workers/sweep.py``): the prepared session and the finished trials
     tuning_target: TuningTarget | None = None
     trials: list[Trial] | None = None
@@ -278,6 +283,8 @@ def load(ctx: JobContext) -> None:
     ctx.previous_version = _current_version(ctx.db, lease.map_id)
     ctx.auto_tune_trials = _auto_tune_trials(overrides.pop(AUTO_TUNE_TRIALS, 0))
     ctx.session_ids = _session_ids(overrides.pop(SESSION_IDS, None), lease.session_id)
+    if (ground_truth := overrides.pop(GROUND_TRUTH, None)) is not None:
+        ctx.ground_truth = parse_ground_truth_json(ground_truth)  # checked by the API already
     ctx.params = SlamParams().with_overrides(overrides)
     if len(ctx.session_ids) > 1:
         if ctx.auto_tune_trials:
@@ -485,10 +492,11 @@ def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
 
 
 def evaluate(ctx: JobContext) -> None:
-    """Shift metric (no ground truth on the server) and the top-down plot."""
+    """Shift metric, the ground-truth metric when the job has ground truth, and the top-down
+    plot."""
     session = _need(ctx.session, "session")
     result = _need(ctx.result, "result")
-    ctx.evaluation = evaluate_map(session, result)
+    ctx.evaluation = evaluate_map(session, result, ctx.ground_truth)
     if ctx.joint is not None:  # the shift metric over each session's own detections
         ctx.evaluation = dataclasses.replace(
             ctx.evaluation,
@@ -502,9 +510,17 @@ def evaluate(ctx: JobContext) -> None:
         logger.warning("job %d: the plot failed", ctx.lease.job_id, exc_info=True)
         ctx.log(f"evaluate: no plot ({type(err).__name__}); the map is stored without one")
         ctx.plot_png = None
+    evaluation = ctx.evaluation
+    truth = (
+        f"ground-truth metric {evaluation.gt_metric_opt:.4g} "
+        f"(pre-optimized {evaluation.gt_metric_pre:.4g}, "
+        f"{evaluation.tags_with_ground_truth} tags), "
+        if ctx.ground_truth is not None
+        else ""
+    )
     ctx.log(
-        f"evaluate: shift metric {ctx.evaluation.shift_opt:.4g} "
-        f"(pre-optimized {ctx.evaluation.shift_pre:.4g}), "
+        f"evaluate: shift metric {evaluation.shift_opt:.4g} "
+        f"(pre-optimized {evaluation.shift_pre:.4g}), {truth}"
         + (f"plot {len(ctx.plot_png) / 1e3:.0f} kB" if ctx.plot_png is not None else "no plot")
     )
 

@@ -37,6 +37,9 @@ DEMO_SESSIONS = (
     ("singletag3times", None),
     ("onetag", None),
 )
+#: The demo session with points of interest (the README's quick start): floor_2_straight with
+#: three added to its ``location_data``, so floor_2_straight's ground truth.
+DEMO_POI_SESSION = ("floor_2_pois", "rtabmap_mac_1_2.txt")
 
 
 class CommandError(Exception):

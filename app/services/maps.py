@@ -15,7 +15,8 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from app.domain.errors import ParameterError
+from app.domain.errors import InvisibleMapError, ParameterError
+from app.domain.evaluation.ground_truth import ground_truth_to_json, parse_ground_truth_json
 from app.domain.formats.derived_documents import APP_MAP_EXPORT as APP_MAP_EXPORT
 from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_bytes
 from app.domain.mapping.params import SlamParams
@@ -278,6 +279,16 @@ def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     return {name: params[name] for name in overrides}
 
 
+def checked_ground_truth(document: dict[str, Any]) -> dict[str, Any]:
+    """Ground truth in the JSON form sweeps take, as the job keeps it (its poses alone, numbers
+    normalized: no unknown key or text of the client's reaches the database), else a 422
+    ``invalid_ground_truth`` whose detail names the field and the reason."""
+    try:
+        return ground_truth_to_json(parse_ground_truth_json(document))
+    except InvisibleMapError as err:
+        raise InvalidInput("invalid_ground_truth", str(err), field="ground_truth") from err
+
+
 #: Longest display name, characters (the column's size).
 MAX_DISPLAY_NAME_LENGTH = 200
 #: Media type of the pictures the app sends.
@@ -322,16 +333,16 @@ def app_map_content(db_session: Session, version: VersionInfo) -> bytes:
 
 
 def delete_map_and_jobs(db_session: Session, map_id: int) -> None:
-    """Cancel the map's unfinished jobs and delete it with its versions and jobs, in the caller's
-    transaction. Raises MapNotFound (and the caller's rollback undoes the cancel). The map row
+    """Cancel the map's unfinished jobs and delete it with its versions, in the caller's
+    transaction; its jobs stay, with no map (``maps.delete_map``). Raises MapNotFound (and the
+    caller's rollback undoes the cancel). The map row
     is locked first (``maps.lock_maps``), then its jobs, the order every change of a map and
     every build storing into it takes, so none of them deadlocks with it; a rebuild racing it
     waits for it and then finds no map."""
     maps.lock_maps(db_session, [map_id], for_delete=True)
     if db_session.get(MapRow, map_id) is None:
         raise maps.MapNotFound(map_id)
-    queue.cancel_unfinished_for_map(db_session, map_id)
-    maps.delete_map(db_session, map_id)
+    maps.delete_map(db_session, map_id)  # cancels the unfinished jobs, keeps them all
 
 
 def chosen_version(db_session: Session, info: MapInfo, number: int | None) -> VersionInfo:

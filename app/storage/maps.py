@@ -41,7 +41,7 @@ from app.domain.formats.map_io import map_to_json
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.mapping.map_result import MapResult
 from app.domain.upload.session import display_name_of
-from app.storage import blobs
+from app.storage import blobs, queue
 from app.storage.changes import MAP_CHANGES
 from app.storage.db import Database
 from app.storage.orm import (
@@ -512,6 +512,14 @@ def store_version(
         "shift_opt": _finite_or_none(evaluation.shift_opt),
         "shift_metric_version": SHIFT_METRIC_VERSION,
     }
+    if evaluation.tags_with_ground_truth:  # the build had ground truth (a rebuild's)
+        metrics |= {
+            "gt_metric_pre": _finite_or_none(evaluation.gt_metric_pre),
+            "gt_metric_opt": _finite_or_none(evaluation.gt_metric_opt),
+            "tag_rmse_pre_m": _finite_or_none(evaluation.tag_rmse_pre_m),
+            "tag_rmse_opt_m": _finite_or_none(evaluation.tag_rmse_opt_m),
+            "tags_with_ground_truth": evaluation.tags_with_ground_truth,
+        }
     statistics = {
         "poses": int(result.pose_id.shape[0]),
         "path_length_m": path_length_m,
@@ -589,11 +597,13 @@ def _gzip_json(document: Any) -> bytes:
 
 
 def delete_map(db_session: Session, map_id: int) -> None:
-    """Delete a map and its versions (the session and its raw upload stay)."""
+    """Delete a map and its versions (the session and its raw upload stay, and so do its jobs,
+    with no map)."""
     lock_maps(db_session, [map_id], for_delete=True)
     if db_session.get(MapRow, map_id) is None:
         raise MapNotFound(map_id)
     MAP_CHANGES.note(db_session, map_id)
+    queue.keep_jobs_of_deleted_map(db_session, map_id)  # not deleted with it
     db_session.execute(delete(MapRow).where(MapRow.id == map_id))
 
 

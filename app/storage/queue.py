@@ -64,6 +64,17 @@ class InvalidTransition(QueueError):
         self.action = action
 
 
+class MapOfJobDeleted(InvalidTransition):
+    """Raised when a job whose map was deleted is to be retried: there is no map to build."""
+
+    def __init__(self, job_id: int, state: str) -> None:
+        super().__init__(job_id, state, "retry")
+        self.args = (f"job {job_id}'s map was deleted: cannot retry it",)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class JobInfo:
     """A job as the API shows it."""
@@ -93,6 +104,12 @@ class JobInfo:
     @classmethod
     def from_row(cls, row: Job) -> JobInfo:
         return info_from_row(cls, row)
+
+    @property
+    def map_deleted(self) -> bool:
+        """Whether the job's map was deleted (the job kept, :func:`keep_jobs_of_deleted_map`):
+        a map's job names its session too, and a deleted session takes its jobs with it."""
+        return self.map_id is None and self.session_id is not None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -328,6 +345,8 @@ def retry(db_session: Session, job_id: int, *, now: datetime | None = None) -> J
     row = _locked(db_session, job_id)
     if row.state not in (JobState.FAILED, JobState.CANCELED):
         raise InvalidTransition(job_id, row.state, "retry")
+    if row.map_id is None and row.session_id is not None:  # map deleted (JobInfo.map_deleted)
+        raise MapOfJobDeleted(job_id, row.state)
     row.state = JobState.QUEUED.value
     row.attempts = 0
     row.error = None
@@ -361,6 +380,25 @@ def cancel_unfinished_for_map(
         .values(cancel_requested=True, updated_at=now),
     )
     return queued + running
+
+
+def keep_jobs_of_deleted_map(
+    db_session: Session, map_id: int, *, now: datetime | None = None
+) -> int:
+    """Let the jobs of map ``map_id``, which the caller deletes in this transaction, outlive it
+    (the map's foreign key would delete them): their ``map_id`` becomes null, their log says the
+    map was deleted, and their page and ``GET /v1/jobs/{id}`` still answer; the queued ones are
+    canceled first, the running ones asked to stop (:func:`cancel_unfinished_for_map`). Returns
+    how many."""
+    now = now or utc_now()
+    cancel_unfinished_for_map(db_session, map_id, now=now)
+    line = _log_line(now, f"map {map_id} deleted; this job is kept")
+    return _rowcount(
+        db_session,
+        update(Job)
+        .where(Job.map_id == map_id)
+        .values(map_id=None, updated_at=now, log_tail=Job.log_tail + line),
+    )
 
 
 def _rowcount(db_session: Session, statement: Update) -> int:
@@ -830,6 +868,7 @@ __all__ = [
     "JobNotFound",
     "Lease",
     "LeaseLost",
+    "MapOfJobDeleted",
     "QueueError",
     "WorkerInfo",
 ]

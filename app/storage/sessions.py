@@ -47,6 +47,9 @@ AUTO_TUNE_TRIALS = "auto_tune_trials"
 #: A build_map job parameter: the sessions of a map of several, in order (absent: the job's one
 #: ``session_id``). The job, and so the version it makes, records exactly which it used.
 SESSION_IDS = "session_ids"
+#: A build_map job parameter: ground truth of the map's tags (the JSON form sweeps take); the
+#: version it makes carries the ground-truth metric and tag RMSE beside the shift metric.
+GROUND_TRUTH = "ground_truth"
 #: Longest ``map_id`` (the app's map name) a session may have, characters.
 MAX_MAP_NAME_LENGTH = 200
 #: Longest idempotency key, characters.

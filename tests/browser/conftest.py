@@ -18,20 +18,9 @@ from dashboard_support import TIMEOUT_MS, log_in
 
 from app.cli.server_process import ServerProcess, WorkerProcess
 from app.client import Client
+from tests.skip_report import CHROMIUM, browser_unavailable_reason
 
-CHROMIUM = Path("/usr/bin/chromium")
 REQUIRE_BROWSER = os.environ.get("INVISIBLE_MAP_REQUIRE_BROWSER") == "1"
-
-
-def browser_unavailable_reason() -> str | None:
-    """None if the browser tests can run, else why not."""
-    if not CHROMIUM.is_file():
-        return f"{CHROMIUM} is missing (apt-get install chromium)"
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError as err:
-        return f"playwright is not installed ({err})"
-    return None
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from cli_support import assert_one_line_error
 
 from app.cli.server_process import ServerProcess
 from app.config import DEFAULT_API_PROCESSES_CAP, Settings, default_api_processes
+from tests.conftest import fresh_database_url
 from tests.service.helpers import wait_for
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -51,8 +52,22 @@ def answered_by(server: ServerProcess, path: str = "/healthz") -> int:
     return int(response.headers["X-Api-Process"])
 
 
-@pytest.fixture
-def two_api_processes(database_url: str, tmp_path: Path) -> Iterator[ServerProcess]:
+@pytest.fixture(
+    scope="module",
+    params=[pytest.param(b, marks=pytest.mark.db) for b in ("sqlite", "postgresql")],
+)
+def two_api_processes(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[ServerProcess]:
+    """One server with two API processes per database, for the two tests below, in order: the
+    first only reads and uploads, the second kills its processes and stops it (starting it
+    cost ~7 s a test)."""
+    tmp_path = tmp_path_factory.mktemp("two-api-processes")
+    for database_url in fresh_database_url(request.param, request, tmp_path):
+        yield from _two_api_processes(database_url, tmp_path)
+
+
+def _two_api_processes(database_url: str, tmp_path: Path) -> Iterator[ServerProcess]:
     server = ServerProcess(
         database_url,
         workers=1,
@@ -68,6 +83,7 @@ def two_api_processes(database_url: str, tmp_path: Path) -> Iterator[ServerProce
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("two_api_processes")
 def test_two_api_processes_answer_and_share_the_upload_limit(
     two_api_processes: ServerProcess,
 ) -> None:
@@ -111,6 +127,7 @@ def test_two_api_processes_answer_and_share_the_upload_limit(
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("two_api_processes")
 def test_a_killed_api_process_is_replaced_and_sigterm_stops_them_all(
     two_api_processes: ServerProcess,
 ) -> None:

@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -32,6 +33,7 @@ from app.storage import keys
 from app.storage.db import Database
 from app.storage.migrate import current_revision, head_revision, is_current
 from app.storage.orm import JobState, Role, utc_now
+from tests.demo_support import Demo
 from tests.service.helpers import get_job, insert_session, wait_for
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -39,6 +41,9 @@ SESSIONS_DIR = REPO_ROOT / "data" / "sessions"
 ADMIN_KEY = "im_test_admin_0123456789abcdef"
 #: The demo sessions ``serve --demo`` uploads (data/sessions and data/demo).
 DEMO_SESSION_COUNT = 8
+#: The demo's maps with ground truth in data/ground_truth, rebuilt with it (a job each).
+DEMO_TRUTH_MAPS = ("occam_room", "floor_2_straight", "straight_209_occam", "desnat_straight_once",
+                   "floor_2_pois")  # fmt: skip
 KEY_LINE = re.compile(r"^im_[0-9a-f]{8}_[A-Za-z0-9_-]+$")
 
 
@@ -562,29 +567,16 @@ def demo_uploads(log: str) -> dict[str, int]:
 
 
 @pytest.mark.slow
-def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) -> None:
-    url = f"sqlite:///{tmp_path / 'demo.sqlite3'}"
-    first = DemoServer(url, tmp_path, run=1)
-    try:
-        wait_for(
-            lambda: first.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT,
-            timeout_s=60,
-            what="the demo sessions to be uploaded",
-            every_s=0.2,
-        )
-        wait_for(
-            lambda: first.count("/v1/jobs", state="succeeded") == DEMO_SESSION_COUNT,
-            timeout_s=120,
-            what="the demo sessions' jobs to succeed",
-            every_s=0.25,
-        )
-        assert first.count("/v1/jobs") == DEMO_SESSION_COUNT
-        final = f"demo: {DEMO_SESSION_COUNT} of {DEMO_SESSION_COUNT} maps ready"
-        wait_for(lambda: final in first.log(), timeout_s=10, what="the demo's end")
-        assert first.terminate() == 0
-    finally:
-        first.close()
-    log = first.log()
+@pytest.mark.xdist_group("demo")  # the demo is shared with the quick start's test
+def test_serve_demo_uploads_and_builds_the_demo_sessions_once(demo: Demo, tmp_path: Path) -> None:
+    """The demo (``tests/demo_support.py``, as scripts/demo runs it): every demo session
+    uploaded and built, each map announced as it becomes ready, those with ground truth rebuilt
+    with it, then the final count; restarted on (a copy of) its database, it finds them all and
+    queues nothing. The quick start's test may have added to the demo's database: only the
+    demo's own sessions and jobs are counted."""
+    log = demo.log
+    final = f"demo: {DEMO_SESSION_COUNT} of {DEMO_SESSION_COUNT} maps ready"
+    assert final in log
     uploads = demo_uploads(log)
     assert sorted(uploads) == sorted([*(name for name, _ in DEMO_SESSIONS), "floor_2_pois"])
     assert "not uploaded" not in log
@@ -593,12 +585,25 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
     announced = re.findall(r"^demo: map (\d+) \((\w+)\) ready: ", log, re.MULTILINE)
     assert sorted(name for _, name in announced) == sorted(uploads)
     assert log.index("ready: ") < log.index(final)
+    # The maps with ground truth were rebuilt with it: their figures are said.
+    with_truth = re.findall(r"^demo: map \d+ \((\w+)\) with ground truth \(\S+\): ", log, re.M)
+    assert sorted(with_truth) == sorted(DEMO_TRUTH_MAPS)
+    jobs = [
+        int(job) for job in re.findall(r"^demo: \w+: session \d+, map \d+, job (\d+)$", log, re.M)
+    ]
+    with httpx.Client(
+        base_url=demo.url, headers={"Authorization": f"Bearer {demo.admin_key}"}
+    ) as client:
+        states = {job: client.get(f"/v1/jobs/{job}").json()["state"] for job in jobs}
+    assert set(states.values()) == {"succeeded"}, states
 
-    second = DemoServer(url, tmp_path, run=2)
+    copy = demo.database_copy(tmp_path / "demo-copy.sqlite3")
+    before = rows_in(copy)
+    second = DemoServer(f"sqlite:///{copy}", tmp_path, run=2)
     try:
         wait_for(lambda: final in second.log(), timeout_s=60, what="the demo upload")
-        assert second.count("/v1/sessions", limit=50) == DEMO_SESSION_COUNT
-        assert second.count("/v1/jobs") == DEMO_SESSION_COUNT  # no job queued again
+        assert second.count("/v1/sessions", limit=50) == before["session"]
+        assert second.count("/v1/jobs") == before["job"]  # no job queued again
         wait_for(
             lambda: re.search(r"worker \S+ started", second.log()),
             timeout_s=30,
@@ -610,9 +615,18 @@ def test_serve_demo_uploads_and_builds_the_demo_sessions_once(tmp_path: Path) ->
         second.close()
     log = second.log()
     assert demo_uploads(log) == uploads  # the same sessions, found again
+    assert "with ground truth" not in log  # their versions have it already
     assert "SIGTERM received: finishing the current job" in log
     assert "is gone" not in log
     assert "Traceback" not in log
+
+
+def rows_in(sqlite_path: Path) -> dict[str, int]:
+    with sqlite3.connect(sqlite_path) as connection:
+        return {
+            table: connection.execute(f"SELECT count(*) FROM {table}").fetchone()[0]
+            for table in ("session", "job")
+        }
 
 
 # --------------------------------------------------------------------------- worker
@@ -721,3 +735,22 @@ def test_the_listening_socket_gives_connections_tcp_nodelay() -> None:
     asyncio.run(serve_once())
     assert nodelay
     assert nodelay[0] != 0
+
+
+def test_the_logging_setup_leaves_out_the_http_clients_own_line_per_request() -> None:
+    """``serve --demo`` polls its own API with httpx, in the process whose logging
+    ``configure_logging`` sets up: the server's access line says each request already, so the
+    client's INFO line ("HTTP Request: GET …") must not say it a second time. Its warnings stay."""
+    script = (
+        "import httpx, logging\n"
+        "from workers.main import configure_logging\n"
+        "configure_logging()\n"
+        "transport = httpx.MockTransport(lambda request: httpx.Response(200))\n"
+        "httpx.Client(transport=transport).get('http://127.0.0.1:9/v1/jobs/1')\n"
+        "logging.getLogger('httpx').warning('a warning stays')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert "HTTP Request" not in done.stderr
+    assert "a warning stays" in done.stderr

@@ -5,6 +5,7 @@ transaction), so that maps get versions without a worker process."""
 from __future__ import annotations
 
 import gzip
+import hashlib
 import json
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -19,7 +20,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from app.config import Settings
-from app.domain.evaluation.table import evaluate_map
+from app.domain.evaluation.table import Evaluation, evaluate_map
+from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import optimize_session
 from app.domain.navigation.path_graph import build_path_graph, path_graph_to_json
@@ -118,6 +120,46 @@ def session_variant(path: Path, **changes: Any) -> bytes:
     return json.dumps(document).encode()
 
 
+@dataclass(frozen=True)
+class _Build:
+    """What :func:`run_next_job` computes for an upload (the same on every database)."""
+
+    path_length_m: float
+    result: MapResult
+    evaluation: Evaluation
+    plot_png: bytes | None
+    path_graph_json: bytes | None
+
+
+#: :func:`run_next_job`'s builds by (upload's SHA-256, parameters, plot, path graph), in this
+#: test process: a build is deterministic, and most tests build one of a few small sessions once
+#: per database (and some a 20,000-pose walk), so the second is the first's (at most 16 kept).
+_BUILDS: dict[tuple[str, str, bool, bool], _Build] = {}
+
+
+def _build(raw: bytes, params: dict[str, Any], *, plot: bool, path_graph: bool) -> _Build:
+    key = (hashlib.sha256(raw).hexdigest(), json.dumps(params, sort_keys=True), plot, path_graph)
+    if key not in _BUILDS:
+        parsed = parse_session(decode_json_bytes(raw))
+        result = optimize_session(parsed, SlamParams().with_overrides(params))
+        png = None
+        if plot:
+            from app.render.map_plot import render_map_png
+
+            png = render_map_png(result, parsed)
+        graph = path_graph_to_json(build_path_graph(result)) if path_graph else None
+        if len(_BUILDS) >= 16:
+            _BUILDS.clear()
+        _BUILDS[key] = _Build(
+            path_length_m=parsed.path_length_m(),
+            result=result,
+            evaluation=evaluate_map(parsed, result),
+            plot_png=png,
+            path_graph_json=None if graph is None else json.dumps(graph).encode(),
+        )
+    return _BUILDS[key]
+
+
 def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) -> int | None:
     """Do what a worker does with the next queued build job; returns its id (None if none).
     The version gets a plot and a path graph only when asked (they take time)."""
@@ -128,24 +170,17 @@ def run_next_job(db: Database, *, plot: bool = False, path_graph: bool = False) 
     assert lease.map_id is not None
     with db.read() as db_session:
         raw = sessions.raw_upload(db_session, lease.session_id)
-    parsed = parse_session(decode_json_bytes(raw))
-    result = optimize_session(parsed, SlamParams().with_overrides(lease.params))
-    evaluation = evaluate_map(parsed, result)
-    png = None
-    if plot:
-        from app.render.map_plot import render_map_png
-
-        png = render_map_png(result, parsed)
+    build = _build(raw, dict(lease.params), plot=plot, path_graph=path_graph)
     with db.transaction() as db_session:
         maps.store_version(
             db_session,
             map_id=lease.map_id,
             job_id=lease.job_id,
-            result=result,
-            evaluation=evaluation,
-            path_length_m=parsed.path_length_m(),
-            plot_png=png,
-            path_graph=path_graph_to_json(build_path_graph(result)) if path_graph else None,
+            result=build.result,
+            evaluation=build.evaluation,
+            path_length_m=build.path_length_m,
+            plot_png=build.plot_png,
+            path_graph=None if build.path_graph_json is None else json.loads(build.path_graph_json),
         )
         queue.finish(db_session, lease, log_tail=lease.log_tail)
     return lease.job_id

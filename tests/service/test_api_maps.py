@@ -14,12 +14,16 @@ import numpy as np
 import pytest
 from api_support import ADMIN, OCCAM, ONETAG, Api, run_next_job, running_api, session_variant
 
+from app.config import Settings
+from app.domain.evaluation.ground_truth import load_ground_truth
+from app.domain.evaluation.table import evaluate_map
 from app.domain.formats.map_io import map_to_app_format
 from app.domain.frames import pose_to_xyz_quat_xyzw
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import optimize_session
 from app.domain.upload.session import load_session
 from app.storage.orm import Job, MapRow, MapVersion, SessionRow
+from workers.main import Worker
 
 pytestmark = pytest.mark.db
 
@@ -257,6 +261,65 @@ def test_rebuild_with_parameters_adds_a_version_and_leaves_the_session_alone(
     assert api.count(SessionRow) == 1
 
 
+def test_a_rebuild_with_ground_truth_makes_a_version_with_the_ground_truth_metric(
+    api: Api, built: dict[str, Any], data_dir: Path
+) -> None:
+    """What the demo does for its maps with ground truth: the version shows the metric in the
+    API (and so on the map page), the same figures as ``invisible-map evaluate`` gives."""
+    truth_path = data_dir / "ground_truth" / "occam_room_tape.json"
+    truth = json.loads(truth_path.read_text())
+    truth["note"] = "a\u0000b"  # unknown keys are not kept (a NUL PostgreSQL would refuse)
+    response = api.client.post(
+        built["map_url"] + "/rebuild", headers=ADMIN, json={"ground_truth": truth}
+    )
+    assert response.status_code == 202, response.text
+    assert response.json()["params"] == {}  # the ground truth is not echoed
+    kept = get(api, f"/v1/jobs/{response.json()['job_id']}")["params"]["ground_truth"]
+    assert set(kept) == {"poses"}
+    worker = Worker(api.db, Settings(database_url="sqlite://", lease_s=60, heartbeat_s=5))
+    assert worker.run_once()
+
+    current = get(api, built["map_url"])["current_version"]
+    assert current["number"] == 2
+    session = load_session(OCCAM)
+    expected = evaluate_map(
+        session, optimize_session(session, SlamParams()), load_ground_truth(truth_path)
+    )
+    metrics = current["metrics"]
+    assert metrics["gt_metric_opt"] == pytest.approx(expected.gt_metric_opt, rel=1e-6)
+    assert metrics["gt_metric_pre"] == pytest.approx(expected.gt_metric_pre, rel=1e-6)
+    assert metrics["tag_rmse_opt_m"] == pytest.approx(expected.tag_rmse_opt_m, rel=1e-6)
+    assert metrics["tags_with_ground_truth"] == 8
+    assert (
+        "ground-truth metric 0.05" in get(api, f"/v1/jobs/{response.json()['job_id']}")["log_tail"]
+    )
+    first = get(api, built["map_url"] + "/versions/1")
+    assert "gt_metric_opt" not in first["metrics"]  # built without ground truth
+
+
+#: Bad ground truth for a rebuild, and what the 422's detail names.
+BAD_GROUND_TRUTH = [
+    ({"poses": []}, "poses: empty, no tag poses"),
+    ({"poses": [{"tag_id": 1, "pose": [0, 0, 0, 0, 0, 0]}]}, "poses[0].pose"),
+    ({"tags": []}, "poses: missing"),
+]
+
+
+def test_a_rebuild_with_bad_ground_truth_is_422_and_queues_nothing(
+    api: Api, built: dict[str, Any]
+) -> None:
+    jobs_before = api.count(Job)
+    for truth, detail in BAD_GROUND_TRUTH:
+        response = api.client.post(
+            built["map_url"] + "/rebuild", headers=ADMIN, json={"ground_truth": truth}
+        )
+        assert response.status_code == 422, truth
+        body = response.json()
+        assert (body["code"], body["field"]) == ("invalid_ground_truth", "ground_truth")
+        assert detail in body["detail"]
+    assert api.count(Job) == jobs_before
+
+
 def test_rebuild_without_body_uses_the_defaults(api: Api, built: dict[str, Any]) -> None:
     response = api.client.post(built["map_url"] + "/rebuild", headers=ADMIN)
 
@@ -334,7 +397,7 @@ def test_list_maps_paginated_and_by_tag(api: Api) -> None:
         assert api.client.get(f"/v1/maps?{bad}", headers=ADMIN).status_code == 422
 
 
-def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session(
+def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session_and_jobs(
     api: Api, built: dict[str, Any]
 ) -> None:
     url = built["map_url"]
@@ -348,11 +411,17 @@ def test_delete_cancels_jobs_removes_map_and_versions_keeps_the_session(
         assert api.client.get(url + path, headers=ADMIN).status_code == 404, path
     assert api.client.post(url + "/rebuild", headers=ADMIN).status_code == 404
     assert api.client.delete(url, headers=ADMIN).status_code == 404
-    for job_id in (built["job_id"], rebuild["job_id"]):
-        assert api.client.get(f"/v1/jobs/{job_id}", headers=ADMIN).status_code == 404
-    assert (api.count(MapRow), api.count(MapVersion), api.count(Job)) == (0, 0, 0)
+    # The jobs stay, with no map, saying so; one whose map is gone cannot be retried.
+    for job_id, state in ((built["job_id"], "succeeded"), (rebuild["job_id"], "canceled")):
+        kept = get(api, f"/v1/jobs/{job_id}")
+        assert (kept["state"], kept["map_id"]) == (state, None)
+        assert kept["log_tail"].endswith(f"map {built['map_id']} deleted; this job is kept\n")
+    retry = api.client.post(f"/v1/jobs/{rebuild['job_id']}/retry", headers=ADMIN)
+    assert retry.status_code == 409
+    assert retry.json()["detail"] == f"job {rebuild['job_id']}'s map was deleted: cannot retry it"
+    assert (api.count(MapRow), api.count(MapVersion), api.count(Job)) == (0, 0, 2)
     session = get(api, f"/v1/sessions/{built['session_id']}")
-    assert (session["map_id"], session["job_ids"]) == (None, [])
+    assert (session["map_id"], session["job_ids"]) == (None, [built["job_id"], rebuild["job_id"]])
     assert api.client.get(f"/v1/sessions/{built['session_id']}/raw", headers=ADMIN).content == (
         OCCAM.read_bytes()
     )

@@ -397,7 +397,9 @@ def test_unfinished_work_goes_on_and_finished_work_stays_finished(
         4: ("build_map", JobState.SUCCEEDED),
         5: ("build_map", JobState.FAILED),
         6: ("build_map", JobState.QUEUED),
-    }  # the sweeps' jobs are not in the archive; map 6's went with it
+        7: ("build_map", JobState.CANCELED),
+    }  # the sweeps' jobs are not in the archive; map 6's is kept, canceled, with no map
+    assert jobs[7].map_deleted
     assert jobs[5].error == "refused"
     assert failed.current is None
     assert (finished.state, finished.trials_done, len(trials)) == ("succeeded", 3, 3)

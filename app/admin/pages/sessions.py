@@ -3,7 +3,9 @@ statistics (poses, distance walked, detections per tag, duration), its raw uploa
 
 from __future__ import annotations
 
+import re
 from collections import Counter
+from collections.abc import Iterable
 from typing import Annotated
 
 from fastapi import Header, Query, Request, Response
@@ -15,13 +17,36 @@ from app.admin.routing import admin_router
 from app.admin.templating import render
 from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
-from app.storage import queue, sessions
+from app.storage import keys, queue, sessions
 from app.web.deps import DbDep, ReadDbSessionDep, valid_id
 from app.web.http import raw_upload_response
 
 router = admin_router()
 
 Search = Annotated[str, Query(max_length=200, description="part of the map name")]
+
+#: How ``uploaded_by`` names an API key: its id.
+_KEY_SUBJECT = re.compile(r"key:(\d+)")
+
+
+def uploader_names(db_session: Session, subjects: Iterable[str]) -> dict[str, str]:
+    """Who uploaded, for people: an API key by its name and id ("lab iPhone (key 3)", not
+    "key:3"), the environment's admin key as such, any other owner (an import's) as stored."""
+    names = {}
+    for subject in set(subjects):
+        match = _KEY_SUBJECT.fullmatch(subject)
+        if subject == keys.ENVIRONMENT_ADMIN:
+            names[subject] = "the admin key from INVISIBLE_MAP_ADMIN_KEY"
+        elif match is None:
+            names[subject] = subject
+        else:
+            key_id = int(match.group(1))
+            try:
+                name = keys.get_key(db_session, key_id).name
+            except keys.KeyNotFound:
+                name = ""
+            names[subject] = f"{name} (key {key_id})" if name else f"key {key_id}"
+    return names
 
 
 @router.get("/sessions")
@@ -42,6 +67,7 @@ def session_list(
         section="sessions",
         title="Sessions",
         sessions=infos,
+        uploaders=uploader_names(db_session, (info.uploaded_by for info in infos)),
         q=query,
         page=Page.of(
             number=page, size=PAGE_SIZE, total=total, url="/admin/sessions", query={"q": query}
@@ -76,6 +102,7 @@ def session_detail(
         section="sessions",
         title=f"Session {info.id}",
         info=info,
+        uploader=uploader_names(db_session, [info.uploaded_by])[info.uploaded_by],
         jobs=jobs,
         detections=detections_per_tag(request, db_session, info.id),
     )

@@ -52,6 +52,7 @@ from app.services.maps import (
     MapPages,
     MapState,
     add_session_to_map,
+    checked_ground_truth,
     checked_overrides,
     checked_session_ids,
     chosen_version,
@@ -68,7 +69,7 @@ from app.services.version_cache import VersionCache
 from app.storage import maps
 from app.storage.db import Database
 from app.storage.maps import MapInfo, VersionInfo
-from app.storage.sessions import AUTO_TUNE_TRIALS
+from app.storage.sessions import AUTO_TUNE_TRIALS, GROUND_TRUTH
 from app.web.deps import (
     AdminPrincipal,
     DbDep,
@@ -216,11 +217,12 @@ def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> Vers
     summary="Rebuild a map",
     description="Queue a new build of the map's sessions, optionally with other SLAM "
     "parameters (any SlamParams field; unknown names and out-of-range values are a 422 naming "
-    "the parameter) or other sessions (which become the map's). A build of the map queued "
-    "before and not started yet takes the request instead (`coalesced`); a running one is "
-    "asked to stop (`superseded_job_ids`): only a build of the map's current sessions and "
-    "parameters stores a version. `auto_tune_trials` on a map of several sessions is a 422. "
-    "The raw sessions are never modified (admin).",
+    "the parameter), other sessions (which become the map's) and ground truth (the version then "
+    "carries the ground-truth metric; a bad one is a 422 invalid_ground_truth naming the field). "
+    "A build of the map queued before and not started yet takes the request instead "
+    "(`coalesced`); a running one is asked to stop (`superseded_job_ids`): only a build of the "
+    "map's current sessions and parameters stores a version. `auto_tune_trials` on a map of "
+    "several sessions is a 422. The raw sessions are never modified (admin).",
     responses=error_responses(401, 403, 404, 422),
 )
 def rebuild_map(
@@ -234,6 +236,9 @@ def rebuild_map(
     overrides = checked_overrides(body.params if body else {})
     if body and body.auto_tune_trials:
         overrides[AUTO_TUNE_TRIALS] = body.auto_tune_trials
+    answered = dict(overrides)  # the answer does not echo the ground truth
+    if body and body.ground_truth is not None:
+        overrides[GROUND_TRUTH] = checked_ground_truth(body.ground_truth)
     session_ids = body.session_ids if body else None
     if session_ids is not None:
         checked_session_ids(db_session, session_ids)
@@ -245,7 +250,7 @@ def rebuild_map(
         change="rebuild requested",
         session_ids=session_ids,
     )
-    accepted = RebuildAccepted.from_build(build, overrides)
+    accepted = RebuildAccepted.from_build(build, answered)
     response.headers["Location"] = accepted.job_url
     return accepted
 

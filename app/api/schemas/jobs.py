@@ -55,7 +55,9 @@ class JobPublic(BaseModel):
     )
     log_tail: str = Field(description="the last lines of the job's log, timestamped, UTC")
     cancel_requested: bool
-    map_id: int | None
+    map_id: int | None = Field(
+        description="its map (null once the map was deleted: the job is kept)"
+    )
     session_id: int | None
     params: dict[str, Any] = Field(description="SLAM parameter overrides of this build")
     worker: str | None = Field(description="the worker holding the job's lease while it runs")

@@ -64,7 +64,9 @@ class VersionSummary(BaseModel):
     params: dict[str, Any] = Field(description="every SLAM parameter it used")
     statistics: dict[str, Any] = Field(description="poses, tags, path length, solver figures")
     metrics: dict[str, Any] = Field(
-        description="shift metric of the pre-optimized (shift_pre) and optimized (shift_opt) map"
+        description="shift metric of the pre-optimized (shift_pre) and optimized (shift_opt) "
+        "map; for a build given ground truth also gt_metric_pre, gt_metric_opt, tag_rmse_pre_m, "
+        "tag_rmse_opt_m and tags_with_ground_truth"
     )
     shift_metric: float | None = Field(description="the optimized map's shift metric")
     tag_count: int
@@ -336,6 +338,14 @@ class RebuildRequest(BaseModel):
                 {"params": {"tag_position_var_m2": 1e-3, "huber_k": 0}},
                 {"params": {"tag_sizes_m": {"301": 0.15}, "max_reprojection_px": "12"}},
                 {"auto_tune_trials": 40},
+                {
+                    "ground_truth": {
+                        "poses": [
+                            {"tag_id": 0, "pose": [0.42, 0.14, -1.38, 0.0, 0.13, 0.0, 0.99]},
+                            {"tag_id": 1, "pose": [2.1, 0.15, -1.4, 0.0, 0.7, 0.0, 0.71]},
+                        ]
+                    }
+                },
             ]
         },
     )
@@ -358,6 +368,13 @@ class RebuildRequest(BaseModel):
         max_length=1000,
         description="build from these sessions, in this order (e.g. an older version's "
         "session_ids, to make it again); default: the map's sessions now",
+    )
+    ground_truth: dict[str, Any] | None = Field(
+        default=None,
+        description="ground truth of the map's tags, "
+        '{"poses": [{"tag_id": N, "pose": [x, y, z, qx, qy, qz, qw]}, …]} (as for a sweep): the '
+        "version this build makes carries the ground-truth metric and tag RMSE in its metrics "
+        "(a later rebuild without it does not)",
     )
 
 

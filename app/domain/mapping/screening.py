@@ -135,7 +135,7 @@ def screen_detections(detections: TagDetections, params: SlamParams) -> Screenin
         used=used,
         rejections=tuple(rejections),
         geometry=geometry,
-        warnings=tuple(_size_warnings(detections, geometry, params)),
+        warnings=tuple(_size_warnings(detections, geometry, used)),
     )
 
 
@@ -146,27 +146,44 @@ def _corner_spread_px(corners_px: FloatArray) -> FloatArray:
 
 
 def _size_warnings(
-    detections: TagDetections, geometry: DetectionGeometry, params: SlamParams
+    detections: TagDetections, geometry: DetectionGeometry, used: BoolArray
 ) -> list[str]:
-    """One line for all tags whose poses imply another side than configured."""
-    mismatched: list[int] = []
-    effective_sizes_m: list[float] = []
-    for tag_id in np.unique(detections.tag_id):
-        rows = detections.tag_id == tag_id
-        effective_m = float(np.median(geometry.effective_size_m[rows]))
-        if abs(effective_m / params.tag_size_for(int(tag_id)) - 1.0) > (
-            SIZE_MISMATCH_WARNING_FRACTION
-        ):
-            mismatched.append(int(tag_id))
-            effective_sizes_m.append(effective_m)
-    if not mismatched:
+    """One line when the tags in the map disagree on their side: those whose used detections
+    imply a side more than :data:`SIZE_MISMATCH_WARNING_FRACTION` from the map's typical one
+    (the median over its tags). A side that every tag shares, even one other than configured,
+    says nothing wrong with the map (the poses are used as given; docs/architecture.md, "Screening
+    first"), and a tag left out of the map cannot distort it: neither is warned about."""
+    sides_m: dict[int, float] = {}  # tag id → median effective side of its used detections, m
+    for tag_id in np.unique(detections.tag_id[used]):
+        rows = (detections.tag_id == tag_id) & used
+        sides_m[int(tag_id)] = float(np.median(geometry.effective_size_m[rows]))
+    if len(sides_m) < 2:
         return []
+    typical_m = float(np.median(list(sides_m.values())))
+    odd = sorted(
+        t
+        for t, side_m in sides_m.items()
+        if abs(side_m / typical_m - 1.0) > (SIZE_MISMATCH_WARNING_FRACTION)
+    )
+    if not odd:
+        return []
+    odd_m = [sides_m[t] for t in odd]
+    rest_m = [side_m for t, side_m in sides_m.items() if t not in odd]
+    what = (
+        f"tag {odd[0]}'s detections imply"
+        if len(odd) == 1
+        else (f"{len(odd)} tags' detections (tags {_id_list(odd)}) imply")
+    )
+    shown = f"{odd_m[0]:.3f} m" if len(odd) == 1 else f"{min(odd_m):.3f}–{max(odd_m):.3f} m"
+    others = (
+        f"the map's other {len(rest_m)} tags {np.median(rest_m):.3f} m"
+        if rest_m
+        else f"the map's tags range over {min(odd_m):.3f}–{max(odd_m):.3f} m"
+    )
     return [
-        f"{len(mismatched)} tags' poses imply a side other than configured (median "
-        f"{np.median(effective_sizes_m):.3f} m, range {min(effective_sizes_m):.3f}–"
-        f"{max(effective_sizes_m):.3f} m; configured {params.tag_size_m:.3f} m): tags "
-        f"{_id_list(mismatched)}. The reprojection test uses each tag's own effective side; set "
-        f"tag_size_m or tag_sizes_m if the prints differ."
+        f"{what} a tag side of {shown}, {others}: their distances from the phone are on another "
+        "scale than the others', which distorts the map where they are. Check that every tag "
+        "is printed at one size and the app set to that size; no parameter corrects this."
     ]
 
 
