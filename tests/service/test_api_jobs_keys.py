@@ -238,7 +238,8 @@ def v1_routes(api: Api) -> list[tuple[str, str]]:
     routes = []
     for path, operations in api.app.openapi()["paths"].items():
         if path.startswith("/v1"):
-            for name in ("session_id", "job_id", "map_id", "key_id", "number", "sweep_id"):
+            ids = ("session_id", "job_id", "map_id", "key_id", "number", "sweep_id", "edit_id")
+            for name in ids:
                 path = path.replace("{" + name + "}", "1")
             routes.extend((method.upper(), path) for method in operations)
     assert len(routes) >= 20
@@ -289,6 +290,10 @@ ADMIN_ONLY = [
     ("GET", "/v1/sweeps/1/shift-vs-gt.png"),
     ("POST", "/v1/sweeps/1/apply"),
     ("POST", "/v1/sweeps/1/cancel"),
+    ("GET", "/v1/maps/1/corridor-edits"),
+    ("POST", "/v1/maps/1/corridor-edits"),
+    ("GET", "/v1/maps/1/corridor-edits/1"),
+    ("DELETE", "/v1/maps/1/corridor-edits/1"),
 ]
 
 
