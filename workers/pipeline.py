@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+import hashlib
 import json
 import logging
 import math
@@ -45,20 +46,22 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import numpy as np
 from sqlalchemy.exc import DataError
 from sqlalchemy.orm import Session as DbSession
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation.ground_truth import parse_ground_truth_json
-from app.domain.evaluation.metrics import joint_shift_metric
+from app.domain.evaluation.metrics import joint_shift_metric, shift_metric
 from app.domain.evaluation.sweep_plan import SweepPlan
-from app.domain.evaluation.table import Evaluation, evaluate_map
+from app.domain.evaluation.table import Evaluation, compare_walk, evaluate_map
 from app.domain.evaluation.tuning import SearchSpace, Trial, TuningTarget, best_trial
 from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.formats.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.frames import FloatArray
 from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.map_result import MapResult
+from app.domain.mapping.noise import COMPONENTS
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import optimize_session
 from app.domain.navigation.path_graph import (
@@ -180,9 +183,6 @@ class JobContext:
     #: the map's generation the build was queued for (``lease.map_generation``): its version is
     #: stored only while it is still the map's (:func:`store`)
     map_generation: int = 0
-    #: the map's current version when the build started (None: none yet): where a warm start
-    #: would start from (:func:`previous_optimum`)
-    previous_version: VersionInfo | None = None
     #: set by the stage that committed the job as succeeded (``queue.finish``), or as
     #: superseded (``superseded`` then)
     finished: bool = False
@@ -280,7 +280,6 @@ def load(ctx: JobContext) -> None:
         raise PermanentJobError(f"a {lease.kind} job needs a session and a map")
     overrides = dict(lease.params)
     ctx.map_generation = lease.map_generation
-    ctx.previous_version = _current_version(ctx.db, lease.map_id)
     ctx.auto_tune_trials = _auto_tune_trials(overrides.pop(AUTO_TUNE_TRIALS, 0))
     ctx.session_ids = _session_ids(overrides.pop(SESSION_IDS, None), lease.session_id)
     if (ground_truth := overrides.pop(GROUND_TRUTH, None)) is not None:
@@ -305,29 +304,6 @@ def load(ctx: JobContext) -> None:
         f"load: {session.num_poses} poses, {len(session.detections)} detections of "
         f"{len(session.tag_ids)} tags, {size_bytes / 1e6:.2f} MB"
     )
-
-
-def _current_version(db: Database, map_id: int) -> VersionInfo | None:
-    """The map's current version (its metadata), None without one or without the map."""
-    try:
-        with db.read() as tx:
-            return maps.get_map(tx, map_id).current
-    except maps.MapNotFound:
-        return None
-
-
-def previous_optimum(ctx: JobContext) -> MapResult | None:
-    """The map's version when the build started (``ctx.previous_version``), read back as a
-    ``MapResult``: the seam for a warm start of the joint optimization from the previous optimum
-    (issue 25, item 5; the domain side is not written yet, so nothing calls this). None without
-    a previous version. Its ``session_ids`` say which sessions it holds: those it shares with
-    ``ctx.session_ids`` can start from it, a new one from its alignment."""
-    version = ctx.previous_version
-    if version is None:
-        return None
-    with ctx.db.read() as tx:
-        document = maps.map_document(tx, version.map_id, version.number)
-    return map_from_json(document)
 
 
 def _session_ids(value: Any, session_id: int) -> list[int]:
@@ -432,45 +408,120 @@ def optimize(ctx: JobContext) -> None:
             f"every one of the session's {len(session.detections)} tag detections was rejected "
             f"({counts}): the map would have no tags; loosen the screening parameters"
         )
+    noise = ctx.result.noise
+    estimated = ""
+    if noise is not None:  # one line per stage: the walk's noise goes on the optimize line
+        variances = noise.variances(_need(ctx.params, "params"))
+        estimated = (
+            f"; noise from the walk's residuals ({noise.rounds} rounds): odometry "
+            f"{variances.odom_linear_var_m2_per_s:.3g} m²/s and "
+            f"{variances.odom_angular_var_rad2_per_s:.3g} rad²/s, tags "
+            f"{variances.tag_position_var_m2:.3g} m² at 1 m and "
+            f"{variances.tag_orientation_var_rad2:.3g} rad²"
+            + (f" ({noise.note})" if noise.note else "")
+        )
     ctx.log(
         f"optimize: {stats.iterations} iterations, error {stats.initial_error:.6g} → "
         f"{stats.final_error:.6g}, {len(ctx.result.rejections)} detections rejected, "
-        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms"
+        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms{estimated}"
     )
 
 
+#: per worker process, the last joint map built of each of a few maps (most recent last): the
+#: next build of the same map starts from it (``optimize_sessions(initial=…)``: the walks it
+#: holds are not optimized alone again, LM starts from its optimum; the result is a cold build's
+#: to within the convergence tolerance, tested). Another worker's build starts cold.
+#: Its walks are known by name ("session 12") and by the fingerprint of their data, so that
+#: another database's session 12 (a test's, a restored backup's) is never taken for this one.
+_LAST_JOINT_MAPS: dict[int, tuple[dict[str, str], JointMap]] = {}
+WARM_START_MAPS = 4
+
+
+def _fingerprint(session: Session) -> str:
+    digest = hashlib.blake2b(digest_size=16)
+    for array in (session.timestamp_s, session.world_T_phone, session.detections.camera_T_tag):
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def _remember_joint_map(map_id: int, fingerprints: dict[str, str], joint: JointMap) -> None:
+    _LAST_JOINT_MAPS.pop(map_id, None)
+    _LAST_JOINT_MAPS[map_id] = (fingerprints, joint)
+    while len(_LAST_JOINT_MAPS) > WARM_START_MAPS:
+        del _LAST_JOINT_MAPS[next(iter(_LAST_JOINT_MAPS))]
+
+
 def _optimize_joint(ctx: JobContext) -> None:
-    """Several sessions into one map (``app.domain.mapping.joint``); a session the others' tags
-    cannot place fails the job with the reason (AlignmentError is an InvisibleMapError)."""
+    """Several sessions into one map (``app.domain.mapping.joint``): each walk alone with its
+    noise estimated, all placed together, one graph; progress by step, a cancel between LM
+    iterations' rounds and walks. A session the others' tags cannot place fails the job with the
+    reason (AlignmentError is an InvisibleMapError)."""
     started_s = time.perf_counter()
     names = [f"session {session_id}" for session_id in ctx.session_ids]
-    # warm start (issue 25): once optimize_sessions takes a starting point, pass it
-    # previous_optimum(ctx) here (ctx.previous_version says which sessions it holds)
-    joint = optimize_sessions(ctx.sessions, _need(ctx.params, "params"), names=names)
+
+    def on_progress(step: str, fraction: float) -> None:
+        ctx.report(0.7 * fraction if step == "walks" else 0.7 + 0.3 * fraction)
+        ctx.check_interrupted()
+
+    map_id = _need(ctx.lease.map_id, "map_id")
+    fingerprints = {name: _fingerprint(s) for name, s in zip(names, ctx.sessions, strict=True)}
+    previous_fingerprints, previous = _LAST_JOINT_MAPS.pop(map_id, ({}, None))
+    if previous is not None:
+        reused = [
+            part.dataset
+            for part in previous.parts
+            if part.fit is not None
+            and part.fit.alone.params == ctx.params
+            and fingerprints.get(part.dataset, "") == previous_fingerprints.get(part.dataset)
+        ]
+        if reused:  # not after a change of parameters: those walks are optimized alone again
+            ctx.log(
+                "optimize: warm start from this worker's last build of the map "
+                f"({', '.join(reused)} not optimized alone again)"
+            )
+        else:
+            previous = None
+    joint = optimize_sessions(
+        ctx.sessions,
+        _need(ctx.params, "params"),
+        names=names,
+        initial=previous,
+        on_progress=on_progress,
+    )
+    _remember_joint_map(map_id, fingerprints, joint)
     ctx.joint, ctx.result, ctx.session = joint, joint.map, joint.combined
     stats = joint.map.stats
     if joint.map.detections_used == 0:
         raise PermanentJobError("every tag detection of every session was rejected")
+    timings = ", ".join(f"{k} {v:.0f} ms" for k, v in joint.timings_ms.items())
     ctx.log(
-        f"optimize: {len(ctx.sessions)} sessions, {stats.start_iterations}+{stats.iterations} "
+        f"optimize: {len(ctx.sessions)} sessions, {joint.rounds} rounds, {stats.iterations} "
         f"iterations, error {stats.initial_error:.6g} → {stats.final_error:.6g}, "
-        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms"
+        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms ({timings})"
     )
     for part in joint.parts:
         ctx.log(
             f"optimize: {part.dataset}: placed by {len(part.alignment.inlier_tags)} of "
-            f"{len(part.alignment.shared_tags)} shared tags, odometry variance "
-            f"×{part.odometry_variance_scale:.2f}, {part.detections_used} detections used"
+            f"{len(part.alignment.shared_tags)} shared tags, {part.detections_used} detections "
+            f"used; {part.weighting}"
         )
 
 
 def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
-    """What each session of a joint map contributed (a version's ``statistics["sessions"]``)."""
+    """What each session of a joint map contributed (a version's ``statistics["sessions"]``):
+    its share of the map, what it weighs and why (its noise estimated alone, the factor joining
+    raised its variances by, its odometry scale), and how its own map alone compares with the
+    building map on all its tags, its shared ones and its own ones (how far joining moved them
+    after a rigid fit, and the shift metric over its own sightings: no ground truth here)."""
     joint = ctx.joint
     if joint is None:
         return None
+    params = _need(ctx.params, "params")
     out = []
-    for session_id, part in zip(ctx.session_ids, joint.parts, strict=True):
+    for session_id, part, session, mask in zip(
+        ctx.session_ids, joint.parts, joint.sessions, joint.session_masks(), strict=True
+    ):
+        report = compare_walk(joint, part, part.alone) if part.alone is not None else None
         out.append(
             {
                 "session_id": session_id,
@@ -486,9 +537,34 @@ def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
                 "odometry_variance_scale": part.odometry_variance_scale,
                 "tag_depth_scale": part.tag_depth_scale,
                 "yaw_rad": part.alignment.yaw_rad,
+                "odometry_scale": part.alignment.odometry_scale,
+                "noise": None if part.noise is None else part.noise.to_dict(params),
+                "noise_scales": dict(zip(COMPONENTS, part.noise_scales.tolist(), strict=True)),
+                "disagreement_factor": part.disagreement_factor,
+                "cost_alone": _finite_or_none(part.cost_alone),
+                "cost_joint": _finite_or_none(part.cost_joint),
+                "redundancy_gain": part.redundancy_gain,
+                "weighting": part.weighting,
+                "alone_vs_joint": None
+                if report is None or part.alone is None
+                else {
+                    "all": report.all_tags.to_dict(),
+                    "shared": report.shared.to_dict(),
+                    "own": report.own.to_dict(),
+                    "shift_alone": _finite_or_none(
+                        shift_metric(session, part.alone.tag_poses(), detection_mask=mask)
+                    ),
+                    "shift_joint": _finite_or_none(
+                        shift_metric(session, joint.map.tag_poses(), detection_mask=mask)
+                    ),
+                },
             }
         )
     return out
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
 
 
 def evaluate(ctx: JobContext) -> None:

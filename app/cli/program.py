@@ -45,7 +45,7 @@ from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
 
 if TYPE_CHECKING:
-    from app.domain.evaluation.table import Evaluation
+    from app.domain.evaluation.table import Evaluation, JointEvaluation
     from app.domain.frames import FloatArray
     from app.domain.mapping.map_result import MapResult
     from app.domain.mapping.params import SlamParams
@@ -239,10 +239,12 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _evaluate_joint(
     args: argparse.Namespace, params: SlamParams, truths: dict[Path, dict[int, FloatArray]]
 ) -> int:
-    """Each session alone, then the joint map of all of them (``--joint``)."""
+    """Each session alone, then the joint map of all of them (``--joint``), and each session
+    alone against the joint map on all its tags, its shared ones and its own ones."""
+    from tqdm import tqdm
+
     from app.domain.evaluation.table import evaluate_joint, evaluate_map
     from app.domain.mapping.joint import optimize_sessions
-    from app.domain.mapping.slam import optimize_session
     from app.domain.upload.session import load_session
 
     if len(truths) != 1:
@@ -252,38 +254,74 @@ def _evaluate_joint(
     if len(set(names)) != len(names):
         raise CommandError(f"--joint needs sessions with different names, got {names}")
     sessions = [load_session(path) for path in args.sessions]
-    alone = {
-        name: optimize_session(session, params)
-        for name, session in zip(names, sessions, strict=True)
-    }
+    with tqdm(
+        total=len(sessions) + 1, desc="joint map", unit=" step", leave=False, disable=None,
+        file=sys.stderr,
+    ) as bar:  # fmt: skip
+
+        def progress(step: str, fraction: float) -> None:
+            done = fraction * len(sessions) if step == "walks" else len(sessions) + fraction
+            bar.update(max(0.0, done - bar.n))
+
+        joint = optimize_sessions(sessions, params, names=names, on_progress=progress)
+    # each walk alone is the map optimize_session makes of it (its depth scale applied)
+    alone = {part.dataset: part.alone for part in joint.parts if part.alone is not None}
     rows: list[Evaluation] = [
-        evaluate_map(session, alone[name], ground_truth, dataset=name)
-        for name, session in zip(names, sessions, strict=True)
+        evaluate_map(part_session, alone[name], ground_truth, dataset=name)
+        for name, part_session in zip(names, joint.sessions, strict=True)
     ]
-    joint = optimize_sessions(sessions, params, names=names)
     joint_evaluation = evaluate_joint(joint, alone, ground_truth)
     if args.json:
         out = [row.to_dict() for row in rows] + [joint_evaluation.to_dict()]
         print(json.dumps(out, indent=2))
         return 0
     print(format_table([*rows, joint_evaluation.row]))
-    lines = [["session", "tags", "GT alone", "GT joint", "RMSE alone m", "RMSE joint m"]]
-    for name, comparison in joint_evaluation.by_session.items():
-        lines.append(
-            [
-                name,
-                str(comparison.tags_compared),
-                _fmt(comparison.gt_metric_alone),
-                _fmt(comparison.gt_metric_joint),
-                _fmt(comparison.tag_rmse_alone_m, 3),
-                _fmt(comparison.tag_rmse_joint_m, 3),
-            ]
-        )
     print()
-    print(render_markdown_table(lines))
+    print(render_markdown_table(joint_report_lines(joint_evaluation)))
+    print()
+    for name, comparison in joint_evaluation.by_session.items():
+        print(f"- {name}: {comparison.weighting}")
     for warning in joint.map.warnings:
         print(f"warning: {warning}")
     return 0
+
+
+def joint_report_lines(evaluation: JointEvaluation) -> list[list[str]]:
+    """The per-walk table of ``evaluate --joint``: each walk alone → in the building map, on all
+    its tags, its shared ones and its own ones (tag RMSE, m), the ground-truth metric on all,
+    and the factor its variances were raised by."""
+    lines = [
+        [
+            "session",
+            "tags all/shared/own",
+            "GT alone → joint",
+            "RMSE all m",
+            "Δ",
+            "RMSE shared m",
+            "RMSE own m",
+            "weight ×",
+        ]
+    ]
+    for name, c in evaluation.by_session.items():
+        lines.append(
+            [
+                name,
+                f"{c.tags_compared}/{c.shared.with_truth}/{c.own.with_truth}",
+                f"{_fmt(c.gt_metric_alone)} → {_fmt(c.gt_metric_joint)}",
+                f"{_fmt(c.tag_rmse_alone_m, 3)} → {_fmt(c.tag_rmse_joint_m, 3)}",
+                _change(c.tag_rmse_joint_m, c.tag_rmse_alone_m),
+                f"{_fmt(c.shared.tag_rmse_alone_m, 3)} → {_fmt(c.shared.tag_rmse_joint_m, 3)}",
+                f"{_fmt(c.own.tag_rmse_alone_m, 3)} → {_fmt(c.own.tag_rmse_joint_m, 3)}",
+                f"{c.disagreement_factor:.3g}",
+            ]
+        )
+    return lines
+
+
+def _change(new: float, old: float) -> str:
+    if math.isnan(new) or math.isnan(old) or old == 0:
+        return "—"
+    return f"{new / old - 1:+.1%}"
 
 
 def _dataset_name(path: Path) -> str:

@@ -32,6 +32,7 @@ NOISE_FIELDS = (
     "odom_vertical_drift_m_per_sqrt_s",
     "odom_rotation_drift_rad_per_sqrt_s",
     "odom_tilt_error_rad",
+    "odom_scale_error",
     "tag_position_noise_m_at_1m",
     "tag_depth_noise_ratio",
     "tag_rotation_noise_rad",

@@ -82,13 +82,15 @@ def shift_vs_gt_content(db_session: Session, info: SweepInfo) -> bytes:
 def apply_best(
     db_session: Session, info: SweepInfo, *, max_attempts: int
 ) -> tuple[MapInfo, int, dict[str, Any]]:
-    """Queue a rebuild of the sweep's map with its base parameters and its best trial's values,
-    and record it on the sweep: (the map, the job id, the parameters). ApiError 409 while no
+    """Queue a rebuild of the sweep's map with its base parameters and its best trial's values
+    (as given: ``estimate_noise`` off), and record it on the sweep: (the map, the job id, the
+    parameters). ApiError 409 while no
     trial has converged."""
     best = best_trial(sweeps.list_trials(db_session, info.id), info.objective)
     if best is None:
         raise Conflict(NO_BEST[0], f"sweep {info.id} has no converged trial yet")
-    overrides = checked_overrides({**info.base_params, **best.values})
+    # a trial is its setting of the variances as given, not a noise estimate started from it
+    overrides = checked_overrides({**info.base_params, **best.values, "estimate_noise": False})
     map_info, job_id = enqueue_rebuild(
         db_session,
         info.map_id,

@@ -617,9 +617,18 @@ def test_evaluate_joint_json_as_issue_15_pins_it(capsys):
     assert set(joint["by_session"]) == set(MAC_SESSIONS)
     for name, row in joint["by_session"].items():
         alone = next(r for r in rows if r["dataset"] == name)
+        # on all the walk's tags (issue 25: not only those that placed it)
+        assert row["tags_compared"] == alone["tags_with_ground_truth"]
         assert row["gt_metric_alone"] == pytest.approx(alone["gt_metric_opt"], rel=1e-9)
-        assert row["gt_metric_joint"] < row["gt_metric_alone"], name
-        assert row["tag_rmse_joint_m"] < row["tag_rmse_alone_m"], name
+        assert row["tag_rmse_alone_m"] == pytest.approx(alone["tag_rmse_opt_m"], rel=1e-9)
+        # issue 25's target: no walk's own tags more than 5% worse than alone
+        assert row["gt_metric_joint"] <= 1.05 * row["gt_metric_alone"], name
+        assert row["tag_rmse_joint_m"] <= 1.05 * row["tag_rmse_alone_m"], name
+        shared, own = row["shared"], row["own"]
+        assert shared["tags_compared"] + own["tags_compared"] >= row["tags_compared"]
+        assert set(shared["tags"]).isdisjoint(own["tags"])
+        assert row["weighting"]
+    assert joint["by_session"]["desnat_straight_once"]["disagreement_factor"] > 1
     # the rows alone are what evaluate prints without --joint (but for the timings)
     assert cli.main([*argv, "--json"]) == 0
     untimed = [{k: v for k, v in r.items() if k != "optimize_ms"} for r in rows[:-1]]
@@ -633,7 +642,9 @@ def test_evaluate_joint_table_and_its_errors(capsys):
     assert cli.main(["evaluate", str(desnat), str(straight), "--gt", rtabmap, "--joint"]) == 0
     out = capsys.readouterr().out
     assert "| joint " in out
-    assert "RMSE joint m" in out
+    assert "RMSE shared m" in out
+    assert "RMSE own m" in out
+    assert "weighed by its own noise" in out or "down-weighted" in out
     reference = str(GROUND_TRUTH_DIR / "mac_1_2_yup_reference.json")
     proc = run_cli("evaluate", desnat, straight, "--gt", rtabmap, "--gt", reference, "--joint")
     assert_one_line_error(proc.returncode, proc.stderr, "--joint", "one --gt")

@@ -135,8 +135,8 @@ def test_sweep_json_reports_the_maps_apply_makes(grid_report) -> None:
     session = load_session(OCCAM)
     truth = load_ground_truth(OCCAM_GT)
 
-    def evaluated(values):
-        result = optimize_session(session, SlamParams().with_overrides(values))
+    def evaluated(values):  # apply builds with the variances as given (issue 25)
+        result = optimize_session(session, SlamParams(estimate_noise=False).with_overrides(values))
         return evaluate_map(session, result, truth)
 
     at_shift = evaluated(report["best_params"])
@@ -217,7 +217,10 @@ def test_sweep_plot_dir_writes_both_pngs(tmp_path, capsys) -> None:
 
 def test_a_stiff_setting_is_built_as_its_trial_measured_it(capsys) -> None:
     """floor_2_straight at (1, 1e-8, 1): from raw odometry LM needed 284 iterations (at the cap
-    of 100 its GT metric was 0.068); built from the defaults' optimum, it is its trial."""
+    of 100 its GT metric was 0.068). Before issue 25 its trial, from the defaults' optimum,
+    stopped on a 0.1% drop of the cost and was called converged; LM still moves its tags by
+    millimetres an iteration there, so its only trial is now reported as not converged and
+    nothing is chosen (nor built) from it."""
     space = {
         name: {"low": value, "high": value, "num": 1}
         for name, value in zip(PAPER_GRID_AXES, (1.0, 1e-8, 1.0), strict=True)
@@ -232,10 +235,10 @@ def test_a_stiff_setting_is_built_as_its_trial_measured_it(capsys) -> None:
         "--processes",
         1,
     )
-    assert report["builds_equal_trials"] is True
-    build = report["builds"]["gt_chosen"]
-    assert build["converged"]
-    assert build["gt_metric"] == report["gt_metric_best"] < report["gt_metric_pre"]
+    assert report["runs"] == 1
+    assert report["gt_metric_best"] is None
+    assert report["builds"] == {"shift_chosen": None, "gt_chosen": None}
+    assert report["gt_metric_pre"] > 0
 
 
 def test_sweep_text_warns_when_a_build_is_not_its_trial(capsys, monkeypatch) -> None:

@@ -26,6 +26,7 @@ from api_support import (
 
 from app.admin.paging import Page
 from app.config import Settings
+from app.domain.mapping.params import HUBER_K
 from app.storage import queue
 from app.storage.orm import JobState, Role
 
@@ -288,7 +289,7 @@ def test_rebuild_queues_a_job_with_the_changed_parameters_only(
     api: Api, built: dict[str, Any]
 ) -> None:
     map_id = built["map_id"]
-    form = {"tag_position_var_m2": "1e-3", "huber_k": "1.345", "tag_sizes_m": ""}
+    form = {"tag_position_var_m2": "1e-3", "huber_k": str(HUBER_K), "tag_sizes_m": ""}
     response = post(api, f"/admin/maps/{map_id}/rebuild", form)
     assert response.status_code == 303
     jobs = api.client.get(f"/v1/jobs?map_id={map_id}", headers=ADMIN).json()["data"]
@@ -547,6 +548,9 @@ def test_a_maps_sessions_merge_and_remove_from_the_dashboard(
     page = api.client.get(f"/admin/maps/{map_id}")
     assert f"Remove session {other['session_id']}" in page.text
     assert "2 sessions (below)" in page.text
+    # each walk alone against the building map, and why it weighs what it does (issue 25)
+    assert 'id="map-sessions-report"' in page.text
+    assert "weighed by its own noise" in page.text or "down-weighted" in page.text
     floors = figure_of(page.text)["floors"]
     optimized = [floor["optimized"] for floor in floors]
     assert any(None in line["x"] for line in optimized if line)  # no line between two walks

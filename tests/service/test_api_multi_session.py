@@ -122,6 +122,13 @@ def test_merge_route_and_localize_on_the_joint_map(two_walks):
     contributions = version["statistics"]["sessions"]
     assert [c["session_id"] for c in contributions] == version["session_ids"]
     assert contributions[1]["placed_by_tags"] == [302, 303, 304, 305, 306, 307]
+    for contribution in contributions:  # issue 25: what each weighs, why, and alone vs joint
+        assert contribution["weighting"]
+        assert contribution["noise"]["variances"]["tag_orientation_var_rad2"] > 0
+        assert contribution["disagreement_factor"] >= 1
+        report = contribution["alone_vs_joint"]
+        assert report["all"]["tags_compared"] == len(contribution["tags"])
+        assert report["shared"]["tags"] == [302, 303, 304, 305, 306, 307]
 
     listed = api.client.get(f"/v1/maps/{first['map_id']}/sessions", headers=ADMIN).json()
     assert [s["session_id"] for s in listed["data"]] == version["session_ids"]
@@ -198,11 +205,17 @@ def test_merge_route_and_localize_on_the_joint_map(two_walks):
     assert response.status_code == 202, response.text
     assert response.json()["session_ids"] == both
     build(api)
+    # this worker built version 2: it starts from that optimum and optimizes no walk alone again
+    log = job(api, response.json()["job_id"])["log_tail"]
+    names = ", ".join(f"session {s}" for s in both)
+    assert f"warm start from this worker's last build of the map ({names} not" in log
     again = api.client.get(f"/v1/maps/{first['map_id']}/versions/4", headers=ADMIN).json()
     before = api.client.get(f"/v1/maps/{first['map_id']}/versions/2", headers=ADMIN).json()
     assert again["session_ids"] == both
     assert again["params"] == before["params"]
-    assert [t["position_m"] for t in again["tags"]] == [t["position_m"] for t in before["tags"]]
+    assert [t["tag_id"] for t in again["tags"]] == [t["tag_id"] for t in before["tags"]]
+    for tag, old in zip(again["tags"], before["tags"], strict=True):
+        assert tag["position_m"] == pytest.approx(old["position_m"], abs=1e-4)  # 0.1 mm
     for bad, field in (([first["session_id"]] * 2, "session_ids.1"), ([999_999], "session_ids.0")):
         response = api.client.post(
             f"/v1/maps/{first['map_id']}/rebuild", json={"session_ids": bad}, headers=ADMIN

@@ -4,6 +4,7 @@ evaluation."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from functools import cache
 from pathlib import Path
@@ -13,14 +14,25 @@ import pytest
 
 from app.domain.errors import InvisibleMapError
 from app.domain.evaluation.ground_truth import load_ground_truth
-from app.domain.evaluation.metrics import joint_shift_metric, shift_metric, tag_rmse_m
+from app.domain.evaluation.metrics import (
+    joint_shift_metric,
+    shift_metric,
+    tag_rmse_m,
+    umeyama_rigid,
+)
 from app.domain.evaluation.simulate import SimulationConfig
-from app.domain.evaluation.simulate_building import SimulatedBuilding, simulate_building_sessions
+from app.domain.evaluation.simulate_building import (
+    MIXED_WALKS,
+    SimulatedBuilding,
+    simulate_building_sessions,
+)
 from app.domain.evaluation.table import evaluate_joint
 from app.domain.frames import FloatArray, make_pose, rotation_about_y
 from app.domain.mapping.joint import (
     AlignmentError,
+    JointMap,
     align_session,
+    keep_poses,
     optimize_sessions,
     sighting_burst_sizes,
     tag_depth_scale,
@@ -144,14 +156,13 @@ def test_joint_map_of_simulated_walks_beats_each_walk_alone():
 
 
 def test_the_map_does_not_depend_on_the_session_order_beyond_its_frame():
+    """Uniform walks, forward and backward: the same tags to 1 cm after a rigid fit (the frame is
+    the first walk's)."""
     sessions = walks()[:3]
-    truth = building().world_T_tag_true
     forward = optimize_sessions(sessions, names=["a", "b", "c"])
     backward = optimize_sessions(sessions[::-1], names=["c", "b", "a"])
     assert next(p.dataset for p in backward.parts) == "c"
-    assert tag_rmse_m(forward.map.tag_poses(), truth) == pytest.approx(
-        tag_rmse_m(backward.map.tag_poses(), truth), rel=1e-3
-    )
+    assert largest_tag_difference_m(forward.map.tag_poses(), backward.map.tag_poses()) < 0.01
 
 
 def test_a_session_that_shares_nothing_is_refused_with_its_reason():
@@ -164,6 +175,9 @@ def test_a_session_that_shares_nothing_is_refused_with_its_reason():
 
 
 def test_a_moved_tag_in_one_session_does_not_drag_the_map():
+    """Walk b saw one shared tag 2.5 m from where walk a saw it (moved between the walks): after
+    the joint optimization b's sightings of it disagree beyond b's noise, so they get a landmark
+    of their own (named in the warnings), in either order, and the map keeps a's tag."""
     sessions = list(walks()[:2])
     truth = building().world_T_tag_true
     shared = sorted(set(sessions[0].tag_ids) & set(sessions[1].tag_ids))
@@ -173,8 +187,12 @@ def test_a_moved_tag_in_one_session_does_not_drag_the_map():
     params = SlamParams(max_reprojection_px=1e6, max_distance_m=100.0)
     joint = optimize_sessions(sessions, params, names=["a", "b"])
     assert joint.parts[1].local_tags == (moved_tag,)
+    assert joint.parts[0].local_tags == ()
     assert moved_tag not in joint.parts[1].tag_ids
     assert any(f"tags {moved_tag} (" in w for w in joint.map.warnings)
+    backward = optimize_sessions(sessions[::-1], params, names=["b", "a"])
+    assert backward.part("b").local_tags == (moved_tag,)
+    assert largest_tag_difference_m(joint.map.tag_poses(), backward.map.tag_poses()) < 0.01
     clean = optimize_sessions(list(walks()[:2]), params, names=["a", "b"])
     error_m = np.linalg.norm(
         joint.map.tag_poses()[moved_tag][:3, 3] - clean.map.tag_poses()[moved_tag][:3, 3]
@@ -238,18 +256,109 @@ def test_evaluate_joint_reports_each_session_and_the_whole():
 def test_simulated_joint_error_falls_as_walks_are_added():
     sim = simulate_building_sessions(SimulationConfig(num_poses=1200), count=5)
     sessions = [parse_session(s.upload) for s in sim.sessions]
+    five = optimize_sessions(sessions)
+    fits = [part.fit for part in five.parts if part.fit is not None]  # each walk alone, once
     errors = [
-        tag_rmse_m(optimize_sessions(sessions[:n]).map.tag_poses(), sim.world_T_tag_true)
-        for n in (1, 2, 5)
+        tag_rmse_m(optimize_sessions(sessions[:n], fits=fits).map.tag_poses(), sim.world_T_tag_true)
+        for n in (1, 2)
     ]
+    errors.append(tag_rmse_m(five.map.tag_poses(), sim.world_T_tag_true))
     assert errors[0] > errors[1] > errors[2]
+
+
+# --------------------------------------------------------------------------- walks that differ
+
+
+@cache
+def mixed() -> SimulatedBuilding:
+    """Issue 25's building: a walk as configured, one 3× noisier, one whose odometry runs 2%
+    long, one walked obliquely to the tags (2 minutes each)."""
+    return simulate_building_sessions(
+        SimulationConfig(num_poses=1200, seed=0), count=4, styles=MIXED_WALKS
+    )
+
+
+@cache
+def mixed_maps() -> tuple[JointMap, ...]:
+    """The mixed building's joint map with each walk first (cold builds; the walks' own fits,
+    which depend on nothing but the walk, made once)."""
+    sessions = [parse_session(s.upload) for s in mixed().sessions]
+    names = [style.label for style in mixed().styles]
+    first = optimize_sessions(sessions, names=names)
+    fits = [part.fit for part in first.parts if part.fit is not None]
+    maps = [first]
+    for k in range(1, 4):
+        order = [*range(k, 4), *range(k)]
+        maps.append(
+            optimize_sessions(
+                [sessions[i] for i in order], names=[names[i] for i in order], fits=fits
+            )
+        )
+    return tuple(maps)
+
+
+def test_walks_that_differ_make_one_map_whichever_comes_first():
+    """Issue 25's permutation test: the same map (tags within 1 cm after a rigid fit) with each
+    walk first; before issue 25 this building's maps differed by 7 mm to 18 cm by order
+    (seeds 0–3), and which walk's sightings of a shared tag were set apart depended on it."""
+    maps = mixed_maps()
+    assert [m.parts[0].dataset for m in maps] == [s.label for s in mixed().styles]
+    for other in maps[1:]:
+        assert largest_tag_difference_m(maps[0].map.tag_poses(), other.map.tag_poses()) < 0.01
+        for part in other.parts:
+            first = maps[0].part(part.dataset)
+            assert part.local_tags == first.local_tags
+            assert part.alignment.odometry_scale == pytest.approx(
+                first.alignment.odometry_scale, rel=1e-9
+            )
+
+
+def test_no_walk_of_the_mixed_building_is_worse_in_the_building_map():
+    """Every walk's own tags, against the truth: no worse than alone (before issue 25 the walk as
+    configured got 8% worse); the walk whose odometry runs 2% long is found and rescaled; the
+    reasons are there to read."""
+    joint = mixed_maps()[0]
+    truth = mixed().world_T_tag_true
+    for part in joint.parts:
+        assert part.alone is not None
+        alone = part.alone.tag_poses()
+        mine = {t: pose for t, pose in joint.map.tag_poses().items() if t in alone}
+        assert tag_rmse_m(mine, truth) < tag_rmse_m(alone, truth), part.dataset
+        assert part.weighting
+        assert part.noise is not None
+    long_walk = joint.part("odometry +2%")
+    assert long_walk.alignment.odometry_scale == pytest.approx(1 / 1.02, abs=0.005)
+    assert joint.part("as configured").alignment.odometry_scale == 1.0
+    assert set(joint.timings_ms) >= {"walks_alone", "placing", "joint_optimize", "marginals"}
+
+
+def test_a_new_version_started_from_the_last_is_the_map_a_cold_build_makes():
+    """The warm start (issue 25, item 5): the walks of the last version are not optimized alone
+    again and LM starts from its optimum; the map is the cold build's."""
+    sessions = [parse_session(s.upload) for s in mixed().sessions]
+    names = [style.label for style in mixed().styles]
+    cold = mixed_maps()[0]
+    fits = [part.fit for part in cold.parts if part.fit is not None]
+    previous = optimize_sessions(sessions[:3], names=names[:3], fits=fits)
+    warm = optimize_sessions(sessions, names=names, initial=previous)
+    assert largest_tag_difference_m(cold.map.tag_poses(), warm.map.tag_poses()) < 0.01
+    for old, new in zip(previous.parts, warm.parts, strict=False):
+        assert new.fit is old.fit  # not optimized alone again
+    assert warm.parts[3].fit is not None
+    assert warm.parts[3].fit is not fits[3]  # a walk new to the map is
+    assert warm.map.stats.iterations <= cold.map.stats.iterations + 1
 
 
 # --------------------------------------------------------------------------- real sessions
 
 
 @pytest.mark.slow
-def test_mac_building_sessions_each_get_better_in_the_joint_map():
+def test_mac_building_sessions_are_never_made_worse_in_the_joint_map():
+    """The three mac-building walks (straight_209_occam whole, both floors): no walk's own tags
+    more than 5% worse than alone, on both measures (issue 25's target; measured: floor_2 −2%,
+    desnat −54%, 209 +2.8% in tag RMSE); desnat_straight_once, whose odometry runs 3% long
+    against the others and whose disagreement its own noise does not explain, is rescaled and
+    down-weighted, and says why; floor_2_straight weighs as its own noise says."""
     names = ["floor_2_straight", "desnat_straight_once", "straight_209_occam"]
     sessions = [load_session(DATA_DIR / "sessions" / f"{n}.json") for n in names]
     truth = load_ground_truth(DATA_DIR / "ground_truth" / "rtabmap_mac_1_2.txt")
@@ -257,14 +366,76 @@ def test_mac_building_sessions_each_get_better_in_the_joint_map():
     joint = optimize_sessions(sessions, SlamParams(), names=names)
     evaluation = evaluate_joint(joint, alone, truth)
     for name, row in evaluation.by_session.items():
-        assert row.gt_metric_joint < row.gt_metric_alone, name
-        assert row.tag_rmse_joint_m < row.tag_rmse_alone_m, name
+        assert row.gt_metric_joint <= 1.05 * row.gt_metric_alone, name
+        assert row.tag_rmse_joint_m <= 1.05 * row.tag_rmse_alone_m, name
     desnat = joint.part("desnat_straight_once")
-    assert desnat.odometry_variance_scale > 2  # its odometry fits worst: it bends most
-    assert joint.part("straight_209_occam").odometry_variance_scale == 1.0  # fits best
+    assert desnat.disagreement_factor > 2
+    assert desnat.alignment.odometry_scale == pytest.approx(0.97, abs=0.01)
+    assert "down-weighted" in desnat.weighting
+    assert "odometry lengths ×0.96" in desnat.weighting
+    floor_2 = joint.part("floor_2_straight")
+    assert floor_2.disagreement_factor == 1.0
+    assert floor_2.weighting.startswith("weighed by its own noise")
+    assert all(part.weighting for part in joint.parts)
+
+
+@cache
+def floor_2_walks() -> dict[str, Session]:
+    """The shipped walks of the mac building's floor 2: floor_2_straight, desnat_straight_once,
+    and the floor-2 part of straight_209_occam (the poses above −1 m of its world; the floor-1
+    loop between leaves it, and the composed odometry across the gap is held as loosely as its
+    500 s ask)."""
+    occam = load_session(DATA_DIR / "sessions" / "straight_209_occam.json")
+    return {
+        "floor_2_straight": load_session(DATA_DIR / "sessions" / "floor_2_straight.json"),
+        "desnat_straight_once": load_session(DATA_DIR / "sessions" / "desnat_straight_once.json"),
+        "straight_209_occam floor 2": keep_poses(occam, occam.world_T_phone[:, 1, 3] > -1.0),
+    }
+
+
+@pytest.mark.slow
+def test_the_floor_2_walks_make_one_map_in_any_order_and_no_walk_worse():
+    """Every subset of two or three of the shipped floor-2 walks: no walk's own tags more than 5%
+    worse than alone against the ground truth (tag RMSE; measured: worst +1.5%, floor_2_straight
+    next to desnat_straight_once); and the three in another order (each walk in another place)
+    give the same tags to 1 cm (measured 0.0 mm; every subset in every order:
+    bench/multi_session.py, section 1)."""
+    walks = floor_2_walks()
+    names = list(walks)
+    truth = load_ground_truth(DATA_DIR / "ground_truth" / "rtabmap_mac_1_2.txt")
+    first = optimize_sessions([walks[n] for n in names], names=names)
+    fits = [part.fit for part in first.parts if part.fit is not None]
+    rotated = [*names[1:], names[0]]
+    other = optimize_sessions([walks[n] for n in rotated], names=rotated, fits=fits)
+    assert largest_tag_difference_m(first.map.tag_poses(), other.map.tag_poses()) < 0.01
+    for size in (2, 3):
+        for subset in itertools.combinations(walks, size):
+            forward = (
+                first
+                if size == 3
+                else optimize_sessions([walks[n] for n in subset], names=subset, fits=fits)
+            )
+            for part in forward.parts:
+                assert part.alone is not None
+                alone = {t: p for t, p in part.alone.tag_poses().items() if t in truth}
+                joint = {t: p for t, p in forward.map.tag_poses().items() if t in alone}
+                assert tag_rmse_m(joint, truth) <= 1.05 * tag_rmse_m(alone, truth), (
+                    subset,
+                    part.dataset,
+                )
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def largest_tag_difference_m(a: dict, b: dict) -> float:
+    """Largest distance between two maps' common tags after a best rigid fit, m."""
+    common = sorted(set(a) & set(b))
+    source = np.stack([a[t][:3, 3] for t in common])
+    target = np.stack([b[t][:3, 3] for t in common])
+    fit = umeyama_rigid(source, target)
+    moved = source @ fit[:3, :3].T + fit[:3, 3]
+    return float(np.max(np.linalg.norm(moved - target, axis=1)))
 
 
 def _renumbered_tags(session: Session, *, offset: int) -> Session:

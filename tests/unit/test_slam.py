@@ -234,7 +234,10 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
     session = load_session(DATA / "sessions" / "occam_room.json")
     params = SlamParams()
     result = optimize_session(session, params)
-    problem = slam._build_problem(slam.prepare_graph_inputs(session, params), params)
+    inputs = slam.prepare_graph_inputs(session, params)
+    assert result.noise is not None
+    inputs.noise_scales = result.noise.scales[None, :]  # the variances the map was made with
+    problem = slam._build_problem(inputs, params)
     values = gtsam.Values()
     for i in range(session.num_poses):
         values.insert(X(i), gtsam.Pose3(result.world_T_phone[i]))

@@ -8,11 +8,16 @@ own from there. So the trial's LM run is the build's second stage: same graph, s
 ordering. Checked on real sessions at the eight corners of the paper grid (every variance at 1e-8
 or 1), at the defaults, and at the setting whose build from raw odometry did not converge in 100
 iterations on floor_2_straight before builds started from the defaults' optimum.
+
+A trial is a setting of the variances *as given* (``estimate_noise`` off): a build that estimates
+the walk's noise from its residuals starts from the setting and ends elsewhere, so ``apply``
+rebuilds with ``estimate_noise`` off, and so do these builds.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -53,22 +58,27 @@ def floor_2() -> TuningTarget:
     return prepared("floor_2_straight")
 
 
-def assert_trial_is_build(target: TuningTarget, values: dict[str, float]) -> None:
-    build = optimize_session(
-        target.session, target.base_params.with_overrides({**values, "compute_marginals": False})
-    )
+def assert_trial_is_build(target: TuningTarget, values: dict[str, float]) -> bool:
+    """A converged trial is its build, bit for bit; a trial that did not converge (LM still
+    moving a pose or tag by more than ``converged_step_m`` / ``converged_step_rad`` at the trial
+    cap) says so, and is never chosen. Returns whether the trial converged."""
+    build = optimize_session(target.session, target.build_params(values))
     build_map = build.tag_poses()
 
     trial = target.run(values)
+    if not trial.converged:
+        assert trial.iterations == trial.max_iterations
+        assert trial.score("ground_truth") == math.inf
+        return False
     trial_map, _, _ = target.graph.refine(target.trial_params(values), target.warm_start)
 
-    assert trial.converged
     assert trial.iterations == build.stats.iterations
     assert sorted(trial_map) == sorted(build_map)
     if not target.trial_params(values).has_default_variances:
         for tag_id, world_T_tag in build_map.items():
             np.testing.assert_array_equal(trial_map[tag_id], world_T_tag)
     assert (trial.shift, trial.gt_metric, trial.tag_rmse_m) == target.score_map(build_map)
+    return True
 
 
 @pytest.mark.parametrize(
@@ -77,22 +87,31 @@ def assert_trial_is_build(target: TuningTarget, values: dict[str, float]) -> Non
     ids=lambda v: "/".join(f"{x:.0e}" for x in v.values()),
 )
 def test_a_converged_trial_is_its_build(desnat: TuningTarget, values: dict[str, float]) -> None:
-    assert_trial_is_build(desnat, values)
+    converged = assert_trial_is_build(desnat, values)
+    # the stiff-odometry corners crawl (steps of mm per iteration at 25 iterations); the others,
+    # and the defaults, converge
+    stiff = (
+        values["odom_angular_var_rad2_per_s"] == LOW and values["tag_orientation_var_rad2"] == LOW
+    )
+    assert converged or stiff
 
 
 def test_the_stiff_setting_that_broke_a_build_from_raw_odometry(floor_2: TuningTarget) -> None:
-    assert_trial_is_build(floor_2, FLOOR_2_STIFF)
+    """floor_2_straight at (1, 1e-8, 1): before issue 25 its trial stopped after a few iterations
+    on the 0.1% cost tolerance and was called converged; LM was still moving tags by a centimetre
+    per iteration there. It is now reported as not converged (and so never chosen), and its
+    build runs to the iteration cap, still moving."""
+    assert not assert_trial_is_build(floor_2, FLOOR_2_STIFF)
     build = floor_2.build(FLOOR_2_STIFF)
-    gt_metric_pre = floor_2.baseline()[1]
-    assert build.converged
-    assert build.iterations < 25
-    assert build.gt_metric < gt_metric_pre  # it was 42% worse from raw odometry
+    assert not build.converged
+    assert build.iterations == floor_2.base_params.max_iterations
 
 
 def test_a_build_at_the_defaults_is_one_stage() -> None:
     session = load_session(DATA_DIR / "sessions" / "desnat_straight_once.json")
-    at_defaults = optimize_session(session, SlamParams(huber_k=2.0))
-    stiff = optimize_session(session, SlamParams(huber_k=2.0, odom_linear_var_m2_per_s=1e-6))
+    given = SlamParams(huber_k=2.0, estimate_noise=False)
+    at_defaults = optimize_session(session, given)
+    stiff = optimize_session(session, given.with_overrides({"odom_linear_var_m2_per_s": 1e-6}))
 
     assert at_defaults.stats.start_iterations == 0
     assert stiff.stats.start_iterations == at_defaults.stats.iterations
@@ -107,7 +126,9 @@ def test_a_build_rescore_is_the_build_exactly(
     desnat: TuningTarget, values: dict[str, float]
 ) -> None:
     """What a sweep reports is the map ``apply`` would make, marginals and all."""
-    build = optimize_session(desnat.session, desnat.base_params.with_overrides(values))
+    build = optimize_session(
+        desnat.session, desnat.base_params.with_overrides({**values, "estimate_noise": False})
+    )
     evaluation = evaluate_map(desnat.session, build, desnat.ground_truth)
 
     rescored = desnat.build(values)

@@ -718,6 +718,7 @@ def test_a_real_session_trial_scores_all_three_metrics() -> None:
 
 #: floor_2_straight's shift-chosen setting on the paper grid: its trial (warm-started from the
 #: base optimum) stops far from where the build (from raw odometry) stops, GT 0.0428 against 0.0471.
+#: LM does not converge there within 100 iterations (steps of millimetres each, issue 25).
 _GRID = SearchSpace.paper_grid().axes[0].values()
 FLAT_SETTING = {ORIENTATION: float(_GRID[2]), LINEAR: float(_GRID[2]), ANGULAR: float(_GRID[0])}
 
@@ -746,8 +747,11 @@ def test_a_build_is_the_map_optimize_session_makes_scored_as_evaluate_scores_it(
     floor_2: TuningTarget, values: dict[str, float]
 ) -> None:
     """Independently: the map ``apply`` makes (``optimize_session`` with the base parameters and
-    the values, marginals and all) and the metrics ``invisible-map evaluate`` reports of it."""
-    result = optimize_session(floor_2.session, SlamParams().with_overrides(values))
+    the values as given, marginals and all) and the metrics ``invisible-map evaluate`` reports
+    of it."""
+    result = optimize_session(
+        floor_2.session, SlamParams(estimate_noise=False).with_overrides(values)
+    )
     evaluation = evaluate_map(floor_2.session, result, floor_2.ground_truth)
 
     build = floor_2.build(values)
@@ -757,7 +761,8 @@ def test_a_build_is_the_map_optimize_session_makes_scored_as_evaluate_scores_it(
     assert build.gt_metric == evaluation.gt_metric_opt
     assert build.tag_rmse_m == evaluation.tag_rmse_opt_m
     assert build.iterations == result.stats.iterations
-    assert build.converged
+    # the flat setting crawls: still moving tags by millimetres at the cap, and says so
+    assert build.converged == (values == {})
     assert build.error is None
     assert math.isfinite(build.gt_metric)
     # Same inputs, same numbers: a second build is the first, bit for bit.
@@ -768,7 +773,9 @@ def test_build_params_are_the_base_parameters_with_the_values() -> None:
     base = SlamParams(huber_k=0.0, max_iterations=40)
     target = TuningTarget.prepare(load_session(DATA_DIR / "sessions" / "onetag.json"), base)
     params = target.build_params({LINEAR: 1e-2})
-    assert params == base.with_overrides({LINEAR: 1e-2, "compute_marginals": False})
+    assert params == base.with_overrides(
+        {LINEAR: 1e-2, "compute_marginals": False, "estimate_noise": False}
+    )
     assert params.max_iterations == 40  # not the trials' cap
     with pytest.raises(ParameterError, match="cannot sweep"):
         target.build({"huber_k": 1.0})

@@ -566,9 +566,48 @@ class MapSessionPublic(BaseModel):
                 "shared_tags": [302, 303],
                 "placed_by_tags": [302, 303],
                 "own_landmark_tags": [],
-                "odometry_variance_scale": 1.0,
+                "odometry_variance_scale": 0.105,
                 "tag_depth_scale": 1.0,
                 "yaw_rad": 3.0,
+                "odometry_scale": 1.0,
+                "noise": {
+                    "variances": {
+                        "odom_linear_var_m2_per_s": 1.05e-4,
+                        "odom_angular_var_rad2_per_s": 4.3e-5,
+                        "tag_position_var_m2": 1.35e-5,
+                        "tag_orientation_var_rad2": 4.8e-3,
+                    },
+                    "components": {
+                        "odom_linear": {
+                            "scale": 0.105,
+                            "redundancy": 171.9,
+                            "rows": 1008.0,
+                            "chi2_per_redundancy": 1.0,
+                        }
+                    },
+                    "rounds": 4,
+                    "converged": True,
+                    "note": "",
+                },
+                "noise_scales": {
+                    "odom_linear": 0.105,
+                    "odom_angular": 0.432,
+                    "tag_position": 0.135,
+                    "tag_orientation": 0.048,
+                },
+                "disagreement_factor": 1.0,
+                "cost_alone": 412.5,
+                "cost_joint": 418.4,
+                "redundancy_gain": 6.1,
+                "weighting": "weighed by its own noise: its cost grew by 5.9 on joining, for 6.1 "
+                "degrees of freedom gained, which that noise explains",
+                "alone_vs_joint": {
+                    "all": {"tags": [1, 2, 302, 303], "tags_compared": 4, "moved_rms_m": 0.04},
+                    "shared": {"tags": [302, 303], "tags_compared": 2, "moved_rms_m": None},
+                    "own": {"tags": [1, 2], "tags_compared": 2, "moved_rms_m": None},
+                    "shift_alone": 0.0190,
+                    "shift_joint": 0.0196,
+                },
             },
         }
     )
@@ -578,8 +617,14 @@ class MapSessionPublic(BaseModel):
     contribution: dict[str, Any] | None = Field(
         description="from the current version: its poses, tags, detections used and rejected, "
         "mean tag chi², shared tags and those that placed it, tags given a landmark of their own "
-        "(they disagreed with the map), odometry variance factor; null when the version did not "
-        "use it or has one session"
+        "(they disagreed with the map beyond its noise); what it weighs and why: its noise "
+        "estimated from its own residuals (`noise`), the factors on its variances in the map "
+        "(`noise_scales`, with `disagreement_factor` ≥ 1 when its disagreement with the other "
+        "walks was more than that noise explains), its odometry scale, and `weighting` in a "
+        "sentence; and `alone_vs_joint`: its own map alone against the building map on all its "
+        "tags, on those other walks saw too and on its own (RMS movement after a rigid fit, m, "
+        "and the shift metric over its own sightings); null when the version did not use it or "
+        "has one session"
     )
 
 

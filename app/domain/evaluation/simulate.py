@@ -68,7 +68,6 @@ POI_NAMES = ("Room 101", "Restroom", "Elevator", "Kitchen", "Exit", "Office")
 
 # Walker and phone behaviour (not configurable yet; each says its unit).
 _TURN_SMOOTHING_S = 0.5  # Gaussian σ of the corner rounding of the walked path, s
-_LOOK_AROUND_RAD = 0.6  # σ of the phone's yaw swing off the walking direction, rad (≈ 34°)
 _LOOK_AROUND_CORRELATION_S = 1.5  # time scale of that swing, s
 _ATTENTION_RANGE_M = 4.5  # the walker points the phone at a tag ahead closer than this, m
 _ATTENTION_THRESHOLD = -0.52  # attentive while a unit smooth noise is above this: 70% of the time
@@ -134,12 +133,19 @@ class SimulationConfig:
                                     ``round(rate_hz / detection_rate_hz)``-th pose.
         max_detection_distance_m    camera-to-tag-centre distance beyond which nothing is detected.
         max_view_angle_deg          largest angle between the tag's +z and the line tag → camera.
+        look_at_tags                whether the walker turns the phone toward the tag ahead (70%
+                                    of the time); False: the phone only swings about the walking
+                                    direction, so wall tags are seen in passing, obliquely.
+        look_around_rad             σ of the phone's yaw swing off the walking direction, rad.
 
     Noise (all zero in ``without_noise()``):
         odom_translation_drift_m_per_sqrt_s  horizontal random walk of the odometry position.
         odom_vertical_drift_m_per_sqrt_s     vertical random walk (ARKit's height holds better).
         odom_rotation_drift_rad_per_sqrt_s   heading (yaw about gravity) random walk.
         odom_tilt_error_rad                  σ of the bounded roll/pitch error (no drift).
+        odom_scale_error                     the odometry's steps are (1 + this) × the true
+                                             ones, dimensionless (0.02: 2% too long; not noise,
+                                             kept by ``without_noise``).
         tag_position_noise_m_at_1m           σ of a tag's measured position across the line of
                                              sight, at 1 m; it grows in proportion to distance.
         tag_depth_noise_ratio                σ along the line of sight over σ across it (≥ 1).
@@ -174,11 +180,14 @@ class SimulationConfig:
     detection_rate_hz: float = 5.0
     max_detection_distance_m: float = 3.0
     max_view_angle_deg: float = 60.0
+    look_at_tags: bool = True
+    look_around_rad: float = 0.6
 
     odom_translation_drift_m_per_sqrt_s: float = 0.02
     odom_vertical_drift_m_per_sqrt_s: float = 0.005
     odom_rotation_drift_rad_per_sqrt_s: float = 0.002
     odom_tilt_error_rad: float = 0.002
+    odom_scale_error: float = 0.0
     tag_position_noise_m_at_1m: float = 0.01
     tag_depth_noise_ratio: float = 3.0
     tag_rotation_noise_rad: float = 0.03
@@ -227,9 +236,20 @@ class SimulationConfig:
         require(0 < cx < width and 0 < cy < height, "camera_intrinsics", "must centre in image")
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if f.name.startswith(("odom_", "tag_position", "tag_rotation", "corner_noise")):
+            noise = f.name.startswith(("odom_", "tag_position", "tag_rotation", "corner_noise"))
+            if noise and f.name != "odom_scale_error":
                 require(_finite(value) and value >= 0, f.name, "must be ≥ 0")
         require(self.tag_depth_noise_ratio >= 1, "tag_depth_noise_ratio", "must be ≥ 1")
+        require(
+            _finite(self.odom_scale_error) and abs(self.odom_scale_error) < 0.5,
+            "odom_scale_error",
+            "must be in (−0.5, 0.5)",
+        )
+        require(
+            _finite(self.look_around_rad) and self.look_around_rad >= 0,
+            "look_around_rad",
+            "must be ≥ 0",
+        )
         require(0 <= self.outlier_fraction <= 1, "outlier_fraction", "must be in [0, 1]")
         require(self.num_points_of_interest >= 0, "num_points_of_interest", "must be ≥ 0")
         require(bool(self.map_id.strip()), "map_id", "must be a non-empty string")
@@ -729,9 +749,9 @@ def _look_direction(
     """
     n = body_xyz_m.shape[0]
     rate_hz = config.rate_hz
-    swing_rad = _smooth_noise(rng, n, _LOOK_AROUND_RAD, _LOOK_AROUND_CORRELATION_S * rate_hz)
+    swing_rad = _smooth_noise(rng, n, config.look_around_rad, _LOOK_AROUND_CORRELATION_S * rate_hz)
     attention = _smooth_noise(rng, n, 1.0, _ATTENTION_CORRELATION_S * rate_hz)
-    attentive = attention > _ATTENTION_THRESHOLD
+    attentive = (attention > _ATTENTION_THRESHOLD) & config.look_at_tags
     world_T_tags = np.stack([building.world_T_tag[t] for t in sorted(building.world_T_tag)])
     tag_xyz, tag_normal = world_T_tags[:, :3, 3], world_T_tags[:, :3, 2]
     target_rad = swing_rad.copy()
@@ -845,10 +865,11 @@ def drift_odometry(
 ) -> FloatArray:
     """The odometry: the truth under an accumulating drift that is zero at the first pose.
 
-    odometry_i = [tilt_i · Ry(ψ_i) · R_i,  p_i + Σ_{k<i} ((Ry(ψ_k) − I) Δp_k + δ_k)]: the heading
-    error ψ (a random walk) turns each later step of the true path, δ is the translation random
-    walk, and the tilt error (about the world's horizontal axes) is bounded: ARKit keeps roll and
-    pitch on gravity. All three are zero at the first pose, so both world frames coincide there.
+    odometry_i = [tilt_i · Ry(ψ_i) · R_i,  p_i + Σ_{k<i} (((1 + s) Ry(ψ_k) − I) Δp_k + δ_k)]: the
+    heading error ψ (a random walk) turns each later step of the true path, s
+    (``odom_scale_error``) stretches it, δ is the translation random walk, and the tilt error
+    (about the world's horizontal axes) is bounded: ARKit keeps roll and pitch on gravity. All
+    three are zero at the first pose, so both world frames coincide there.
     """
     n = world_T_phone_true.shape[0]
     dt_s = 1.0 / config.rate_hz
@@ -872,7 +893,9 @@ def drift_odometry(
     yaw_drift_rad = np.concatenate([[0.0], np.cumsum(yaw_steps)])
     drift_R = _rotations_about_y(yaw_drift_rad)
     true_steps = np.diff(world_T_phone_true[:, :3, 3], axis=0)
-    turned_steps = np.einsum("nij,nj->ni", drift_R[:-1], true_steps) - true_steps
+    turned_steps = (1.0 + config.odom_scale_error) * np.einsum(
+        "nij,nj->ni", drift_R[:-1], true_steps
+    ) - true_steps
     offset = np.concatenate([np.zeros((1, 3)), np.cumsum(turned_steps + translation_steps, axis=0)])
 
     odometry = world_T_phone_true.copy()

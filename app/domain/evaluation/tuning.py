@@ -39,6 +39,7 @@ the next batch, and a restart loses nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -65,9 +66,9 @@ from app.domain.mapping.slam import (
     GraphInputs,
     IterationCallback,
     TrialGraph,
-    odometry_chi2,
     optimize_session,
     prepare_graph_inputs,
+    values_from,
 )
 from app.domain.upload.session import Session, first_observation_tag_poses
 
@@ -268,8 +269,8 @@ class TuningTarget:
         self.inputs = inputs
         self.pairs = pairs
         self.graph = TrialGraph(inputs)
-        #: whether a trial with the default variances is the warm start itself (one session);
-        #: a joint map's build goes on from there with each session's odometry reweighed
+        #: whether a trial with the default variances is the warm start itself (as a build at
+        #: the default variances is one LM stage, for one walk or, as given, for several)
         self.first_stage_is_map = True
         self._warm_start: gtsam.Values | None = None
         self._start_map: dict[int, FloatArray] = {}
@@ -299,27 +300,25 @@ class TuningTarget:
         names: Sequence[str] | None = None,
     ) -> TuningTarget:
         """A map of several sessions prepared for trials (``app.domain.mapping.joint``): the shift
-        metric over every session's own detections, and each trial the map a build with its
-        setting makes: from the defaults' optimum, each session's odometry weighed by its
-        residuals there (once, as a build does), LM with the trial's variances."""
+        metric over every session's own detections, and each trial the joint graph with the
+        trial's variances as given for every walk, from the optimum of the default variances:
+        the map ``optimize_sessions`` makes with ``estimate_noise`` off (what ``apply`` builds),
+        bit for bit. (Tuning a building map with each walk's own noise as the starting point is
+        issue 25's item 4, not this.)"""
         params = base_params or SlamParams()
-        joint = prepare_joint(sessions, params, names=names)
+        # a trial is its variances as given, for every walk (as optimize_sessions builds them
+        # with estimate_noise off, which is what apply does)
+        joint = prepare_joint(
+            sessions, dataclasses.replace(params, estimate_noise=False), names=names
+        )
         masks = [
             joint.screening.used[start : start + len(session.detections)]
             for start, session in zip(joint.detection_starts, joint.plan.sessions, strict=True)
         ]
         pairs = joint_shift_pairs(joint.plan.sessions, masks)
         target = cls(joint.combined, params, ground_truth, joint.inputs, pairs)
-        start = params.with_default_variances().with_overrides({"compute_marginals": False})
-        target._start_map, target._start_iterations, target._warm_start = TrialGraph(
-            joint.inputs
-        ).optimize(start)
-        if len(joint.plan.sessions) > 1:
-            scales = joint.reweigh(odometry_chi2(joint.inputs, start, target._warm_start))
-            if scales is not None:
-                joint.inputs.odometry_variance_scale = scales
-            target.graph = TrialGraph(joint.inputs)
-            target.first_stage_is_map = False
+        target.inputs.initial = values_from(joint.inputs, joint.start_T_keyframe, joint.start_T_tag)
+        target.graph = TrialGraph(joint.inputs)
         pre_all = first_observation_tag_poses(joint.combined)
         target.pre_map = {tag_id: pre_all[tag_id] for tag_id in joint.inputs.tag_rows}
         return target
@@ -351,6 +350,7 @@ class TuningTarget:
             {
                 **values,
                 "compute_marginals": False,
+                "estimate_noise": False,
                 "max_iterations": min(self.base_params.max_iterations, TRIAL_MAX_ITERATIONS),
             }
         )
@@ -414,10 +414,13 @@ class TuningTarget:
 
     def build_params(self, values: Mapping[str, float]) -> SlamParams:
         """The base parameters with ``values`` swapped in, as a build uses them (``apply``'s
-        rebuild, ``process --param``): the base iteration cap, and no marginals, which do not
-        move the map."""
+        rebuild, ``process --param``): the base iteration cap, no marginals, which do not move
+        the map, and the variances as given (a trial is that setting, not a noise estimate
+        started from it)."""
         _check_tunable(values)
-        return self.base_params.with_overrides({**values, "compute_marginals": False})
+        return self.base_params.with_overrides(
+            {**values, "compute_marginals": False, "estimate_noise": False}
+        )
 
     def build(self, values: Mapping[str, float]) -> Trial:
         """Build the map with ``values`` (:func:`slam.optimize_session` from raw odometry, in two

@@ -27,6 +27,7 @@ from app.domain.frames import (
 )
 from app.domain.mapping.keyframes import keyframe_spans
 from app.domain.mapping.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
+from app.domain.mapping.noise import noise_estimate_from_dict
 from app.domain.mapping.params import SlamParams
 from app.domain.navigation.path_graph import (
     PathGraph,
@@ -103,6 +104,8 @@ def map_to_json(result: MapResult) -> dict[str, Any]:
             "tag_rotation_rad": residuals.tag_rotation_rad.tolist(),
         },
         "warnings": list(result.warnings),
+        # the walk's noise as its residuals support it (issue 25); absent in older documents
+        "noise": None if result.noise is None else result.noise.to_dict(result.params),
     }
 
 
@@ -174,6 +177,11 @@ def map_from_json(document: Any) -> MapResult:
             poi_names=tuple(str(p["name"]) for p in pois),
             world_T_poi=_poses([p["pose"] for p in pois]),
             warnings=tuple(str(w) for w in document.get("warnings", [])),
+            noise=(
+                None
+                if document.get("noise") is None
+                else noise_estimate_from_dict(document["noise"])
+            ),
         )
     except InvisibleMapError as err:
         raise MapFormatError(f"map document: {err}") from err

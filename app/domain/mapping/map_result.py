@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.domain.frames import FloatArray
+from app.domain.mapping.noise import NoiseEstimate
 from app.domain.mapping.params import SlamParams
 
 IntArray = npt.NDArray[np.int64]
@@ -103,6 +104,9 @@ class MapResult:
     tag_detection_count: (K,) detections of each tag used in the graph.
     poi_names: (P,) names of the points of interest.
     world_T_poi: (P, 4, 4) points of interest on the optimized trajectory.
+    noise: the walk's noise as its own residuals support it (``params.estimate_noise``; None
+        when the variances were used as given, and for a map of several walks, whose
+        ``JointMap.parts`` carry one each).
     """
 
     map_id: str
@@ -122,6 +126,7 @@ class MapResult:
     poi_names: tuple[str, ...] = ()
     world_T_poi: FloatArray = field(default_factory=lambda: np.empty((0, 4, 4)))
     warnings: tuple[str, ...] = field(default=())
+    noise: NoiseEstimate | None = None
 
     def tag_index(self, tag_id: int) -> int:
         """Row of ``tag_id`` in the tag arrays; KeyError if the tag is not in the map."""

@@ -22,6 +22,13 @@ from app.domain.errors import ParameterError
 #: The app's printed AprilTags: side of the black square, m.
 DEFAULT_TAG_SIZE_M = 0.173
 
+#: Huber threshold on a tag sighting's whitened 6-D residual norm, σ: √χ²₆(0.95) (the value
+#: ``noise.robust_threshold(dimension=6)`` computes; a test checks the two agree).
+HUBER_K = 3.5484626592017308
+#: Weight of the configured variances as the prior of each walk's estimated ones, pseudo-rows
+#: (``noise.py``; docs/multi-session.md says which data chose it).
+NOISE_PRIOR_DOF = 2.0
+
 #: The noise variances: the paper's four and gravity's. A sweep tunes these, and a map whose
 #: variances differ from the defaults is optimized from the defaults' optimum
 #: (``slam.optimize_session``).
@@ -48,7 +55,19 @@ class SlamParams:
         odom_linear_var_m2_per_s    translation random-walk rate of the VIO odometry, m²/s.
         odom_angular_var_rad2_per_s rotation random-walk rate of the VIO odometry, rad²/s.
         gravity_var_rad2            variance of the phone's roll/pitch against gravity, rad².
-        huber_k                     Huber threshold on whitened tag residuals (σ units); 0 = off.
+        huber_k                     Huber threshold on the norm of a tag sighting's whitened 6-D
+                                    residual (σ units); 0 = off. The default, 3.548, is
+                                    √χ²₆(0.95): a sighting outside the 95% region its noise
+                                    allows is down-weighted (``noise.robust_threshold``).
+
+    Noise estimation (``noise.py``):
+        estimate_noise              estimate each walk's odometry and tag variances from its own
+                                    residuals (iterated variance-component estimation); the
+                                    variances above are then the prior, where the walk's data
+                                    cannot tell. False: use them as given (a sweep's trials).
+        noise_prior_dof             weight of that prior, in pseudo-rows of measurement, ≥ 0 (0:
+                                    the data alone, which can drive a component the walk cannot
+                                    check to zero).
 
     Rejection (a detection that fails any test is left out of the graph and reported):
         max_reprojection_px         RMS distance between the detected corners and those projected
@@ -72,9 +91,13 @@ class SlamParams:
     Geometry and solver:
         tag_size_m                  side of the tags' black square, m; ``tag_sizes_m`` per tag id.
         max_iterations              Levenberg–Marquardt iteration cap.
-        relative_error_tol          LM stops when an iteration lowers the error by less than this
-                                    fraction (1e-3: later Huber-reweighting steps change nothing
-                                    that matters, see the benchmark in the README).
+        converged_step_m            LM stops when no pose or tag moved by more than this in an
+        converged_step_rad          iteration, m, and turned by more than this, rad: a criterion
+                                    in metres and radians, since on a cost surface as flat as a
+                                    walk's a small relative drop of the cost can still be
+                                    decimetres from the optimum.
+        relative_error_tol          LM also stops when an iteration lowers the error by less than
+                                    this fraction (a numerical stall; 1e-9).
         compute_marginals           whether to compute tag-pose covariances.
     """
 
@@ -84,7 +107,9 @@ class SlamParams:
     odom_linear_var_m2_per_s: float = 1e-3
     odom_angular_var_rad2_per_s: float = 1e-4
     gravity_var_rad2: float = 1e-4
-    huber_k: float = 1.345
+    huber_k: float = HUBER_K
+    estimate_noise: bool = True
+    noise_prior_dof: float = NOISE_PRIOR_DOF
 
     max_reprojection_px: float = 8.0
     max_view_angle_deg: float = 70.0
@@ -95,7 +120,9 @@ class SlamParams:
     tag_size_m: float = DEFAULT_TAG_SIZE_M
     tag_sizes_m: Mapping[int, float] = field(default_factory=dict)
     max_iterations: int = 100
-    relative_error_tol: float = 1e-3
+    converged_step_m: float = 1e-4
+    converged_step_rad: float = 1e-5
+    relative_error_tol: float = 1e-9
     compute_marginals: bool = True
 
     def __post_init__(self) -> None:
@@ -113,6 +140,8 @@ class SlamParams:
             "max_distance_m",
             "tag_size_m",
             "relative_error_tol",
+            "converged_step_m",
+            "converged_step_rad",
         ]
         for name in positive:
             if getattr(self, name) <= 0:
@@ -126,6 +155,8 @@ class SlamParams:
             )
         if self.huber_k < 0:
             raise ParameterError(f"huber_k must be ≥ 0 (0 disables it), got {self.huber_k}")
+        if self.noise_prior_dof < 0:
+            raise ParameterError(f"noise_prior_dof must be ≥ 0, got {self.noise_prior_dof}")
         if not 0 < self.max_view_angle_deg <= 90:
             raise ParameterError(
                 f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}"

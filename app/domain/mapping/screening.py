@@ -15,6 +15,11 @@ so the reprojection test fits one *effective side* per tag (the median over its 
 side that best explains the corner spread) and measures each detection against it. A detection
 whose depth disagrees with the other detections of its tag still fails. The mismatch itself is
 reported as a warning.
+
+Bursts. A burst of k sightings of one tag (consecutive sightings less than ``BURST_GAP_S`` apart:
+one viewpoint, one PnP bias) is not k independent measurements: each of its sightings weighs as
+if its variance were k^``BURST_WEIGHT_POWER`` times larger (:func:`burst_variance_scale`), so a
+walk that lingers at each tag does not outvote one that passes by.
 """
 
 from __future__ import annotations
@@ -33,6 +38,13 @@ BoolArray = npt.NDArray[np.bool_]
 
 #: Warn when a tag's effective side differs from the configured one by more than this fraction.
 SIZE_MISMATCH_WARNING_FRACTION = 0.05
+#: Sightings of one tag less than this apart (s) are one burst (``sighting_burst_sizes``).
+BURST_GAP_S = 3.0
+#: A burst of k sightings weighs as k^(1 − power) sightings (each one's variance × k^power): 0.5,
+#: between independent sightings (0: best on simulated walks, whose noise is drawn independently
+#: per sighting) and fully correlated ones (1: best on the real mac-building walks);
+#: docs/multi-session.md has both ends' numbers.
+BURST_WEIGHT_POWER = 0.5
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -190,3 +202,31 @@ def _size_warnings(
 def _id_list(ids: list[int], limit: int = 12) -> str:
     shown = ", ".join(str(i) for i in ids[:limit])
     return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
+
+
+def sighting_burst_sizes(detections: TagDetections, used: BoolArray) -> FloatArray:
+    """(M,) for each used detection, how many used sightings of its tag its *burst* holds: the
+    sightings of one tag with no gap longer than ``BURST_GAP_S`` between consecutive ones (the
+    phone looking at the tag for a while, from about one place); 1 for unused detections.
+    desnat_straight_once lingers at each tag (10 sightings per burst), floor_2_straight passes by
+    (1.1)."""
+    size = np.ones(len(detections))
+    rows_used = np.flatnonzero(used)
+    for tag_id in np.unique(detections.tag_id[rows_used]):
+        rows = rows_used[detections.tag_id[rows_used] == tag_id]
+        order = np.argsort(detections.timestamp_s[rows], kind="stable")
+        rows = rows[order]
+        burst = np.concatenate(
+            [[0], np.cumsum(np.diff(detections.timestamp_s[rows]) > BURST_GAP_S)]
+        )
+        counts = np.bincount(burst)
+        size[rows] = counts[burst]
+    return size
+
+
+def burst_variance_scale(detections: TagDetections, used: BoolArray) -> FloatArray:
+    """(M,) the factor on each detection's tag variance for its burst: k^``BURST_WEIGHT_POWER``
+    (module docstring)."""
+    return np.asarray(
+        np.power(sighting_burst_sizes(detections, used), BURST_WEIGHT_POWER), dtype=np.float64
+    )
