@@ -15,13 +15,13 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 from sqlalchemy import create_engine, make_url, text
-from sqlalchemy.engine import URL
+from sqlalchemy.engine import URL, Engine
 
 from app.storage.db import Database
 from app.storage.migrate import upgrade_to_head
@@ -162,6 +162,61 @@ class PostgresDatabases:
 @pytest.fixture(scope="session")
 def postgres_databases(postgres_template: str) -> Iterator[PostgresDatabases]:
     databases = PostgresDatabases(postgres_template)
+    yield databases
+    databases.close()
+
+
+class PreparedDatabases:
+    """Databases with data in them, made once per test process and copied into a test's fresh
+    database: a fixture that uploads and builds the same map for every test of a module pays for
+    the build once per database kind (``CREATE DATABASE … TEMPLATE`` of the prepared one on
+    PostgreSQL, a file copy on SQLite). ``prepare(url)`` must close every connection it opens
+    (PostgreSQL copies a database only while nobody is connected to it)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.prepared: dict[tuple[str, str], str] = {}  # (backend, key) → file or database
+        self.admin: Engine | None = None
+
+    def copy_into(self, database_url: str, key: str, prepare: Callable[[str], None]) -> None:
+        """Make ``database_url`` (a test's fresh database, not yet connected to) a copy of the
+        database ``prepare`` makes from a fresh one."""
+        url = make_url(database_url)
+        backend = "sqlite" if url.get_backend_name() == "sqlite" else "postgresql"
+        if backend == "sqlite":
+            prepared = self.prepared.get((backend, key))
+            if prepared is None:
+                prepared = str(self.folder / f"{key}.sqlite3")
+                shutil.copyfile(str(url.database), prepared)
+                prepare(f"sqlite:///{prepared}")
+                self.prepared[(backend, key)] = prepared
+            shutil.copyfile(prepared, str(url.database))
+            return
+        if self.admin is None:
+            self.admin = _admin_engine()
+        prepared = self.prepared.get((backend, key))
+        with self.admin.connect() as connection:
+            if prepared is None:
+                prepared = f"im_test_prep_{RUN_ID}_{key}"
+                connection.execute(text(f'CREATE DATABASE "{prepared}" TEMPLATE "{url.database}"'))
+                prepare(_database_url(prepared).render_as_string(hide_password=False))
+                self.prepared[(backend, key)] = prepared
+            connection.execute(text(f'DROP DATABASE "{url.database}" WITH (FORCE)'))
+            connection.execute(text(f'CREATE DATABASE "{url.database}" TEMPLATE "{prepared}"'))
+
+    def close(self) -> None:
+        if self.admin is None:
+            return
+        with self.admin.connect() as connection:
+            for (backend, _), name in self.prepared.items():
+                if backend == "postgresql":
+                    connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        self.admin.dispose()
+
+
+@pytest.fixture(scope="session")
+def prepared_databases(tmp_path_factory: pytest.TempPathFactory) -> Iterator[PreparedDatabases]:
+    databases = PreparedDatabases(tmp_path_factory.mktemp("prepared-databases"))
     yield databases
     databases.close()
 

@@ -15,6 +15,7 @@ import pytest
 from app.config import Settings
 from app.domain.localize import session_update_documents
 from app.domain.upload.session import load_session
+from tests.conftest import PreparedDatabases
 from tests.service.api_support import ADMIN, SESSIONS_DIR, Api, running_api
 from workers.main import Worker
 
@@ -76,14 +77,28 @@ def get_map(api: Api, map_id: int) -> dict[str, Any]:
     return body
 
 
-@pytest.fixture
-def two_walks(database_url: str) -> Iterator[tuple[Api, dict[str, Any], dict[str, Any]]]:
-    """floor_2_straight (its own map, built), then straight_209_occam uploaded (its map built)."""
-    with running_api(database_url) as api:
+#: the uploads' answers of :func:`_two_walks_built`, by the database it prepared
+_TWO_WALKS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
+
+
+def _two_walks_built(url: str) -> None:
+    with running_api(url) as api:
         first = api.uploaded(with_poi(FLOOR_2, "Room 209", 400))
         build(api)
         second = api.uploaded(with_poi(STRAIGHT_209, "Occam lab door", 900))
         build(api)
+    _TWO_WALKS[url.partition(":")[0]] = (first, second)
+
+
+@pytest.fixture
+def two_walks(
+    database_url: str, prepared_databases: PreparedDatabases
+) -> Iterator[tuple[Api, dict[str, Any], dict[str, Any]]]:
+    """floor_2_straight (its own map, built), then straight_209_occam uploaded (its map built);
+    built once per test process and database kind, each test on its own copy."""
+    prepared_databases.copy_into(database_url, "two_walks", _two_walks_built)
+    first, second = _TWO_WALKS[database_url.partition(":")[0]]
+    with running_api(database_url) as api:
         yield api, first, second
 
 

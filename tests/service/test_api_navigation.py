@@ -26,6 +26,7 @@ from app.domain.upload.session import load_session
 from app.main import create_app
 from app.storage import maps, navigation
 from app.storage.navigation import LocalizationConflict
+from tests.conftest import PreparedDatabases
 from tests.service.api_support import ADMIN, ADMIN_KEY, SESSIONS_DIR, Api, running_api
 from workers.main import Worker
 
@@ -59,12 +60,19 @@ def build(api: Api) -> None:
         pass
 
 
-@pytest.fixture
-def nav(database_url: str) -> Iterator[tuple[Api, int]]:
-    with running_api(database_url) as api:
-        map_id = api.uploaded(floor_2_with_pois())["map_id"]
+def _floor_2_built(url: str) -> None:
+    with running_api(url) as api:
+        assert api.uploaded(floor_2_with_pois())["map_id"] == 1
         build(api)
-        yield api, map_id
+
+
+@pytest.fixture
+def nav(database_url: str, prepared_databases: PreparedDatabases) -> Iterator[tuple[Api, int]]:
+    """floor_2_straight with two points of interest, uploaded and built by the real worker (once
+    per test process and database kind; each test gets its own copy)."""
+    prepared_databases.copy_into(database_url, "floor_2_pois", _floor_2_built)
+    with running_api(database_url) as api:
+        yield api, 1
 
 
 def route(api: Api, map_id: int, body: dict[str, Any]) -> Any:

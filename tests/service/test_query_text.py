@@ -10,14 +10,23 @@ import pytest
 from admin_support import logged_in
 from api_support import ADMIN, ONETAG, Api, run_next_job, running_api
 
+from tests.conftest import PreparedDatabases
+
 pytestmark = pytest.mark.db
 
 
-@pytest.fixture
-def api(database_url: str) -> Iterator[Api]:
-    with running_api(database_url) as running:
+def _onetag_built(url: str) -> None:
+    with running_api(url) as running:
         running.uploaded(ONETAG)
         run_next_job(running.db, path_graph=True)
+
+
+@pytest.fixture
+def api(database_url: str, prepared_databases: PreparedDatabases) -> Iterator[Api]:
+    """onetag uploaded and built with its path graph (once per test process and database kind;
+    each test on its own copy)."""
+    prepared_databases.copy_into(database_url, "onetag_built", _onetag_built)
+    with running_api(database_url) as running:
         yield running
 
 
