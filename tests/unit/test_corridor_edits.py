@@ -12,6 +12,9 @@ import networkx as nx
 import numpy as np
 import pytest
 
+from app.domain.formats.app_model import check_app_map
+from app.domain.formats.map_io import map_to_app_format
+from app.domain.mapping.slam import optimize_session
 from app.domain.navigation.corridor_edits import (
     OPS,
     CorridorEdit,
@@ -34,7 +37,8 @@ from app.domain.navigation.path_graph import (
     path_graph_to_json,
 )
 from app.domain.navigation.routing import NodeEnd, PoiEnd, TagEnd, Unreachable, plan_walk
-from app.domain.navigation.skeleton import build_skeleton_from_arrays
+from app.domain.navigation.skeleton import build_skeleton, build_skeleton_from_arrays
+from app.domain.upload.session import load_session
 
 
 def _node(G: nx.Graph, n: int, x: float, y: float, z: float, floor: int, kind: str = NODE) -> None:
@@ -506,3 +510,49 @@ def test_a_node_route_still_works_on_an_edited_graph():
         edit({"op": "add_edge", "from": [10, 0, 0], "to": [20, 0, -20], "kind": "walk"}),
     )
     assert plan_walk(pg, NodeEnd(12), TagEnd(2)).length_m == pytest.approx(math.hypot(10, 20))
+
+
+# --------------------------------------------------------------------------- the app's model
+
+
+def test_the_apps_map_of_an_edited_real_map_conforms(data_dir):
+    """Every kind of edit an operator makes, on the skeleton of a real walk (floor_2_straight):
+    the app-map made from the edited graph passes the app model's check (one connected graph,
+    links at both ends, every tag routable from every vertex)."""
+    result = optimize_session(load_session(data_dir / "sessions" / "floor_2_straight.json"))
+    pg = build_skeleton(result)
+    G = pg.graph
+    ends = [n for n in G.nodes if G.degree(n) == 1]
+    bends = [n for n in G.nodes if G.degree(n) == 2]
+    assert len(ends) >= 2
+    assert len(bends) >= 2
+
+    def at(n: int) -> list[float]:
+        return [float(v) for v in G.nodes[n]["position_m"]]
+
+    moved = bends[len(bends) // 2]
+    documents = [
+        {"op": "quiet", "at": at(bends[0])},
+        {
+            "op": "move_node",
+            "from": at(moved),
+            "to": [at(moved)[0] + 0.4, at(moved)[1], at(moved)[2]],
+        },
+        {"op": "add_edge", "from": at(ends[0]), "to": at(ends[-1]), "kind": "door"},
+        {"op": "add_poi", "name": "Printer", "at": at(bends[-1])},
+        {"op": "rename_poi", "name": "Printer", "new_name": "Printer 2"},
+    ]
+    edited = pg
+    for document in documents:
+        edited = apply_new_edit(edited, edit(document))
+    assert len(quiet_nodes(edited)) == 1
+    assert [p.name for p in edited.pois] == ["Printer 2"]
+    report = check_app_map(map_to_app_format(result, path_graph=edited))
+    assert report.ok, str(report)
+    assert report.components == 1
+    assert report.pairs > 0
+    # and after removing the door again
+    removed = apply_new_edit(
+        edited, edit({"op": "remove_edge", "from": at(ends[0]), "to": at(ends[-1])})
+    )
+    assert check_app_map(map_to_app_format(result, path_graph=removed)).ok
