@@ -451,6 +451,28 @@ def _remember_joint_map(map_id: int, fingerprints: dict[str, str], joint: JointM
         del _LAST_JOINT_MAPS[next(iter(_LAST_JOINT_MAPS))]
 
 
+def warm_start(
+    map_id: int, fingerprints: Mapping[str, str], params: SlamParams
+) -> tuple[JointMap | None, list[str]]:
+    """The last joint map this process built of ``map_id`` (taken out of the cache), if the
+    next build can start from it, and the walks whose own optimization it reuses. None when a
+    walk of the same name holds other data (another database's session 12), or when no walk of
+    it was optimized with these parameters (a rebuild with others starts cold)."""
+    previous_fingerprints, previous = _LAST_JOINT_MAPS.pop(map_id, ({}, None))
+    if previous is None or any(
+        part.dataset in fingerprints
+        and fingerprints[part.dataset] != previous_fingerprints.get(part.dataset)
+        for part in previous.parts
+    ):
+        return None, []
+    reused = [
+        part.dataset
+        for part in previous.parts
+        if part.dataset in fingerprints and part.fit is not None and part.fit.alone.params == params
+    ]
+    return (previous, reused) if reused else (None, [])
+
+
 def _optimize_joint(ctx: JobContext) -> None:
     """Several sessions into one map (``app.domain.mapping.joint``): each walk alone with its
     noise estimated, all placed together, one graph; progress by step, a cancel between LM
@@ -465,22 +487,12 @@ def _optimize_joint(ctx: JobContext) -> None:
 
     map_id = _need(ctx.lease.map_id, "map_id")
     fingerprints = {name: _fingerprint(s) for name, s in zip(names, ctx.sessions, strict=True)}
-    previous_fingerprints, previous = _LAST_JOINT_MAPS.pop(map_id, ({}, None))
+    previous, reused = warm_start(map_id, fingerprints, _need(ctx.params, "params"))
     if previous is not None:
-        reused = [
-            part.dataset
-            for part in previous.parts
-            if part.fit is not None
-            and part.fit.alone.params == ctx.params
-            and fingerprints.get(part.dataset, "") == previous_fingerprints.get(part.dataset)
-        ]
-        if reused:  # not after a change of parameters: those walks are optimized alone again
-            ctx.log(
-                "optimize: warm start from this worker's last build of the map "
-                f"({', '.join(reused)} not optimized alone again)"
-            )
-        else:
-            previous = None
+        ctx.log(
+            "optimize: warm start from this worker's last build of the map "
+            f"({', '.join(reused)} not optimized alone again)"
+        )
     joint = optimize_sessions(
         ctx.sessions,
         _need(ctx.params, "params"),
