@@ -54,7 +54,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from app.cli.tables import render_markdown_table  # noqa: E402
+from app.cli.tables import before_after_cell, change_cell, render_markdown_table  # noqa: E402
 from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.evaluation.metrics import (  # noqa: E402
     ground_truth_metric,
@@ -75,7 +75,6 @@ from app.domain.frames import FloatArray  # noqa: E402
 from app.domain.mapping.joint import JointMap, keep_poses, optimize_sessions  # noqa: E402
 from app.domain.mapping.params import SlamParams  # noqa: E402
 from app.domain.mapping.slam import optimize_session  # noqa: E402
-from app.domain.navigation.joint_path_graph import build_joint_path_graph  # noqa: E402
 from app.domain.navigation.skeleton import build_skeleton  # noqa: E402
 from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
 
@@ -228,11 +227,11 @@ def walk_table(rows: list[dict[str, Any]]) -> list[list[str]]:
                 row["subset"],
                 row["walk"],
                 row["tags"],
-                f"{_fmt(row['gt_alone'])} → {_fmt(row['gt_joint'])}",
-                f"{_fmt(row['rmse_alone'], 3)} → {_fmt(row['rmse_joint'], 3)}",
-                _change(row["rmse_joint"], row["rmse_alone"]),
-                f"{_fmt(row['shared'][0], 3)} → {_fmt(row['shared'][1], 3)}",
-                f"{_fmt(row['own'][0], 3)} → {_fmt(row['own'][1], 3)}",
+                before_after_cell(row["gt_alone"], row["gt_joint"]),
+                before_after_cell(row["rmse_alone"], row["rmse_joint"], 3),
+                change_cell(row["rmse_joint"], row["rmse_alone"]),
+                before_after_cell(row["shared"][0], row["shared"][1], 3),
+                before_after_cell(row["own"][0], row["own"][1], 3),
                 f"{row['weight']:.3g}",
                 f"{row['scale']:.4f}",
             ]
@@ -408,7 +407,7 @@ def _added_build(sessions: list[Session], names: list[str], previous: JointMap) 
     started, started_wall = time.process_time(), time.perf_counter()
     joint = optimize_sessions(sessions, names=names, initial=previous)
     optimized, optimized_wall = time.process_time(), time.perf_counter()
-    graph = build_joint_path_graph(joint.map, [part.pose_rows.start for part in joint.parts])
+    graph = build_skeleton(joint.map, walk_starts=[part.pose_rows.start for part in joint.parts])
     graphed = time.process_time()
     map_to_json(joint.map)
     packed_documents(joint.map, None, graph)
@@ -570,14 +569,6 @@ def _short(name: str) -> str:
     return name.replace("straight_209_occam (floor 2)", "209 (floor 2)").replace(
         "_straight_once", ""
     )
-
-
-def _fmt(value: float, digits: int = 4) -> str:
-    return "—" if math.isnan(value) else f"{value:.{digits}f}"
-
-
-def _change(new: float, old: float) -> str:
-    return "—" if math.isnan(new) or math.isnan(old) or old == 0 else f"{new / old - 1:+.1%}"
 
 
 def _finite_or_none(value: object) -> object:

@@ -40,7 +40,7 @@ from app.cli.common import add_param_option as _add_param_option
 from app.cli.common import slam_params as _params
 from app.cli.firebase import add_firebase_commands
 from app.cli.server import add_server_commands
-from app.cli.tables import render_markdown_table
+from app.cli.tables import before_after_cell, change_cell, fixed_cell, render_markdown_table
 from app.cli.tuning import add_sweep_commands
 from app.domain.errors import InvisibleMapError
 
@@ -167,16 +167,19 @@ def _process(args: argparse.Namespace) -> int:
         print(f"rejected ({reason}): {count}")
     for warning in result.warnings:
         print(f"warning: {warning}")
-    print(f"shift metric: pre {_fmt(evaluation.shift_pre)}  opt {_fmt(evaluation.shift_opt)}")
+    print(
+        f"shift metric: pre {fixed_cell(evaluation.shift_pre)}  "
+        f"opt {fixed_cell(evaluation.shift_opt)}"
+    )
     if ground_truth is not None:
         print(
-            f"ground-truth metric: pre {_fmt(evaluation.gt_metric_pre)}  "
-            f"opt {_fmt(evaluation.gt_metric_opt)}  "
+            f"ground-truth metric: pre {fixed_cell(evaluation.gt_metric_pre)}  "
+            f"opt {fixed_cell(evaluation.gt_metric_opt)}  "
             f"({evaluation.tags_with_ground_truth} tags with ground truth)"
         )
         print(
-            f"tag RMSE: pre {_fmt(evaluation.tag_rmse_pre_m, 3)} m  "
-            f"opt {_fmt(evaluation.tag_rmse_opt_m, 3)} m"
+            f"tag RMSE: pre {fixed_cell(evaluation.tag_rmse_pre_m, 3)} m  "
+            f"opt {fixed_cell(evaluation.tag_rmse_opt_m, 3)} m"
         )
         if evaluation.ground_truth_ids_ignored:
             print(_ignored_line(evaluation))
@@ -307,21 +310,15 @@ def joint_report_lines(evaluation: JointEvaluation) -> list[list[str]]:
             [
                 name,
                 f"{c.tags_compared}/{c.shared.with_truth}/{c.own.with_truth}",
-                f"{_fmt(c.gt_metric_alone)} → {_fmt(c.gt_metric_joint)}",
-                f"{_fmt(c.tag_rmse_alone_m, 3)} → {_fmt(c.tag_rmse_joint_m, 3)}",
-                _change(c.tag_rmse_joint_m, c.tag_rmse_alone_m),
-                f"{_fmt(c.shared.tag_rmse_alone_m, 3)} → {_fmt(c.shared.tag_rmse_joint_m, 3)}",
-                f"{_fmt(c.own.tag_rmse_alone_m, 3)} → {_fmt(c.own.tag_rmse_joint_m, 3)}",
+                before_after_cell(c.gt_metric_alone, c.gt_metric_joint),
+                before_after_cell(c.tag_rmse_alone_m, c.tag_rmse_joint_m, 3),
+                change_cell(c.tag_rmse_joint_m, c.tag_rmse_alone_m),
+                before_after_cell(c.shared.tag_rmse_alone_m, c.shared.tag_rmse_joint_m, 3),
+                before_after_cell(c.own.tag_rmse_alone_m, c.own.tag_rmse_joint_m, 3),
                 f"{c.disagreement_factor:.3g}",
             ]
         )
     return lines
-
-
-def _change(new: float, old: float) -> str:
-    if math.isnan(new) or math.isnan(old) or old == 0:
-        return "—"
-    return f"{new / old - 1:+.1%}"
 
 
 def _dataset_name(path: Path) -> str:
@@ -420,10 +417,6 @@ def _ignored_line(row: Evaluation) -> str:
     ids = list(row.ground_truth_ids_ignored)
     shown = ", ".join(str(i) for i in ids[:10]) + (", …" if len(ids) > 10 else "")
     return f"{len(ids)} ground-truth tags are not in this map and were ignored ({shown})"
-
-
-def _fmt(value: float, digits: int = 4) -> str:
-    return "—" if math.isnan(value) else f"{value:.{digits}f}"
 
 
 if __name__ == "__main__":
