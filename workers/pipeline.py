@@ -621,11 +621,7 @@ def path_graph(ctx: JobContext) -> None:
     """
     result = _need(ctx.result, "result")
     walk_starts = [0] if ctx.joint is None else [p.pose_rows.start for p in ctx.joint.parts]
-    graph = (
-        build_skeleton(result)
-        if len(walk_starts) == 1
-        else build_skeleton(result, walk_starts=walk_starts)
-    )
+    graph = build_skeleton(result, walk_starts=walk_starts)
     ctx.path_graph = path_graph_to_json(graph)
     # what the app-map had to adjust (a walk that falls apart, repeated names) is the map's news
     notes = map_to_app_format(result, path_graph=graph)["notes"]
