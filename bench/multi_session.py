@@ -49,8 +49,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
@@ -58,8 +56,8 @@ from app.cli.tables import before_after_cell, change_cell, render_markdown_table
 from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.evaluation.metrics import (  # noqa: E402
     ground_truth_metric,
+    largest_tag_distance_m,
     tag_rmse_m,
-    umeyama_rigid,
 )
 from app.domain.evaluation.simulate import SimulationConfig  # noqa: E402
 from app.domain.evaluation.simulate_building import (  # noqa: E402
@@ -146,7 +144,7 @@ def floor_2_walks(truth: Poses, checks: list[tuple[str, bool]]) -> dict[str, Any
                 for order in itertools.permutations(subset)
             ]
             spread = max(
-                largest_tag_difference_m(a.map.tag_poses(), b.map.tag_poses())
+                largest_tag_distance_m(a.map.tag_poses(), b.map.tag_poses())
                 for a, b in itertools.combinations(maps, 2)
             )
             spreads.append(spread)
@@ -285,7 +283,7 @@ def simulated_buildings(seeds: Sequence[int], checks: list[tuple[str, bool]]) ->
             for order in list(itertools.permutations(range(4)))[1:]
         ]  # fmt: skip
         spread = max(
-            largest_tag_difference_m(maps[0].map.tag_poses(), m.map.tag_poses()) for m in maps
+            largest_tag_distance_m(maps[0].map.tag_poses(), m.map.tag_poses()) for m in maps
         )
         spreads.append(spread)
         for part in first.parts:
@@ -553,16 +551,6 @@ def prior_study() -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def largest_tag_difference_m(a: Poses, b: Poses) -> float:
-    """Largest distance between two maps' common tags after a best rigid fit, m."""
-    common = sorted(set(a) & set(b))
-    source = np.stack([a[t][:3, 3] for t in common])
-    target = np.stack([b[t][:3, 3] for t in common])
-    fit = umeyama_rigid(source, target)
-    moved = source @ fit[:3, :3].T + fit[:3, 3]
-    return float(np.max(np.linalg.norm(moved - target, axis=1)))
 
 
 def _short(name: str) -> str:

@@ -16,9 +16,9 @@ from app.domain.errors import InvisibleMapError
 from app.domain.evaluation.ground_truth import load_ground_truth
 from app.domain.evaluation.metrics import (
     joint_shift_metric,
+    largest_tag_distance_m,
     shift_metric,
     tag_rmse_m,
-    umeyama_rigid,
 )
 from app.domain.evaluation.simulate import SimulationConfig
 from app.domain.evaluation.simulate_building import (
@@ -162,7 +162,7 @@ def test_the_map_does_not_depend_on_the_session_order_beyond_its_frame():
     forward = optimize_sessions(sessions, names=["a", "b", "c"])
     backward = optimize_sessions(sessions[::-1], names=["c", "b", "a"])
     assert next(p.dataset for p in backward.parts) == "c"
-    assert largest_tag_difference_m(forward.map.tag_poses(), backward.map.tag_poses()) < 0.01
+    assert largest_tag_distance_m(forward.map.tag_poses(), backward.map.tag_poses()) < 0.01
 
 
 def test_a_session_that_shares_nothing_is_refused_with_its_reason():
@@ -192,7 +192,7 @@ def test_a_moved_tag_in_one_session_does_not_drag_the_map():
     assert any(f"tags {moved_tag} (" in w for w in joint.map.warnings)
     backward = optimize_sessions(sessions[::-1], params, names=["b", "a"])
     assert backward.part("b").local_tags == (moved_tag,)
-    assert largest_tag_difference_m(joint.map.tag_poses(), backward.map.tag_poses()) < 0.01
+    assert largest_tag_distance_m(joint.map.tag_poses(), backward.map.tag_poses()) < 0.01
     clean = optimize_sessions(list(walks()[:2]), params, names=["a", "b"])
     error_m = np.linalg.norm(
         joint.map.tag_poses()[moved_tag][:3, 3] - clean.map.tag_poses()[moved_tag][:3, 3]
@@ -304,7 +304,7 @@ def test_walks_that_differ_make_one_map_whichever_comes_first():
     maps = mixed_maps()
     assert [m.parts[0].dataset for m in maps] == [s.label for s in mixed().styles]
     for other in maps[1:]:
-        assert largest_tag_difference_m(maps[0].map.tag_poses(), other.map.tag_poses()) < 0.01
+        assert largest_tag_distance_m(maps[0].map.tag_poses(), other.map.tag_poses()) < 0.01
         for part in other.parts:
             first = maps[0].part(part.dataset)
             assert part.local_tags == first.local_tags
@@ -341,7 +341,7 @@ def test_a_new_version_started_from_the_last_is_the_map_a_cold_build_makes():
     fits = [part.fit for part in cold.parts if part.fit is not None]
     previous = optimize_sessions(sessions[:3], names=names[:3], fits=fits)
     warm = optimize_sessions(sessions, names=names, initial=previous)
-    assert largest_tag_difference_m(cold.map.tag_poses(), warm.map.tag_poses()) < 0.01
+    assert largest_tag_distance_m(cold.map.tag_poses(), warm.map.tag_poses()) < 0.01
     for old, new in zip(previous.parts, warm.parts, strict=False):
         assert new.fit is old.fit  # not optimized alone again
     assert warm.parts[3].fit is not None
@@ -407,7 +407,7 @@ def test_the_floor_2_walks_make_one_map_in_any_order_and_no_walk_worse():
     fits = [part.fit for part in first.parts if part.fit is not None]
     rotated = [*names[1:], names[0]]
     other = optimize_sessions([walks[n] for n in rotated], names=rotated, fits=fits)
-    assert largest_tag_difference_m(first.map.tag_poses(), other.map.tag_poses()) < 0.01
+    assert largest_tag_distance_m(first.map.tag_poses(), other.map.tag_poses()) < 0.01
     for size in (2, 3):
         for subset in itertools.combinations(walks, size):
             forward = (
@@ -426,16 +426,6 @@ def test_the_floor_2_walks_make_one_map_in_any_order_and_no_walk_worse():
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def largest_tag_difference_m(a: dict, b: dict) -> float:
-    """Largest distance between two maps' common tags after a best rigid fit, m."""
-    common = sorted(set(a) & set(b))
-    source = np.stack([a[t][:3, 3] for t in common])
-    target = np.stack([b[t][:3, 3] for t in common])
-    fit = umeyama_rigid(source, target)
-    moved = source @ fit[:3, :3].T + fit[:3, 3]
-    return float(np.max(np.linalg.norm(moved - target, axis=1)))
 
 
 def _renumbered_tags(session: Session, *, offset: int) -> Session:

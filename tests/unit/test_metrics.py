@@ -17,6 +17,7 @@ from app.domain.evaluation.metrics import (
     TagSetComparison,
     compare_tag_sets,
     ground_truth_metric,
+    largest_tag_distance_m,
     shift_metric,
     tag_rmse_m,
     umeyama_rigid,
@@ -239,6 +240,18 @@ def test_tag_rmse_of_a_blown_up_square_by_hand():
     assert tag_rmse_m(moved(map_T_tag, SOME_RIGID_MOTION), gt_T_tag) == pytest.approx(
         0.1 * math.sqrt(2), abs=1e-12
     )
+
+
+def test_largest_tag_distance_middle_tag_moved_by_hand():
+    # As above: residuals 0.1/3, 0.2/3, 0.1/3 m, the largest 0.2/3 m (the moved tag), anywhere
+    # the map is placed; fewer than two common tags compare nothing.
+    gt_T_tag = tags_at((-1, 0, 0), (0, 0, 0), (1, 0, 0))
+    map_T_tag = tags_at((-1, 0, 0), (0, 0.1, 0), (1, 0, 0))
+    assert largest_tag_distance_m(map_T_tag, gt_T_tag) == pytest.approx(0.2 / 3, abs=1e-12)
+    assert largest_tag_distance_m(moved(map_T_tag, SOME_RIGID_MOTION), gt_T_tag) == pytest.approx(
+        0.2 / 3, abs=1e-12
+    )
+    assert math.isnan(largest_tag_distance_m(tags_at((0, 0, 0)), tags_at((0, 0, 0))))
 
 
 # --------------------------------------------------------------------------- shift metric

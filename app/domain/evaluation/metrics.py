@@ -147,14 +147,34 @@ def tag_rmse_m(map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, Float
     Returns NaN with fewer than 2 common tags (a single tag always aligns exactly, so 0 would be
     meaningless).
     """
+    distances_m = _aligned_distances_m(map_T_tag, gt_T_tag)
+    return math.nan if distances_m is None else float(np.sqrt(np.mean(distances_m**2)))
+
+
+def largest_tag_distance_m(
+    map_T_tag: Mapping[int, FloatArray], other_T_tag: Mapping[int, FloatArray]
+) -> float:
+    """The largest distance between two maps' common tags after the best-fit rigid transform
+    (as :func:`tag_rmse_m` aligns them), m: how far apart two builds of one building are (the
+    order spread of docs/multi-session.md). NaN with fewer than 2 common tags."""
+    distances_m = _aligned_distances_m(map_T_tag, other_T_tag)
+    return math.nan if distances_m is None else float(np.max(distances_m))
+
+
+def _aligned_distances_m(
+    map_T_tag: Mapping[int, FloatArray], gt_T_tag: Mapping[int, FloatArray]
+) -> FloatArray | None:
+    """Per common tag, the distance between the map's position aligned to ``gt_T_tag``'s by the
+    best-fit rigid transform and that position, m; None with fewer than 2 common tags."""
     common = compare_tag_sets(map_T_tag, gt_T_tag).common
     if len(common) < 2:
-        return math.nan
+        return None
     map_xyz = _stack(map_T_tag, common)[:, :3, 3]
     gt_xyz = _stack(gt_T_tag, common)[:, :3, 3]
     gt_T_map = umeyama_rigid(map_xyz, gt_xyz)
     aligned_xyz = map_xyz @ gt_T_map[:3, :3].T + gt_T_map[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((aligned_xyz - gt_xyz) ** 2, axis=1))))
+    distances_m: FloatArray = np.linalg.norm(aligned_xyz - gt_xyz, axis=1)
+    return distances_m
 
 
 # --------------------------------------------------------------------------- shift metric
