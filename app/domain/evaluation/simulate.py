@@ -1595,10 +1595,16 @@ def _lobbies(
         loop[:, 0] = centre[0] + walker.lobby_radius_m * np.cos(angle)
         loop[:, 2] = centre[1] + walker.lobby_radius_m * np.sin(angle)
         loops[k] = np.concatenate([pause, loop])
+    return _inserted_after(positions, loops)
+
+
+def _inserted_after(positions: FloatArray, inserts: dict[int, FloatArray]) -> FloatArray:
+    """``positions`` with ``inserts[k]`` walked right after row k (a pause and loop, a step to a
+    tag and back)."""
     pieces: list[FloatArray] = []
     start = 0
-    for k in sorted(loops):
-        pieces += [positions[start : k + 1], loops[k]]
+    for k in sorted(inserts):
+        pieces += [positions[start : k + 1], inserts[k]]
         start = k + 1
     pieces.append(positions[start:])
     return np.concatenate(pieces)
@@ -1675,13 +1681,7 @@ def _tag_steps(
         count = max(1, math.ceil(distance_m / walker.spacing_m))
         t = np.concatenate([np.arange(1, count + 1), np.arange(count - 1, -1, -1)]) / count
         steps[k] = positions[k] + t[:, None] * (goal - positions[k])
-    pieces: list[FloatArray] = []
-    start = 0
-    for k in sorted(steps):
-        pieces += [positions[start : k + 1], steps[k]]
-        start = k + 1
-    pieces.append(positions[start:])
-    return np.concatenate(pieces)
+    return _inserted_after(positions, steps)
 
 
 def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> PathGraph:
