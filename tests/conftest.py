@@ -199,7 +199,11 @@ class PreparedDatabases:
             if prepared is None:
                 prepared = f"im_test_prep_{RUN_ID}_{key}"
                 connection.execute(text(f'CREATE DATABASE "{prepared}" TEMPLATE "{url.database}"'))
-                prepare(_database_url(prepared).render_as_string(hide_password=False))
+                try:
+                    prepare(_database_url(prepared).render_as_string(hide_password=False))
+                except BaseException:  # not left behind half made, nor copied
+                    connection.execute(text(f'DROP DATABASE "{prepared}" WITH (FORCE)'))
+                    raise
                 self.prepared[(backend, key)] = prepared
             connection.execute(text(f'DROP DATABASE "{url.database}" WITH (FORCE)'))
             connection.execute(text(f'CREATE DATABASE "{url.database}" TEMPLATE "{prepared}"'))
