@@ -525,8 +525,8 @@ def test_a_walk_that_falls_apart_is_said_on_the_version(
     from app.domain.navigation.path_graph import PathGraph
     from app.domain.navigation.skeleton import build_skeleton
 
-    def cut_in_two(result):  # the real graph with the edges across x = its median removed
-        graph = build_skeleton(result)
+    def cut_in_two(result, **options):  # the real graph, its edges across x = its median removed
+        graph = build_skeleton(result, **options)
         G = graph.graph.copy()
         x_median = float(np.median([G.nodes[n]["position_m"][0] for n in G]))
         side = {n: G.nodes[n]["position_m"][0] < x_median for n in G}
