@@ -59,6 +59,7 @@ from app.domain.evaluation.tuning import SearchSpace, Trial, TuningTarget, best_
 from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_documents
 from app.domain.formats.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.frames import FloatArray
+from app.domain.json_values import finite_or_none
 from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.noise import COMPONENTS
@@ -553,8 +554,8 @@ def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
                 "noise": None if part.noise is None else part.noise.to_dict(params),
                 "noise_scales": dict(zip(COMPONENTS, part.noise_scales.tolist(), strict=True)),
                 "disagreement_factor": part.disagreement_factor,
-                "cost_alone": _finite_or_none(part.cost_alone),
-                "cost_joint": _finite_or_none(part.cost_joint),
+                "cost_alone": finite_or_none(part.cost_alone),
+                "cost_joint": finite_or_none(part.cost_joint),
                 "redundancy_gain": part.redundancy_gain,
                 "weighting": part.weighting,
                 "alone_vs_joint": None
@@ -563,20 +564,16 @@ def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
                     "all": report.all_tags.to_dict(),
                     "shared": report.shared.to_dict(),
                     "own": report.own.to_dict(),
-                    "shift_alone": _finite_or_none(
+                    "shift_alone": finite_or_none(
                         shift_metric(session, part.alone.tag_poses(), detection_mask=mask)
                     ),
-                    "shift_joint": _finite_or_none(
+                    "shift_joint": finite_or_none(
                         shift_metric(session, joint.map.tag_poses(), detection_mask=mask)
                     ),
                 },
             }
         )
     return out
-
-
-def _finite_or_none(value: float) -> float | None:
-    return value if math.isfinite(value) else None
 
 
 def evaluate(ctx: JobContext) -> None:

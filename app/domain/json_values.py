@@ -2,11 +2,13 @@
 
 json_type_name([1, 2])          # "a list", for messages like "expected an object, got a list"
 gunzip_if_compressed(raw)       # the bytes, decompressed when they start with gzip's magic
+finite_or_none(math.nan)        # None: JSON has no NaN or infinity, a measure not made is null
 """
 
 from __future__ import annotations
 
 import gzip
+import math
 import zlib
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -39,3 +41,8 @@ def gunzip_if_compressed(raw: bytes) -> bytes:
         return gzip.decompress(raw)
     except (OSError, EOFError, zlib.error) as err:
         raise ValueError(str(err)) from err
+
+
+def finite_or_none(value: float) -> float | None:
+    """``value`` as a float for a JSON document, None where it is NaN or infinite."""
+    return float(value) if math.isfinite(value) else None

@@ -39,6 +39,7 @@ from app.domain.evaluation.metrics import SHIFT_METRIC_VERSION
 from app.domain.evaluation.table import Evaluation
 from app.domain.formats.map_io import map_to_json
 from app.domain.frames import pose_to_xyz_quat_xyzw
+from app.domain.json_values import finite_or_none
 from app.domain.mapping.map_result import MapResult
 from app.domain.upload.session import display_name_of
 from app.storage import blobs, queue
@@ -508,16 +509,16 @@ def store_version(
         or 0
     )
     metrics = {
-        "shift_pre": _finite_or_none(evaluation.shift_pre),
-        "shift_opt": _finite_or_none(evaluation.shift_opt),
+        "shift_pre": finite_or_none(evaluation.shift_pre),
+        "shift_opt": finite_or_none(evaluation.shift_opt),
         "shift_metric_version": SHIFT_METRIC_VERSION,
     }
     if evaluation.tags_with_ground_truth:  # the build had ground truth (a rebuild's)
         metrics |= {
-            "gt_metric_pre": _finite_or_none(evaluation.gt_metric_pre),
-            "gt_metric_opt": _finite_or_none(evaluation.gt_metric_opt),
-            "tag_rmse_pre_m": _finite_or_none(evaluation.tag_rmse_pre_m),
-            "tag_rmse_opt_m": _finite_or_none(evaluation.tag_rmse_opt_m),
+            "gt_metric_pre": finite_or_none(evaluation.gt_metric_pre),
+            "gt_metric_opt": finite_or_none(evaluation.gt_metric_opt),
+            "tag_rmse_pre_m": finite_or_none(evaluation.tag_rmse_pre_m),
+            "tag_rmse_opt_m": finite_or_none(evaluation.tag_rmse_opt_m),
             "tags_with_ground_truth": evaluation.tags_with_ground_truth,
         }
     statistics = {
@@ -858,7 +859,3 @@ def _maps_with_tag_in_current_version(tag_id: int) -> Any:
         .join(MapTag, MapTag.map_version_id == MapVersion.id)
         .where(MapTag.tag_id == tag_id)
     )
-
-
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None

@@ -26,6 +26,7 @@ from app.domain.evaluation.ground_truth import parse_ground_truth_json
 from app.domain.evaluation.metrics import SHIFT_METRIC_VERSION
 from app.domain.evaluation.sweep_plan import GRID_CHUNK, SweepPlan
 from app.domain.evaluation.tuning import SearchSpace, SweepSummary, Trial, summarize
+from app.domain.json_values import finite_or_none
 from app.storage import maps, queue
 from app.storage.orm import Job, JobState, Sweep, SweepTrial, utc_now
 
@@ -163,9 +164,9 @@ def store_trials(
                 sweep_id=sweep_id,
                 number=first_number + offset,
                 values=trial.values,
-                shift=_finite_or_none(trial.shift),
-                gt_metric=_finite_or_none(trial.gt_metric),
-                tag_rmse_m=_finite_or_none(trial.tag_rmse_m),
+                shift=finite_or_none(trial.shift),
+                gt_metric=finite_or_none(trial.gt_metric),
+                tag_rmse_m=finite_or_none(trial.tag_rmse_m),
                 iterations=trial.iterations,
                 converged=trial.converged,
                 duration_s=trial.duration_s,
@@ -190,9 +191,9 @@ def set_baseline(db_session: Session, sweep_id: int, baseline: tuple[float, floa
     if row is not None and row.baseline is None:
         shift, gt_metric, rmse_m = baseline
         row.baseline = {
-            "shift": _finite_or_none(shift),
-            "gt_metric": _finite_or_none(gt_metric),
-            "tag_rmse_m": _finite_or_none(rmse_m),
+            "shift": finite_or_none(shift),
+            "gt_metric": finite_or_none(gt_metric),
+            "tag_rmse_m": finite_or_none(rmse_m),
         }
 
 
@@ -329,10 +330,6 @@ def _info(db_session: Session, row: Sweep) -> SweepInfo:
         session_ids=list(row.session_ids or []),
         finished_at=row.finished_at,
     )
-
-
-def _finite_or_none(value: float) -> float | None:
-    return value if math.isfinite(value) else None
 
 
 def _nan_if_none(value: float | None) -> float:

@@ -60,6 +60,7 @@ from app.domain.evaluation.metrics import (
     tag_rmse_m,
 )
 from app.domain.frames import FloatArray
+from app.domain.json_values import finite_or_none
 from app.domain.mapping.joint import prepare_joint
 from app.domain.mapping.params import NOISE_VARIANCE_FIELDS, SlamParams
 from app.domain.mapping.slam import (
@@ -241,9 +242,9 @@ class Trial:
         """JSON-ready (NaN becomes None)."""
         return {
             "values": self.values,
-            "shift": _finite_or_none(self.shift),
-            "gt_metric": _finite_or_none(self.gt_metric),
-            "tag_rmse_m": _finite_or_none(self.tag_rmse_m),
+            "shift": finite_or_none(self.shift),
+            "gt_metric": finite_or_none(self.gt_metric),
+            "tag_rmse_m": finite_or_none(self.tag_rmse_m),
             "iterations": self.iterations,
             "converged": self.converged,
             "duration_s": self.duration_s,
@@ -534,10 +535,6 @@ def _number(value: Any, name: str) -> float:
         raise ParameterError(f"{name}: {err}") from err
 
 
-def _finite_or_none(value: float) -> float | None:
-    return value if math.isfinite(value) else None
-
-
 def _clip(value: float, space: SearchSpace, name: str) -> float:
     axis = next(a for a in space.axes if a.name == name)
     return min(max(value, axis.low), axis.high)
@@ -572,7 +569,7 @@ class SweepSummary:
         out: dict[str, Any] = {}
         for name in self.__slots__:
             value = getattr(self, name)
-            out[name] = _finite_or_none(value) if isinstance(value, float) else value
+            out[name] = finite_or_none(value) if isinstance(value, float) else value
         return out
 
 

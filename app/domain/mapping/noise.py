@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.domain.json_values import finite_or_none
 from app.domain.mapping.params import SlamParams
 
 FloatArray = npt.NDArray[np.float64]
@@ -183,7 +184,7 @@ class NoiseEstimate:
                     "scale": float(self.scales[c]),
                     "redundancy": float(self.redundancy[c]),
                     "rows": float(self.rows[c]),
-                    "chi2_per_redundancy": _finite_or_none(float(self.chi2_per_redundancy[c])),
+                    "chi2_per_redundancy": finite_or_none(self.chi2_per_redundancy[c]),
                 }
                 for c, name in enumerate(COMPONENTS)
             },
@@ -230,10 +231,6 @@ def updated_scales(
     unwhitened = chi2 * scales  # vᵀv over the configured variance
     estimate = (unwhitened + prior_dof) / np.maximum(redundancy + prior_dof, 1e-12)
     return np.asarray(np.clip(estimate, bounds[0], bounds[1]), dtype=np.float64)
-
-
-def _finite_or_none(value: float) -> float | None:
-    return value if math.isfinite(value) else None
 
 
 __all__ = [
