@@ -488,11 +488,27 @@ def test_the_map_page_says_how_many_edits_apply(page, map_id):
 
 def test_delete_an_edit_from_the_history(page, map_id):
     open_editor(page, map_id)
-    count = history(page).count()
+    if history(page).filter(has_text="add a door").count() == 0:
+        # this worker's map has none yet (the tests may run on either worker): connect two ends
+        graph = data(page, map_id)
+        degree: dict[int, int] = {}
+        for edge in graph["edges"]:
+            for end in (edge["from"], edge["to"]):
+                degree[end] = degree.get(end, 0) + 1
+        ends = [n for n in graph["nodes"] if degree.get(n["id"]) == 1]
+        page.locator("#editor-kind").select_option("door")
+        page.locator(f'[data-node="{ends[0]["id"]}"]').focus()
+        page.keyboard.press("c")
+        page.locator(f'[data-node="{ends[-1]["id"]}"]').focus()
+        page.keyboard.press("Enter")
+        expect(history(page).last).to_contain_text("Applied")
+        open_editor(page, map_id)
+    listed = page.locator("#editor-history li[data-edit-id]")  # not the "No edit yet." line
+    count = listed.count()
     door = history(page).filter(has_text="add a door")
     edit_id = door.get_attribute("data-edit-id")
     door.get_by_role("button", name=f"Delete edit {edit_id}").click()
-    expect(history(page)).to_have_count(count - 1)
+    expect(listed).to_have_count(count - 1)
     expect(history(page).filter(has_text="add a door")).to_have_count(0)
     assert all(e["kind"] != "door" for e in data(page, map_id)["edges"])
 
