@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from app.domain.errors import SessionFormatError
 from app.services.errors import STATUS_OF_ERROR, ServiceError
@@ -157,6 +158,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(SessionFormatError, _session_format_error)
     app.add_exception_handler(DBAPIError, _database_fault)
     app.add_exception_handler(PoolTimeout, _database_fault)
+    app.add_exception_handler(ClientDisconnect, _client_disconnected)
     app.add_exception_handler(Exception, _internal_error)
 
 
@@ -226,6 +228,19 @@ async def _database_fault(request: Request, exc: Exception) -> JSONResponse:
     )
     detail, retry_after_s = FAULT_ANSWERS[fault]
     return error_response(503, fault.value, detail, headers={"Retry-After": retry_after_s})
+
+
+async def _client_disconnected(request: Request, _exc: Exception) -> JSONResponse:
+    """A client that went away while sending its body (or was cut off for sending it too slowly,
+    ``app.api.connection_guard``): one line of the log (a warning, like the guard's own), and an
+    answer nobody reads. Nothing was stored: a body is read whole before anything is written."""
+    logger.warning(
+        "client disconnected while sending %s %s: nothing stored",
+        request.method,
+        request.url.path,
+        extra={"action": "client_disconnected"},
+    )
+    return error_response(400, "client_disconnected", "the request's body did not arrive whole")
 
 
 async def _internal_error(request: Request, exc: Exception) -> JSONResponse:

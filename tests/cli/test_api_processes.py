@@ -135,9 +135,18 @@ def test_a_killed_api_process_is_replaced_and_sigterm_stops_them_all(
     first = started_pids(server)
     os.kill(first[1], 9)
     # the other one answers meanwhile, and the dead one comes back under a new pid
-    wait_for(lambda: started_pids(server)[1] != first[1], timeout_s=30, what="api-1 restarted")
     assert server.log_path is not None
-    log = server.log_path.read_text()
+    log_path = server.log_path
+    # serve logs "started as pid" and then "restarted as pid": wait for the second line
+    wait_for(
+        lambda: (
+            started_pids(server)[1] != first[1]
+            and "API process api-1 restarted as pid" in log_path.read_text()
+        ),
+        timeout_s=30,
+        what="api-1 restarted",
+    )
+    log = log_path.read_text()
     assert f"API process api-1 (pid {first[1]}) killed by SIGKILL" in log
     assert "API process api-1 restarted as pid" in log
     second = started_pids(server)
