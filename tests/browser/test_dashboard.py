@@ -471,11 +471,37 @@ def test_a_refused_edit_says_why_and_changes_nothing(page, map_id):
         page.locator(f'[data-node="{quiet["id"]}"]').focus()
         page.keyboard.press("q")
         expect(history(page).last).to_contain_text("Applied")
+        # the editor redraws and plans its route after an edit; a key meanwhile is told to wait
+        expect(page.locator("#editor")).not_to_have_attribute("aria-busy", "true")
     count = history(page).count()
     page.locator(f'[data-node="{quiet["id"]}"]').focus()
     page.keyboard.press("q")
     expect(page.locator("#editor-error")).to_contain_text("quiet already")
     expect(history(page)).to_have_count(count)
+
+
+def test_a_key_pressed_while_an_edit_is_saved_is_told_to_wait(page, map_id):
+    open_editor(page, map_id)
+    node = next(n for n in data(page, map_id)["nodes"] if n["kind"] == "node" and not n["quiet"])
+    count = history(page).count()
+
+    def slowly(route):  # type: ignore[no-untyped-def]
+        page.wait_for_timeout(1500)
+        route.continue_()
+
+    page.route(f"**/admin/maps/{map_id}/editor/edits", slowly)
+    try:
+        page.locator(f'[data-node="{node["id"]}"]').focus()
+        page.keyboard.press("q")
+        expect(page.locator("#editor")).to_have_attribute("aria-busy", "true")
+        page.keyboard.press("q")  # the same node again, while the first is saved
+        expect(page.locator("#editor-status")).to_contain_text("Still saving the last change")
+        expect(page.locator("#editor")).not_to_have_attribute("aria-busy", "true")
+    finally:
+        page.unroute(f"**/admin/maps/{map_id}/editor/edits")
+    expect(history(page)).to_have_count(count + 1)
+    expect(history(page).last).to_contain_text("Applied")
+    expect(page.locator("#editor-error")).to_be_hidden()
 
 
 def test_the_map_page_says_how_many_edits_apply(page, map_id):

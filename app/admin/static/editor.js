@@ -52,6 +52,24 @@
     }
   }
 
+  // One change at a time: while one is saved (and the graph drawn again), the editor says so
+  // (aria-busy) and a key or click that would start another is told to wait, never dropped
+  // silently.
+  function startBusy() {
+    if (state.busy) {
+      announce("Still saving the last change; try again in a moment.");
+      return false;
+    }
+    state.busy = true;
+    root.setAttribute("aria-busy", "true");
+    return true;
+  }
+
+  function endBusy() {
+    state.busy = false;
+    root.removeAttribute("aria-busy");
+  }
+
   function showError(message) {
     errorLine.textContent = message;
     errorLine.hidden = !message;
@@ -134,8 +152,7 @@
 
   // Send an edit; remember how to undo it (unless it is an undo itself).
   async function sendEdit(edit, description, { remember = true } = {}) {
-    if (state.busy) return;
-    state.busy = true;
+    if (!startBusy()) return;
     showError("");
     try {
       const answer = await request("POST", `${base}/edits`, edit);
@@ -149,13 +166,12 @@
       showError(`${description}: ${error.message}`);
       announce(`${description} refused: ${error.message}`);
     } finally {
-      state.busy = false;
+      endBusy();
     }
   }
 
   async function deleteEdit(id, edit, { remember = true } = {}) {
-    if (state.busy) return;
-    state.busy = true;
+    if (!startBusy()) return;
     showError("");
     try {
       await request("DELETE", `${base}/edits/${id}`);
@@ -167,7 +183,7 @@
       showError(`Deleting edit ${id}: ${error.message}`);
       announce(`Deleting edit ${id} failed: ${error.message}`);
     } finally {
-      state.busy = false;
+      endBusy();
     }
   }
 
