@@ -130,22 +130,41 @@ def rotation_from_quat_xyzw(quat_xyzw: npt.ArrayLike) -> FloatArray:
 
 def quat_xyzw_from_rotation(R: FloatArray) -> FloatArray:
     """Unit quaternion (x, y, z, w) with w ≥ 0 from a 3×3 rotation (Shepperd's method)."""
-    trace = float(np.trace(R))
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
-    quat_xyzw = np.array(q, dtype=np.float64)
-    quat_xyzw /= np.linalg.norm(quat_xyzw)
-    return -quat_xyzw if quat_xyzw[3] < 0 else quat_xyzw
+    quat_xyzw: FloatArray = quat_xyzw_from_rotations(np.asarray(R, dtype=np.float64)[None])[0]
+    return quat_xyzw
+
+
+def quat_xyzw_from_rotations(R: FloatArray) -> FloatArray:
+    """(M, 4) unit quaternions (x, y, z, w), w ≥ 0, from (M, 3, 3) rotations (Shepperd's method:
+    of 4w², 4x², 4y², 4z² the largest is divided by, for a well-conditioned division)."""
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    trace = m00 + m11 + m22
+    squares = np.stack(
+        [1 + trace, 1 + 2 * m00 - trace, 1 + 2 * m11 - trace, 1 + 2 * m22 - trace], 1
+    )
+    case = np.argmax(squares, axis=1)
+    s = 2.0 * np.sqrt(np.maximum(squares[np.arange(R.shape[0]), case], 1e-300))
+    r21_12, r02_20, r10_01 = (
+        R[:, 2, 1] - R[:, 1, 2],
+        R[:, 0, 2] - R[:, 2, 0],
+        R[:, 1, 0] - R[:, 0, 1],
+    )
+    r01_10, r02_20p, r12_21 = (
+        R[:, 0, 1] + R[:, 1, 0],
+        R[:, 0, 2] + R[:, 2, 0],
+        R[:, 1, 2] + R[:, 2, 1],
+    )
+    # fmt: off
+    candidates = np.stack([
+        np.stack([r21_12 / s,  r02_20 / s,  r10_01 / s,  s / 4], 1),
+        np.stack([s / 4,       r01_10 / s,  r02_20p / s, r21_12 / s], 1),
+        np.stack([r01_10 / s,  s / 4,       r12_21 / s,  r02_20 / s], 1),
+        np.stack([r02_20p / s, r12_21 / s,  s / 4,       r10_01 / s], 1),
+    ], 1)
+    # fmt: on
+    quat = candidates[np.arange(R.shape[0]), case]
+    quat /= np.linalg.norm(quat, axis=1)[:, None]
+    return np.asarray(np.where(quat[:, 3:] < 0, -quat, quat), dtype=np.float64)
 
 
 def rotation_about_x(angle_rad: float) -> FloatArray:
@@ -218,6 +237,13 @@ def so3_log(R: FloatArray) -> FloatArray:
 def pose_to_xyz_quat_xyzw(T: FloatArray) -> list[float]:
     """``[x, y, z, qx, qy, qz, qw]`` from a 4×4 pose (the ground-truth JSON form)."""
     return [*T[:3, 3].tolist(), *quat_xyzw_from_rotation(T[:3, :3]).tolist()]
+
+
+def poses_to_xyz_quat_xyzw(T: FloatArray) -> FloatArray:
+    """(M, 7) rows ``[x, y, z, qx, qy, qz, qw]`` of (M, 4, 4) poses: :func:`pose_to_xyz_quat_xyzw`
+    of many at once (a map's trajectory)."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    return np.concatenate([T[:, :3, 3], quat_xyzw_from_rotations(T[:, :3, :3])], axis=1)
 
 
 def pose_from_xyz_quat_xyzw(values: npt.ArrayLike) -> FloatArray:

@@ -49,6 +49,7 @@ from app.domain.frames import (
     PHONE_T_CAMERA_CV,
     FloatArray,
     project_pinhole_px,
+    quat_xyzw_from_rotations,
     se3_inverse,
     skew,
     so3_exp,
@@ -1070,7 +1071,7 @@ def _joint_covariance(camera_T_tag: FloatArray, config: SimulationConfig) -> Flo
     information = np.einsum("nki,nkj->nij", J, J) / _JOINT_COVAR_PIXEL_SIGMA**2
     covariance_6 = np.linalg.inv(information + 1e-12 * np.eye(6))
 
-    quat_xyzw = _quat_xyzw_from_rotations(R)
+    quat_xyzw = quat_xyzw_from_rotations(R)
     G = np.zeros((m, 7, 6))
     G[:, :3, :3] = np.eye(3)
     G[:, 3:6, 3:] = 0.5 * (quat_xyzw[:, 3, None, None] * np.eye(3) - skew(quat_xyzw[:, :3]))
@@ -1225,39 +1226,6 @@ def _rotations_about_z(angle_rad: FloatArray) -> FloatArray:
     out[:, 2, 2] = 1.0
     out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
     return out
-
-
-def _quat_xyzw_from_rotations(R: FloatArray) -> FloatArray:
-    """(M, 4) unit quaternions (x, y, z, w), w ≥ 0, from (M, 3, 3) rotations (Shepperd)."""
-    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
-    trace = m00 + m11 + m22
-    # 4w², 4x², 4y², 4z²: take the largest for a well-conditioned division.
-    squares = np.stack(
-        [1 + trace, 1 + 2 * m00 - trace, 1 + 2 * m11 - trace, 1 + 2 * m22 - trace], 1
-    )
-    case = np.argmax(squares, axis=1)
-    s = 2.0 * np.sqrt(np.maximum(squares[np.arange(R.shape[0]), case], 1e-300))
-    r21_12, r02_20, r10_01 = (
-        R[:, 2, 1] - R[:, 1, 2],
-        R[:, 0, 2] - R[:, 2, 0],
-        R[:, 1, 0] - R[:, 0, 1],
-    )
-    r01_10, r02_20p, r12_21 = (
-        R[:, 0, 1] + R[:, 1, 0],
-        R[:, 0, 2] + R[:, 2, 0],
-        R[:, 1, 2] + R[:, 2, 1],
-    )
-    # fmt: off
-    candidates = np.stack([
-        np.stack([r21_12 / s,  r02_20 / s,  r10_01 / s,  s / 4], 1),
-        np.stack([s / 4,       r01_10 / s,  r02_20p / s, r21_12 / s], 1),
-        np.stack([r01_10 / s,  s / 4,       r12_21 / s,  r02_20 / s], 1),
-        np.stack([r02_20p / s, r12_21 / s,  s / 4,       r10_01 / s], 1),
-    ], 1)
-    # fmt: on
-    quat = candidates[np.arange(R.shape[0]), case]
-    quat /= np.linalg.norm(quat, axis=1)[:, None]
-    return np.asarray(np.where(quat[:, 3:] < 0, -quat, quat), dtype=np.float64)
 
 
 # --------------------------------------------------------------------------- walkers (issue 18)

@@ -23,7 +23,7 @@ from app.domain.frames import (
     FloatArray,
     pose_from_xyz_quat_xyzw,
     pose_to_xyz_quat_xyzw,
-    quat_xyzw_from_rotation,
+    poses_to_xyz_quat_xyzw,
 )
 from app.domain.mapping.keyframes import keyframe_spans
 from app.domain.mapping.map_result import FactorResiduals, MapResult, OptimizationStats, Rejection
@@ -75,7 +75,7 @@ def map_to_json(result: MapResult) -> dict[str, Any]:
         "trajectory": {
             "pose_id": result.pose_id.tolist(),
             "timestamp_s": result.timestamp_s.tolist(),
-            "pose_xyz_quat_xyzw": [pose_to_xyz_quat_xyzw(T) for T in result.world_T_phone],
+            "pose_xyz_quat_xyzw": poses_to_xyz_quat_xyzw(result.world_T_phone).tolist(),
         },
         "points_of_interest": [
             {"name": name, "pose": pose_to_xyz_quat_xyzw(result.world_T_poi[k])}
@@ -228,6 +228,7 @@ def map_to_app_format(
             pose_rows=pose_rows,
         )
     waypoint_names, renamed = unique_waypoint_names(list(result.poi_names))
+    phone_rows = poses_to_xyz_quat_xyzw(result.world_T_phone).tolist()
     return {
         "tag_vertices": [
             {"id": int(tag_id), **_translation_rotation(result.world_T_tag[k])}
@@ -236,7 +237,7 @@ def map_to_app_format(
         "odometry_vertices": [
             {
                 "poseId": int(pose_ids[i]),
-                **_translation_rotation(result.world_T_phone[i]),
+                **_translation_rotation_of(phone_rows[i]),
                 "adjChi2": float(adjacent_chi2[i]),
                 "vizTags": float(visible_tags[i]),
                 "neighbors": neighbors,
@@ -294,8 +295,11 @@ def save_json(document: Any, path: str | Path) -> None:
 
 
 def _translation_rotation(T: FloatArray) -> dict[str, dict[str, float]]:
-    x, y, z = (float(v) for v in T[:3, 3])
-    qx, qy, qz, qw = (float(v) for v in quat_xyzw_from_rotation(T[:3, :3]))
+    return _translation_rotation_of(pose_to_xyz_quat_xyzw(T))
+
+
+def _translation_rotation_of(xyz_quat_xyzw: Sequence[float]) -> dict[str, dict[str, float]]:
+    x, y, z, qx, qy, qz, qw = (float(v) for v in xyz_quat_xyzw)
     return {
         "translation": {"x": x, "y": y, "z": z},
         "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
