@@ -349,6 +349,15 @@ def data(page, map_id: int) -> dict[str, Any]:
     return result
 
 
+def dead_ends(graph: dict[str, Any]) -> list[dict[str, Any]]:
+    """The editor data's nodes with one edge (where a door can join two corridors)."""
+    degree: dict[int, int] = {}
+    for edge in graph["edges"]:
+        for end in (edge["from"], edge["to"]):
+            degree[end] = degree.get(end, 0) + 1
+    return [n for n in graph["nodes"] if degree.get(n["id"]) == 1]
+
+
 def history(page):  # type: ignore[no-untyped-def]
     return page.locator("#editor-history li")
 
@@ -424,12 +433,7 @@ def test_drag_a_node(page, map_id):
 
 def test_connect_two_nodes_remove_the_edge_and_undo_with_the_keyboard(page, map_id):
     open_editor(page, map_id)
-    graph = data(page, map_id)
-    degree: dict[int, int] = {}
-    for edge in graph["edges"]:
-        for end in (edge["from"], edge["to"]):
-            degree[end] = degree.get(end, 0) + 1
-    ends = [n for n in graph["nodes"] if degree.get(n["id"]) == 1]
+    ends = dead_ends(data(page, map_id))
     a, b = ends[0], ends[-1]
     page.locator("#editor-kind").select_option("door")
     page.locator(f'[data-node="{a["id"]}"]').focus()
@@ -524,12 +528,7 @@ def test_delete_an_edit_from_the_history(page, map_id):
     open_editor(page, map_id)
     if history(page).filter(has_text="add a door").count() == 0:
         # this worker's map has none yet (the tests may run on either worker): connect two ends
-        graph = data(page, map_id)
-        degree: dict[int, int] = {}
-        for edge in graph["edges"]:
-            for end in (edge["from"], edge["to"]):
-                degree[end] = degree.get(end, 0) + 1
-        ends = [n for n in graph["nodes"] if degree.get(n["id"]) == 1]
+        ends = dead_ends(data(page, map_id))
         page.locator("#editor-kind").select_option("door")
         page.locator(f'[data-node="{ends[0]["id"]}"]').focus()
         page.keyboard.press("c")

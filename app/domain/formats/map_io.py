@@ -228,7 +228,8 @@ def map_to_app_format(
             pose_rows=pose_rows,
         )
     waypoint_names, renamed = unique_waypoint_names(list(result.poi_names))
-    phone_rows = poses_to_xyz_quat_xyzw(result.world_T_phone).tolist()
+    linked = [i for i, neighbors in enumerate(links.neighbors) if neighbors is not None]
+    linked_rows = poses_to_xyz_quat_xyzw(result.world_T_phone[linked]).tolist()
     return {
         "tag_vertices": [
             {"id": int(tag_id), **_translation_rotation(result.world_T_tag[k])}
@@ -237,13 +238,12 @@ def map_to_app_format(
         "odometry_vertices": [
             {
                 "poseId": int(pose_ids[i]),
-                **_translation_rotation_of(phone_rows[i]),
+                **_translation_rotation_of(row),
                 "adjChi2": float(adjacent_chi2[i]),
                 "vizTags": float(visible_tags[i]),
-                "neighbors": neighbors,
+                "neighbors": links.neighbors[i],
             }
-            for i, neighbors in enumerate(links.neighbors)
-            if neighbors is not None
+            for i, row in zip(linked, linked_rows, strict=True)
         ]
         + [
             {
