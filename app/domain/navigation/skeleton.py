@@ -387,6 +387,7 @@ def _add_floor(
     )
     _emit(G, state, origin, floor, height_m, params)
     _straighten_through_junctions(G, floor, params)
+    _untangle_junctions(G, floor, params.corridor_width_m)
 
 
 # --------------------------------------------------------------------------- branches → graph
@@ -576,6 +577,46 @@ def _point_along(G: nx.Graph[int], start: int, chain: list[int], distance_m: flo
             return a + (b - a) * (distance_m - walked_m) / step_m
         walked_m += step_m
     return points[-1]
+
+
+#: Two edges leaving a junction less than this apart (degrees) leave it the same way.
+SAME_WAY_DEG = 35.0
+
+
+def _untangle_junctions(G: nx.Graph[int], floor: int, within_m: float) -> None:
+    """Where two edges leave a junction of ``floor`` the same way (within ``SAME_WAY_DEG``) and
+    the nearer neighbour is within ``within_m``, the corridors branch at that neighbour, not at
+    the junction: the farther one is linked to the nearer one instead. Else a route from one to
+    the other would run into the junction and back (a turn-around)."""
+    changed, rounds = True, 4 * G.number_of_nodes()  # each round moves one edge to a nearer node
+    while changed and rounds > 0:
+        changed, rounds = False, rounds - 1
+        for node in [n for n in G.nodes if G.nodes[n]["floor"] == floor and G.degree[n] >= 3]:
+            here = np.asarray(G.nodes[node]["position_m"])[[0, 2]]
+            out = []
+            for m in G.neighbors(node):
+                d = np.asarray(G.nodes[m]["position_m"])[[0, 2]] - here
+                out.append((float(np.linalg.norm(d)), m, math.atan2(d[1], d[0])))
+            out.sort()
+            pair = next(
+                (
+                    (a, b)
+                    for a, b in itertools.combinations(out, 2)
+                    if a[0] <= within_m
+                    and a[0] > 0
+                    and abs(math.remainder(a[2] - b[2], 2 * math.pi)) < math.radians(SAME_WAY_DEG)
+                    and not G.has_edge(a[1], b[1])
+                ),
+                None,
+            )
+            if pair is None:
+                continue
+            (_, near, _), (_, far, _) = pair
+            data = G.edges[node, far]
+            G.remove_edge(node, far)
+            _add_walk_edge(G, near, far, data["floor"], kind=data["kind"])
+            changed = True
+            break
 
 
 def _new_node(G: nx.Graph[int], xz: FloatArray, floor: int, height_m: float) -> int:
