@@ -161,6 +161,27 @@ def test_a_partial_corridor_is_walked_part_way_and_the_reference_knows_only_that
     assert nx.is_connected(reference.graph)
 
 
+@pytest.mark.parametrize("seed", [0, 2])
+def test_the_reference_knows_a_corridor_as_far_as_it_was_walked(seed: int) -> None:
+    """A corridor walked part of the way (and never from its other end) is in the reference that
+    far: a tag beside it is anchored on it, not on another corridor 9 m away that it happens to
+    be nearest once the whole corridor is left out (seed 2: tag 16, 1.6 m from the walked part,
+    had a 1.3 m reference route to tag 2, against 10.6 m walked)."""
+    walk = simulate_walk(
+        UNSEEN_BUILDING,
+        replace(UNSEEN_WALKERS["partial corridors"], seed=seed, length_m=600.0),
+    )
+    reference = corridor_graph(walk)
+    ids, positions = walk.seen_tags()
+    walked_xz = walk.positions_m[:, [0, 2]]
+    for tag, p in zip(ids, positions, strict=True):
+        anchor = reference.graph.nodes[reference.tags[tag].node]["position_m"]
+        to_anchor_m = float(np.hypot(anchor[0] - p[0], anchor[2] - p[2]))
+        to_walk_m = float(np.hypot(*(walked_xz - p[[0, 2]]).T).min())
+        assert to_anchor_m <= to_walk_m + 2.0, (tag, to_anchor_m, to_walk_m)
+    assert nx.is_connected(reference.graph)
+
+
 def test_new_walker_parameters_are_checked() -> None:
     for name in ("oblique_probability", "lobby_probability", "partial_fraction"):
         with pytest.raises(ParameterError, match=name):

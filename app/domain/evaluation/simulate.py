@@ -1653,10 +1653,12 @@ def _tag_steps(
 
 
 def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> PathGraph:
-    """The building's true corridors (and stairs) that the walk went along (every point of them
-    within ``walked_within_m`` of a walked position; of a partial corridor, the part walked), as
-    a path graph with the tags attached: the reference that a skeleton of ``walk`` is scored
-    against."""
+    """The building's true corridors (and stairs) as far as the walk went along them (the runs of
+    each corridor whose every point is within ``walked_within_m`` of a walked position, at least
+    twice that long or the whole corridor; of a partial corridor, the part walked), as a path
+    graph with the tags attached: the reference that a skeleton of ``walk`` is scored against. A
+    corridor walked part of the way is known that far: a tag beside it is reached along it, not
+    from another corridor it happens to be nearer once the corridor is left out."""
     building = walk.building
     G: nx.Graph[int] = nx.Graph()
     ids: dict[tuple[float, float, float], int] = {}
@@ -1671,22 +1673,21 @@ def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> Path
         return ids[key]
 
     partial = dict(walk.partial_edges)
+    floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
     for e, polyline in enumerate(building.edge_polylines_m):
         if e in partial:  # only the part walked is known to the walker
             polyline = np.array(
                 [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
             )
-        floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
-        if not _walked_along(polyline, floor_m, walked_within_m):
-            continue
         stairs = abs(float(polyline[-1, 1] - polyline[0, 1])) > 1e-9
-        for a, b in itertools.pairwise(polyline):
-            u, v = node(a), node(b)
-            if u == v:
-                continue
-            floor = min(G.nodes[u]["floor"], G.nodes[v]["floor"])
-            kind = "stairs" if stairs and a[1] != b[1] else "walk"
-            G.add_edge(u, v, length_m=float(np.linalg.norm(b - a)), kind=kind, floor=floor)
+        for run in _walked_runs(polyline, floor_m, walked_within_m):
+            for a, b in itertools.pairwise(run):
+                u, v = node(a), node(b)
+                if u == v:
+                    continue
+                floor = min(G.nodes[u]["floor"], G.nodes[v]["floor"])
+                kind = "stairs" if stairs and a[1] != b[1] else "walk"
+                G.add_edge(u, v, length_m=float(np.linalg.norm(b - a)), kind=kind, floor=floor)
     for n in G.nodes:
         walk_degree = sum(1 for m in G.neighbors(n) if G.edges[n, m]["kind"] == "walk")
         G.nodes[n]["kind"] = "junction" if walk_degree >= 3 else "node"
@@ -1697,15 +1698,31 @@ def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> Path
     return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels), tags=tags)
 
 
-def _walked_along(polyline: FloatArray, positions_m: FloatArray, within_m: float) -> bool:
-    """Whether every point of ``polyline`` (P, 3), sampled every 0.5 m, has a walked position
-    (P, 3) at floor level within ``within_m`` (horizontally, and 1.5 m of height)."""
-    for a, b in itertools.pairwise(polyline):
-        count = max(1, math.ceil(float(np.linalg.norm(b - a)) / 0.5))
-        samples = a + np.linspace(0.0, 1.0, count + 1)[:, None] * (b - a)
-        for p in samples:
-            near = np.abs(positions_m[:, 1] - p[1]) < 1.5
-            horizontal = np.hypot(positions_m[near, 0] - p[0], positions_m[near, 2] - p[2])
-            if horizontal.size == 0 or float(horizontal.min()) > within_m:
-                return False
-    return True
+def _walked_runs(
+    polyline: FloatArray, positions_m: FloatArray, within_m: float
+) -> list[FloatArray]:
+    """The parts of ``polyline`` (P, 3) along which every point, sampled every 0.5 m, has a
+    walked position (N, 3) at floor level within ``within_m`` (horizontally, and 1.5 m of
+    height): the whole polyline when all of it was walked, else each run at least
+    2 × ``within_m`` long (shorter ones are where a walk crossed the corridor at a junction)."""
+    arc_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    length_m = float(arc_m[-1])
+    at_m = np.linspace(0.0, length_m, max(1, math.ceil(length_m / 0.5)) + 1)
+    samples = np.column_stack([np.interp(at_m, arc_m, polyline[:, k]) for k in range(3)])
+    walked = np.zeros(len(samples), dtype=np.bool_)
+    for k, p in enumerate(samples):
+        near = np.abs(positions_m[:, 1] - p[1]) < 1.5
+        horizontal = np.hypot(positions_m[near, 0] - p[0], positions_m[near, 2] - p[2])
+        walked[k] = horizontal.size > 0 and float(horizontal.min()) <= within_m
+    if walked.all():
+        return [polyline]
+    runs = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], walked.astype(np.int8), [0]])))
+    for first, end in zip(edges[::2], edges[1::2], strict=True):
+        start_m, stop_m = float(at_m[first]), float(at_m[end - 1])
+        if stop_m - start_m < 2 * within_m:
+            continue
+        inside = (arc_m > start_m) & (arc_m < stop_m)
+        run_at_m = np.concatenate([[start_m], arc_m[inside], [stop_m]])
+        runs.append(np.column_stack([np.interp(run_at_m, arc_m, polyline[:, k]) for k in range(3)]))
+    return runs
