@@ -22,8 +22,13 @@ from app.domain.navigation.path_graph import (
     PathGraph,
     build_path_graph_from_arrays,
 )
-from app.domain.navigation.routing import TagEnd, plan_walk
-from app.domain.navigation.skeleton import SkeletonParams, build_skeleton_from_arrays
+from app.domain.navigation.routing import NodeEnd, TagEnd, plan_walk
+from app.domain.navigation.skeleton import (
+    DEFAULT_SKELETON_PARAMS,
+    SkeletonParams,
+    _without_look_rounds,
+    build_skeleton_from_arrays,
+)
 from tests.unit.walks import PHONE_Y_M, line, walk
 
 
@@ -243,3 +248,84 @@ def test_a_corridor_straight_through_a_widening_junction_runs_straight() -> None
         assert announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(b)), min_deg=30.0) == []
     for a in (1, 2):  # into the stem: one turn
         assert len(announced_turns(plan_guided_route(pg, TagEnd(a), TagEnd(3)))) == 1
+
+
+def _with_loop_at(positions: np.ndarray, k: int, radius_m: float) -> np.ndarray:
+    """``positions`` with a walk round a circle of ``radius_m`` through row k inserted after it
+    (to its left, z > row k's), back to where it began."""
+    count = max(8, math.ceil(2 * math.pi * radius_m / 0.3))
+    angle = -math.pi / 2 + np.linspace(0.0, 2 * math.pi, count + 1)[1:]
+    centre = positions[k][[0, 2]] + [0.0, radius_m]
+    loop = np.repeat(positions[k][None], count, axis=0)
+    loop[:, 0] = centre[0] + radius_m * np.cos(angle)
+    loop[:, 2] = centre[1] + radius_m * np.sin(angle)
+    return np.concatenate([positions[: k + 1], loop, positions[k + 1 :]])
+
+
+def test_a_walk_round_a_lobby_beside_a_corner_leaves_the_corner_where_it_is() -> None:
+    """A walker who walks round a lobby (a 2.5 m circle) at a corner: the band fills the lobby
+    and thinning ran the centreline across it, 1.5–2 m inside the corner (issue 26). The look
+    round is left out of the band: the corner stays within 0.5 m of the walked one."""
+    corner = walk((0, 0), (20, 0), (20, 20))
+    k = int(np.argmin(np.hypot(corner[:, 0] - 20, corner[:, 2])))
+    looped = _with_loop_at(corner, k, 2.5)
+    for positions in (corner, looped):
+        pg = build_skeleton_from_arrays(positions)
+        xz = np.array([pg.graph.nodes[n]["position_m"] for n in pg.graph])[:, [0, 2]]
+        assert np.hypot(xz[:, 0] - 20, xz[:, 1]).min() < 0.5
+        route = plan_walk(pg, *(nearest_ends(pg, (0, 0), (20, 20))))
+        assert not has_turn_around(route)
+
+
+def nearest_ends(pg: PathGraph, *points_xz) -> list[NodeEnd]:
+    G = pg.graph
+    nodes = list(G)
+    xz = np.array([G.nodes[n]["position_m"] for n in nodes])[:, [0, 2]]
+    return [NodeEnd(nodes[int(np.argmin(np.hypot(*(xz - p).T)))]) for p in points_xz]
+
+
+@pytest.mark.parametrize(
+    ("label", "excursion"),
+    [
+        # a step to a tag on the wall and back: encloses nothing
+        ("step to a tag", [(10, 0), (10.5, 1.4), (10.2, 0.1)]),
+        # a dead end 8 m in and back 1 m to one side: a thin strip (4π area / perimeter² ≈ 0.3)
+        ("dead end in and back", [(10, 0), (10, 8), (11, 8), (11, 0.3), (10.2, 0.2)]),
+    ],
+)
+def test_an_out_and_back_is_no_look_round(label: str, excursion) -> None:
+    positions = walk((0, 0), *excursion, (20, 0))
+    out = _without_look_rounds(positions, [(0, len(positions))], DEFAULT_SKELETON_PARAMS)
+    np.testing.assert_array_equal(out, positions, err_msg=label)
+
+
+def test_only_a_round_loop_on_one_floor_is_collapsed() -> None:
+    straight = walk((0, 0), (20, 0))
+    k = 30
+    looped = _with_loop_at(straight, k, 2.5)
+    out = _without_look_rounds(looped, [(0, len(looped))], DEFAULT_SKELETON_PARAMS)
+    inserted = slice(k + 1, len(looped) - (len(straight) - k - 1))
+    # the loop reached 5 m out from the corridor (z = 0); collapsed, nothing is 0.5 m out (its
+    # first rows may fold onto a point a little before row k, where the circle passes within
+    # 0.5 m of the corridor)
+    assert looped[inserted, 2].max() > 4.9
+    assert np.abs(out[:, 2]).max() <= 0.5
+    assert out[inserted, 2].min() >= 0.0
+    np.testing.assert_array_equal(out[: k - 10], looped[: k - 10])  # the rest as walked
+    np.testing.assert_array_equal(out[inserted.stop :], looped[inserted.stop :])
+    # a loop too long to be a look round (a block walked round, 31 m), and the same loop rising
+    # half a floor (a spiral stair), stay
+    for positions in (
+        _with_loop_at(straight, k, 5.0),
+        looped
+        + np.concatenate(
+            [
+                np.zeros(k + 1),
+                np.linspace(0, 1.5, inserted.stop - k - 1),
+                np.full(len(looped) - inserted.stop, 1.5),
+            ]
+        )[:, None]
+        * [0, 1, 0],
+    ):
+        out = _without_look_rounds(positions, [(0, len(positions))], DEFAULT_SKELETON_PARAMS)
+        np.testing.assert_array_equal(out, positions)

@@ -190,7 +190,9 @@ def test_new_walker_parameters_are_checked() -> None:
         WalkerConfig(lobby_radius_m=-1.0)
 
 
-@pytest.mark.parametrize(("kind", "seed"), [("oblique", 0), ("oblique", 1), ("lobby", 0)])
+@pytest.mark.parametrize(
+    ("kind", "seed"), [("oblique", 0), ("oblique", 1), ("lobby", 0), ("lobby", 3)]
+)
 def test_the_unseen_walkers_get_no_turn_around_and_few_false_turns(kind, seed) -> None:
     """Oblique walkers left V-shaped junctions and lobby walkers loops (turn-arounds in 13–28% of
     routes of issue 18's skeleton); issue 26's skeleton has none, and its turns hold."""

@@ -192,9 +192,9 @@ def build_skeleton_from_arrays(
     G: nx.Graph[int] = nx.Graph()
     if world_p_phone.shape[0] == 0:
         return PathGraph(floor_levels_m=tuple(float(v) for v in levels_m))
-    pose_floor, changes, on_floor = _walks_floor_changes(
-        world_p_phone, _walk_bounds(walk_starts, world_p_phone.shape[0]), levels_m, params
-    )
+    bounds = _walk_bounds(walk_starts, world_p_phone.shape[0])
+    world_p_phone = _without_look_rounds(world_p_phone, bounds, params)  # x–z only: same floors
+    pose_floor, changes, on_floor = _walks_floor_changes(world_p_phone, bounds, levels_m, params)
     for floor in range(len(levels_m)):
         segments = np.flatnonzero(on_floor & (pose_floor[:-1] == floor) & (pose_floor[1:] == floor))
         lone = np.flatnonzero(pose_floor == floor)
@@ -256,6 +256,97 @@ def _away_from_tag_walls(
         if near.any():
             out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
     return out
+
+
+# --------------------------------------------------------------------------- look rounds
+
+
+#: A walk comes back to where it was when it passes within this of it again, m.
+LOOK_ROUND_CLOSE_M = 0.5
+#: … after walking at least this far (not the next few steps), m.
+LOOK_ROUND_MIN_WALK_M = 2.0
+#: A look round encloses at least this much floor (a step to a tag and back encloses none), m².
+LOOK_ROUND_MIN_AREA_M2 = 2.0
+#: … and is round: 4π area / perimeter² at least this (1 for a circle, 0.26 for a corridor
+#: walked 10 m in and back 1 m to one side).
+LOOK_ROUND_MIN_ROUNDNESS = 0.5
+#: … on one floor: its heights within this of each other, m.
+LOOK_ROUND_MAX_RISE_M = 0.5
+
+
+def _without_look_rounds(
+    world_p_phone: FloatArray, bounds: list[tuple[int, int]], params: SkeletonParams
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with each look round of a walk collapsed onto where it began: a
+    stretch that comes back within ``LOOK_ROUND_CLOSE_M`` of where it began after at least
+    ``LOOK_ROUND_MIN_WALK_M`` and at most ``params.loop_max_m`` of walking, on one floor, and
+    encloses a round area of at least ``LOOK_ROUND_MIN_AREA_M2``. A walker who walks round a
+    lobby to look at it goes nowhere; drawn into the band, the loop fills the lobby beside a
+    junction or a corner and pulls the centreline into it (issue 26). An out-and-back (a step to
+    a tag, a dead end walked in and back on its other side) encloses a thin strip, not a round
+    area, and stays."""
+    out = world_p_phone.copy()
+    for first, end in bounds:
+        xz = out[first:end][:, [0, 2]]
+        n = xz.shape[0]
+        if n < 4:
+            continue
+        step_m = np.hypot(*np.diff(xz, axis=0).T)
+        arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
+        moving = step_m[step_m > 1e-3]
+        if moving.size == 0:
+            continue
+        window = int(min(n - 1, math.ceil(params.loop_max_m / float(np.median(moving))) + 1))
+        returns = _first_returns(xz, arc_m, window, params.loop_max_m)
+        k = 0
+        for i in np.flatnonzero(returns >= 0).tolist():
+            if i < k:
+                continue  # inside a loop already collapsed
+            j = int(returns[i])
+            loop = xz[i : j + 1]
+            heights = out[first + i : first + j + 1, 1]
+            perimeter_m = float(arc_m[j] - arc_m[i]) + float(np.linalg.norm(loop[-1] - loop[0]))
+            area_m2 = 0.5 * abs(
+                float(
+                    np.dot(loop[:, 0], np.roll(loop[:, 1], -1))
+                    - np.dot(loop[:, 1], np.roll(loop[:, 0], -1))
+                )
+            )
+            if (
+                area_m2 < LOOK_ROUND_MIN_AREA_M2
+                or 4 * math.pi * area_m2 < LOOK_ROUND_MIN_ROUNDNESS * perimeter_m**2
+                or float(heights.max() - heights.min()) > LOOK_ROUND_MAX_RISE_M
+            ):
+                continue
+            out[first + i + 1 : first + j, 0] = xz[i, 0]
+            out[first + i + 1 : first + j, 2] = xz[i, 1]
+            k = j
+    return out
+
+
+def _first_returns(xz: FloatArray, arc_m: FloatArray, window: int, max_walk_m: float) -> IntArray:
+    """For each row i of ``xz`` (N, 2), the first later row j within ``window`` rows that is
+    within ``LOOK_ROUND_CLOSE_M`` of it after ``LOOK_ROUND_MIN_WALK_M`` to ``max_walk_m`` of
+    walking (``arc_m``), or −1. One vector pass per offset (not per row)."""
+    n = xz.shape[0]
+    first = np.full(n, -1, dtype=np.int64)
+    close_m2 = LOOK_ROUND_CLOSE_M**2
+    for offset in range(1, min(window, n - 1) + 1):
+        walked_m = arc_m[offset:] - arc_m[:-offset]
+        if float(walked_m.min()) > max_walk_m:
+            break
+        if float(walked_m.max()) < LOOK_ROUND_MIN_WALK_M:
+            continue
+        d = xz[offset:] - xz[:-offset]
+        hit = (
+            (first[: n - offset] < 0)
+            & (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= close_m2)
+            & (walked_m >= LOOK_ROUND_MIN_WALK_M)
+            & (walked_m <= max_walk_m)
+        )
+        rows = np.flatnonzero(hit)
+        first[rows] = rows + offset
+    return first
 
 
 # --------------------------------------------------------------------------- floors
