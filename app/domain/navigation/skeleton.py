@@ -12,7 +12,10 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
    floor change, widened over the steps around it that still climb ``stairs_min_rise_per_run``:
    an elevator when it moves at most ``elevator_max_horizontal_m`` horizontally or
    rises at least ``elevator_min_rise_per_run`` m per m, stairs otherwise.
-2. **Occupancy per floor.** The walked segments of each floor are drawn on a grid of ``cell_m``
+2. **Occupancy per floor.** First each walk's *look rounds* (a round loop on one floor, back
+   where it began within ``loop_max_m`` of walking: a lobby walked round) are collapsed onto where
+   they began, so they do not fill a lobby beside a corner or a junction. The walked segments of
+   each floor are drawn on a grid of ``cell_m``
    in the horizontal x–z plane and widened by half the corridor width (a disk of radius
    ``corridor_width_m / 2``), then *closed* (widened and narrowed again by ``close_m``). So two
    passes of one corridor up to a corridor width apart (sway, a second pass beside the first, two
