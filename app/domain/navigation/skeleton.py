@@ -289,55 +289,59 @@ def _without_look_rounds(
     a tag, a dead end walked in and back on its other side) encloses a thin strip, not a round
     area, and stays."""
     out = world_p_phone.copy()
-    for first, end in bounds:
-        xz = out[first:end][:, [0, 2]]
-        n = xz.shape[0]
-        if n < 4:
-            continue
-        step_m = np.hypot(*np.diff(xz, axis=0).T)
-        arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
-        moving = step_m[step_m > 1e-3]
-        if moving.size == 0:
-            continue
-        window = int(min(n - 1, math.ceil(params.loop_max_m / float(np.median(moving))) + 1))
-        returns = _first_returns(xz, arc_m, window, params.loop_max_m)
-        k = 0
-        for i in np.flatnonzero(returns >= 0).tolist():
-            if i < k:
-                continue  # inside a loop already collapsed
-            j = int(returns[i])
-            loop = xz[i : j + 1]
-            heights = out[first + i : first + j + 1, 1]
-            perimeter_m = float(arc_m[j] - arc_m[i]) + float(np.linalg.norm(loop[-1] - loop[0]))
-            area_m2 = 0.5 * abs(
-                float(
-                    np.dot(loop[:, 0], np.roll(loop[:, 1], -1))
-                    - np.dot(loop[:, 1], np.roll(loop[:, 0], -1))
-                )
+    n = out.shape[0]
+    if n < 4:
+        return out
+    xz = out[:, [0, 2]]
+    walk_of = np.full(n, -1, dtype=np.int64)
+    for k, (first, end) in enumerate(bounds):
+        walk_of[first:end] = k
+    step_m = np.hypot(*np.diff(xz, axis=0).T)
+    step_m[walk_of[1:] != walk_of[:-1]] = 0.0  # no step from one walk's end to the next's start
+    arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
+    moving = step_m[step_m > 1e-3]
+    if moving.size == 0:
+        return out
+    window = int(min(n - 1, math.ceil(params.loop_max_m / float(np.median(moving))) + 1))
+    returns = _first_returns(xz, arc_m, walk_of, window, params.loop_max_m)
+    k = 0
+    for i in np.flatnonzero(returns >= 0).tolist():
+        if i < k:
+            continue  # inside a loop already collapsed
+        j = int(returns[i])
+        loop = xz[i : j + 1]
+        heights = out[i : j + 1, 1]
+        perimeter_m = float(arc_m[j] - arc_m[i]) + float(np.linalg.norm(loop[-1] - loop[0]))
+        area_m2 = 0.5 * abs(
+            float(
+                np.dot(loop[:, 0], np.roll(loop[:, 1], -1))
+                - np.dot(loop[:, 1], np.roll(loop[:, 0], -1))
             )
-            if (
-                area_m2 < LOOK_ROUND_MIN_AREA_M2
-                or 4 * math.pi * area_m2 < LOOK_ROUND_MIN_ROUNDNESS * perimeter_m**2
-                or float(heights.max() - heights.min()) > LOOK_ROUND_MAX_RISE_M
-            ):
-                continue
-            out[first + i + 1 : first + j, 0] = xz[i, 0]
-            out[first + i + 1 : first + j, 2] = xz[i, 1]
-            k = j
+        )
+        if (
+            area_m2 < LOOK_ROUND_MIN_AREA_M2
+            or 4 * math.pi * area_m2 < LOOK_ROUND_MIN_ROUNDNESS * perimeter_m**2
+            or float(heights.max() - heights.min()) > LOOK_ROUND_MAX_RISE_M
+        ):
+            continue
+        out[i + 1 : j, 0] = xz[i, 0]
+        out[i + 1 : j, 2] = xz[i, 1]
+        k = j
     return out
 
 
-def _first_returns(xz: FloatArray, arc_m: FloatArray, window: int, max_walk_m: float) -> IntArray:
-    """For each row i of ``xz`` (N, 2), the first later row j within ``window`` rows that is
-    within ``LOOK_ROUND_CLOSE_M`` of it after ``LOOK_ROUND_MIN_WALK_M`` to ``max_walk_m`` of
-    walking (``arc_m``), or −1. One vector pass per offset (not per row)."""
+def _first_returns(
+    xz: FloatArray, arc_m: FloatArray, walk_of: IntArray, window: int, max_walk_m: float
+) -> IntArray:
+    """For each row i of ``xz`` (N, 2), the first later row j of the same walk (``walk_of``)
+    within ``window`` rows that is within ``LOOK_ROUND_CLOSE_M`` of it after
+    ``LOOK_ROUND_MIN_WALK_M`` to ``max_walk_m`` of walking (``arc_m``), or −1. One vector pass
+    per offset over every walk at once (not per row, nor per walk)."""
     n = xz.shape[0]
     first = np.full(n, -1, dtype=np.int64)
     close_m2 = LOOK_ROUND_CLOSE_M**2
     for offset in range(1, min(window, n - 1) + 1):
         walked_m = arc_m[offset:] - arc_m[:-offset]
-        if float(walked_m.min()) > max_walk_m:
-            break
         if float(walked_m.max()) < LOOK_ROUND_MIN_WALK_M:
             continue
         d = xz[offset:] - xz[:-offset]
@@ -346,6 +350,7 @@ def _first_returns(xz: FloatArray, arc_m: FloatArray, window: int, max_walk_m: f
             & (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= close_m2)
             & (walked_m >= LOOK_ROUND_MIN_WALK_M)
             & (walked_m <= max_walk_m)
+            & (walk_of[offset:] == walk_of[:-offset])
         )
         rows = np.flatnonzero(hit)
         first[rows] = rows + offset
