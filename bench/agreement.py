@@ -39,6 +39,7 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     SimulationConfig,
     WalkerConfig,
     build_building,
+    fused_skeleton,
     simulate_walk,
 )
 from app.domain.evaluation.turn_metrics import (  # noqa: E402
@@ -50,7 +51,6 @@ from app.domain.evaluation.turn_metrics import (  # noqa: E402
 )
 from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
 from app.domain.navigation.path_graph import PathGraph  # noqa: E402
-from app.domain.navigation.skeleton import build_skeleton_from_arrays  # noqa: E402
 from bench.navigation_quality import (  # noqa: E402
     MAPS,
     map_name,
@@ -150,23 +150,6 @@ def simulated_walks(config: SimulationConfig, seed: int) -> list[SimulatedWalk]:
     ]
 
 
-def fused(walks: Sequence[SimulatedWalk]) -> PathGraph:
-    """The skeleton fused from ``walks``, with the tags any of them saw (a map holds no other)."""
-    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
-    seen: dict[int, np.ndarray] = {}
-    for w in walks:
-        ids, positions = w.seen_tags()
-        seen.update(zip(ids, positions, strict=True))
-    ids = sorted(seen)
-    return build_skeleton_from_arrays(
-        np.concatenate([w.positions_m for w in walks]),
-        walk_starts=starts,
-        tag_ids=ids,
-        tag_positions_m=np.array([seen[t] for t in ids]).reshape(-1, 3),
-        tag_normals=walks[0].tag_normals(ids),
-    )
-
-
 def simulated_table() -> str:
     rows = [HEADER]
     summary: dict[str, list[float]] = {}
@@ -182,7 +165,7 @@ def simulated_table() -> str:
         def decide(pg: PathGraph, pairs: list[tuple[int, int]] = pairs) -> Sides:
             return route_decisions(pg, pairs, plan=plan_guided_route)
 
-        single = [decide(fused([w])) for w in walks]
+        single = [decide(fused_skeleton([w])) for w in walks]
         singles = [decisions_agreement(a, b) for a, b in itertools.combinations(single, 2)]
         same = [
             decisions_agreement(a, b, same_way_only=True)
@@ -191,8 +174,11 @@ def simulated_table() -> str:
         ways = [same_way_share(a, b) for a, b in itertools.combinations(single, 2)]
         summary.setdefault("single walks", []).extend(singles)
         summary.setdefault("single walks, same way", []).extend(same)
-        first_three, last_three = decide(fused(walks[:3])), decide(fused(walks[3:]))
-        added = decide(fused(walks[:4]))
+        first_three, last_three = (
+            decide(fused_skeleton(walks[:3])),
+            decide(fused_skeleton(walks[3:])),
+        )
+        added = decide(fused_skeleton(walks[:4]))
         name = f"{label}, seed {seed}"
         rows.append(
             [

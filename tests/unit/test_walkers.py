@@ -18,6 +18,7 @@ from app.domain.evaluation.simulate import (
     WalkerConfig,
     build_building,
     corridor_graph,
+    fused_skeleton,
     simulate_walk,
 )
 from app.domain.evaluation.turn_metrics import (
@@ -214,23 +215,6 @@ def test_the_unseen_walkers_get_no_turn_around_and_few_false_turns(kind, seed) -
     assert score.zigzag_share == 0.0
     assert score.precision >= 0.8
     assert score.recall >= 0.8
-
-
-def fused_skeleton(walks) -> object:
-    """The skeleton fused from ``walks`` with the tags any of them saw (as a building map)."""
-    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
-    seen: dict[int, np.ndarray] = {}
-    for w in walks:
-        ids, positions = w.seen_tags()
-        seen.update(zip(ids, positions, strict=True))
-    ids = sorted(seen)
-    return build_skeleton_from_arrays(
-        np.concatenate([w.positions_m for w in walks]),
-        walk_starts=starts,
-        tag_ids=ids,
-        tag_positions_m=np.array([seen[t] for t in ids]).reshape(-1, 3),
-        tag_normals=walks[0].tag_normals(ids),
-    )
 
 
 def test_building_maps_of_disjoint_walks_tell_the_same_decisions() -> None:

@@ -57,7 +57,7 @@ from app.domain.frames import (
     tag_corners_in_tag_frame,
 )
 from app.domain.navigation.path_graph import PathGraph
-from app.domain.navigation.skeleton import attach_anchor
+from app.domain.navigation.skeleton import attach_anchor, build_skeleton_from_arrays
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -1696,6 +1696,25 @@ def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> Path
         for t, p in zip(walk.tag_ids, walk.tag_positions_m, strict=True)
     }
     return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels), tags=tags)
+
+
+def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
+    """The corridor skeleton a building map of ``walks`` (one building, its frame, their true
+    positions) gets: fused from all of them, with the tags any of them saw (a map holds no
+    other)."""
+    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
+    seen: dict[int, FloatArray] = {}
+    for w in walks:
+        ids, positions = w.seen_tags()
+        seen.update(zip(ids, positions, strict=True))
+    tag_ids = sorted(seen)
+    return build_skeleton_from_arrays(
+        np.concatenate([w.positions_m for w in walks]),
+        walk_starts=starts,
+        tag_ids=tag_ids,
+        tag_positions_m=np.array([seen[t] for t in tag_ids]).reshape(-1, 3),
+        tag_normals=walks[0].tag_normals(tag_ids),
+    )
 
 
 def _walked_runs(
