@@ -1,4 +1,4 @@
-"""Navigation benchmark (in process, no server): one command, prints four tables.
+"""Navigation benchmark (in process, no server): one command, prints five tables.
 
     .venv/bin/python -m bench.navigation          # (or: .venv/bin/python bench/navigation.py)
 
@@ -9,6 +9,9 @@
    not meet) and the unseen ones of issue 26 (``UNSEEN_WALKERS``: oblique, corner cutting,
    lobbies, partial corridors, all together), in ``UNSEEN_BUILDING`` (3.2 m corridors, one and two
    floors) and issue 18's 2 m building, against each building's corridors.
+2b. The same on simulated building maps: ``bench.agreement``'s four buildings, each walked by its
+   six walkers, the map of walks 1–3 and that of walks 4–6 (fused skeletons), against the
+   corridors any of their walks went along.
 3. Skeleton build time (CPU, best of N) and size: the real sessions (optimized with default
    parameters), simulated two-floor walks of 10,000 and 100,000 poses (true trajectory), and a
    building map fused from 20 simulated walks.
@@ -45,6 +48,7 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     WalkerConfig,
     build_building,
     corridor_graph,
+    fused_skeleton,
     simulate_session,
     simulate_walk,
 )
@@ -72,6 +76,8 @@ SIMULATED_BUILDINGS = {
 SIMULATED_SEEDS = (0, 1, 2, 3)
 #: Tag pairs routed per simulated walk.
 SIMULATED_PAIRS = 80
+#: Tag pairs routed per simulated building map (table 2b).
+BUILDING_MAP_PAIRS = 200
 #: Walkers of table 2: label → config.
 SIMULATED_WALKERS: dict[str, WalkerConfig] = {"issue 18": WalkerConfig(), **UNSEEN_WALKERS}
 
@@ -128,6 +134,42 @@ def simulation_table() -> str:
                     f"{max(s.zigzag_share for s in scores):.0%}",
                     f"{max(s.turn_around_share for s in scores):.0%}",
                     f"{max(s.length_ratio_p90 for s in scores):.2f}",
+                ]
+            )
+    return render_markdown_table(rows, justify="right")
+
+
+def building_map_table() -> str:
+    """Table 2b: building maps of simulated walks (walks 1–3, walks 4–6 of each of
+    ``bench.agreement``'s buildings), scored against the corridors their walks went along."""
+    from bench.agreement import BUILDINGS, simulated_walks
+
+    rows = [["building", "walks", "routes", "turns told", "precision", "recall", "zigzag",
+             "turn-around", "route p90 / ref"]]  # fmt: skip
+    for label, config, seed in BUILDINGS:
+        walks = simulated_walks(config, seed)
+        for name, part in (("1–3", walks[:3]), ("4–6", walks[3:])):
+            ids = sorted({t for w in part for t in w.seen_tags()[0]})
+            pairs = list(itertools.permutations(ids, 2))
+            rng = np.random.default_rng(seed)
+            chosen = rng.choice(len(pairs), size=min(BUILDING_MAP_PAIRS, len(pairs)), replace=False)
+            score = score_tag_routes(
+                fused_skeleton(part),
+                corridor_graph(part),
+                [pairs[i] for i in chosen],
+                plan=plan_guided_route,
+            )
+            rows.append(
+                [
+                    f"{label}, seed {seed}",
+                    name,
+                    str(score.routes),
+                    str(score.announced),
+                    f"{score.precision:.0%}",
+                    f"{score.recall:.0%}",
+                    f"{score.zigzag_share:.0%}",
+                    f"{score.turn_around_share:.0%}",
+                    f"{score.length_ratio_p90:.2f}",
                 ]
             )
     return render_markdown_table(rows, justify="right")
@@ -260,6 +302,8 @@ def main() -> int:
     print(quality_table())
     print("\n2. turn-by-turn on simulated walkers (fused skeleton of each walk)")
     print(simulation_table())
+    print("\n2b. turn-by-turn on simulated building maps (walks 1–3 and 4–6 of six walkers, fused)")
+    print(building_map_table())
     builds, floor_2 = build_table()
     print("\n3. skeleton build time (CPU, best of 5 / 1 / 3) and size")
     print(builds)

@@ -236,3 +236,30 @@ def test_building_maps_of_disjoint_walks_tell_the_same_decisions() -> None:
     )
     assert len(first.keys() & second.keys()) >= 150
     assert decisions_agreement(first, second) >= 0.95
+
+
+def test_a_building_map_of_two_floors_is_scored_on_what_its_walks_walked() -> None:
+    """A building map of three walks of the two-floor building (``bench.agreement``'s seed 2;
+    table 2b of ``bench.navigation``), against the corridors any of the three walked: its turns
+    hold and no route turns round. Its six stair passes each ended a few centimetres from the
+    corridor's end and were linked to it by a link that doubled back (a 7 cm reversal in 53% of
+    routes); they now start at the corridor's node."""
+    config = replace(UNSEEN_BUILDING, two_floors=True)
+    seed = 2
+    building = build_building(replace(config, seed=seed), np.random.default_rng(seed))
+    walkers = [WalkerConfig(), *UNSEEN_WALKERS.values()][:3]
+    walks = [
+        simulate_walk(config, replace(w, seed=100 * seed + k, length_m=500.0), building=building)
+        for k, w in enumerate(walkers)
+    ]
+    ids = sorted({t for w in walks for t in w.seen_tags()[0]})
+    score = score_tag_routes(
+        fused_skeleton(walks),
+        corridor_graph(walks),
+        sampled_pairs(ids, 150, seed),
+        plan=plan_guided_route,
+    )
+    assert score.routes >= 100
+    assert score.turn_around_share == 0.0
+    assert score.precision >= 0.9
+    assert score.recall >= 0.9

@@ -1652,14 +1652,18 @@ def _tag_steps(
     return _inserted_after(positions, steps)
 
 
-def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> PathGraph:
-    """The building's true corridors (and stairs) as far as the walk went along them (the runs of
-    each corridor whose every point is within ``walked_within_m`` of a walked position, at least
-    twice that long or the whole corridor; of a partial corridor, the part walked), as a path
-    graph with the tags attached: the reference that a skeleton of ``walk`` is scored against. A
-    corridor walked part of the way is known that far: a tag beside it is reached along it, not
-    from another corridor it happens to be nearer once the corridor is left out."""
-    building = walk.building
+def corridor_graph(
+    walks: SimulatedWalk | Sequence[SimulatedWalk], *, walked_within_m: float = 2.0
+) -> PathGraph:
+    """The building's true corridors (and stairs) as far as the walks went along them (the runs
+    of each corridor whose every point is within ``walked_within_m`` of a position of one walk,
+    at least twice that long or the whole corridor; of a partial corridor, the part walked; of
+    several walks of one building, every part any of them walked), as a path graph with the tags
+    attached: the reference that a skeleton of the walks is scored against. A corridor walked
+    part of the way is known that far: a tag beside it is reached along it, not from another
+    corridor it happens to be nearer once the corridor is left out."""
+    walks = [walks] if isinstance(walks, SimulatedWalk) else list(walks)
+    building = walks[0].building
     G: nx.Graph[int] = nx.Graph()
     ids: dict[tuple[float, float, float], int] = {}
     levels = np.asarray(building.floor_heights_m, dtype=np.float64)
@@ -1672,15 +1676,20 @@ def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> Path
             G.add_node(ids[key], position_m=key, floor=floor, kind="node", pose_index=None)
         return ids[key]
 
-    partial = dict(walk.partial_edges)
-    floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
     for e, polyline in enumerate(building.edge_polylines_m):
-        if e in partial:  # only the part walked is known to the walker
-            polyline = np.array(
-                [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
-            )
+        runs: list[tuple[float, float]] = []
+        for walk in walks:
+            partial = dict(walk.partial_edges)
+            known = polyline
+            if e in partial:  # only the part walked is known to the walker
+                known = np.array(
+                    [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
+                )
+            floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
+            runs += _walked_runs(known, floor_m, walked_within_m)
         stairs = abs(float(polyline[-1, 1] - polyline[0, 1])) > 1e-9
-        for run in _walked_runs(polyline, floor_m, walked_within_m):
+        for start_m, stop_m in _union(runs):
+            run = _along(polyline, start_m, stop_m)
             for a, b in itertools.pairwise(run):
                 u, v = node(a), node(b)
                 if u == v:
@@ -1693,9 +1702,29 @@ def corridor_graph(walk: SimulatedWalk, *, walked_within_m: float = 2.0) -> Path
         G.nodes[n]["kind"] = "junction" if walk_degree >= 3 else "node"
     tags = {
         t: attach_anchor(G, str(t), p, levels)
-        for t, p in zip(walk.tag_ids, walk.tag_positions_m, strict=True)
+        for t, p in zip(walks[0].tag_ids, walks[0].tag_positions_m, strict=True)
     }
     return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels), tags=tags)
+
+
+def _union(runs: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Intervals (start, stop) along one corridor merged where they overlap or touch, m."""
+    merged: list[tuple[float, float]] = []
+    for start_m, stop_m in sorted(runs):
+        if merged and start_m <= merged[-1][1] + 1e-6:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], stop_m))
+        else:
+            merged.append((start_m, stop_m))
+    return merged
+
+
+def _along(polyline: FloatArray, start_m: float, stop_m: float) -> FloatArray:
+    """The part of ``polyline`` (P, 3) from ``start_m`` to ``stop_m`` along it (its vertices
+    between included)."""
+    arc_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    inside = (arc_m > start_m) & (arc_m < stop_m)
+    at_m = np.concatenate([[start_m], arc_m[inside], [stop_m]])
+    return np.column_stack([np.interp(at_m, arc_m, polyline[:, k]) for k in range(3)])
 
 
 def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
@@ -1719,11 +1748,12 @@ def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
 
 def _walked_runs(
     polyline: FloatArray, positions_m: FloatArray, within_m: float
-) -> list[FloatArray]:
-    """The parts of ``polyline`` (P, 3) along which every point, sampled every 0.5 m, has a
-    walked position (N, 3) at floor level within ``within_m`` (horizontally, and 1.5 m of
-    height): the whole polyline when all of it was walked, else each run at least
-    2 × ``within_m`` long (shorter ones are where a walk crossed the corridor at a junction)."""
+) -> list[tuple[float, float]]:
+    """The parts of ``polyline`` (P, 3), as (start, stop) along it in m, along which every point,
+    sampled every 0.5 m, has a walked position (N, 3) at floor level within ``within_m``
+    (horizontally, and 1.5 m of height): the whole polyline when all of it was walked, else each
+    run at least 2 × ``within_m`` long (shorter ones are where a walk crossed the corridor at a
+    junction)."""
     arc_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
     length_m = float(arc_m[-1])
     at_m = np.linspace(0.0, length_m, max(1, math.ceil(length_m / 0.5)) + 1)
@@ -1734,14 +1764,11 @@ def _walked_runs(
         horizontal = np.hypot(positions_m[near, 0] - p[0], positions_m[near, 2] - p[2])
         walked[k] = horizontal.size > 0 and float(horizontal.min()) <= within_m
     if walked.all():
-        return [polyline]
+        return [(0.0, length_m)]
     runs = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], walked.astype(np.int8), [0]])))
     for first, end in zip(edges[::2], edges[1::2], strict=True):
         start_m, stop_m = float(at_m[first]), float(at_m[end - 1])
-        if stop_m - start_m < 2 * within_m:
-            continue
-        inside = (arc_m > start_m) & (arc_m < stop_m)
-        run_at_m = np.concatenate([[start_m], arc_m[inside], [stop_m]])
-        runs.append(np.column_stack([np.interp(run_at_m, arc_m, polyline[:, k]) for k in range(3)]))
+        if stop_m - start_m >= 2 * within_m:
+            runs.append((start_m, stop_m))
     return runs
