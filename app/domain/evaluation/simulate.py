@@ -56,6 +56,7 @@ from app.domain.frames import (
     tag_corners_in_camera,
     tag_corners_in_tag_frame,
 )
+from app.domain.navigation.instructions import walked_distances_m
 from app.domain.navigation.path_graph import PathGraph
 from app.domain.navigation.skeleton import attach_anchor, build_skeleton_from_arrays
 
@@ -1676,16 +1677,19 @@ def corridor_graph(
             G.add_node(ids[key], position_m=key, floor=floor, kind="node", pose_index=None)
         return ids[key]
 
+    # each walk's partial corridors and its positions at floor level, once
+    walked = [
+        (dict(w.partial_edges), w.positions_m - np.array([0.0, w.phone_height_m, 0.0]))
+        for w in walks
+    ]
     for e, polyline in enumerate(building.edge_polylines_m):
         runs: list[tuple[float, float]] = []
-        for walk in walks:
-            partial = dict(walk.partial_edges)
+        for partial, floor_m in walked:
             known = polyline
             if e in partial:  # only the part walked is known to the walker
                 known = np.array(
                     [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
                 )
-            floor_m = walk.positions_m - np.array([0.0, walk.phone_height_m, 0.0])
             runs += _walked_runs(known, floor_m, walked_within_m)
         stairs = abs(float(polyline[-1, 1] - polyline[0, 1])) > 1e-9
         for start_m, stop_m in _union(runs):
@@ -1721,7 +1725,7 @@ def _union(runs: list[tuple[float, float]]) -> list[tuple[float, float]]:
 def _along(polyline: FloatArray, start_m: float, stop_m: float) -> FloatArray:
     """The part of ``polyline`` (P, 3) from ``start_m`` to ``stop_m`` along it (its vertices
     between included)."""
-    arc_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    arc_m = walked_distances_m(polyline)
     inside = (arc_m > start_m) & (arc_m < stop_m)
     at_m = np.concatenate([[start_m], arc_m[inside], [stop_m]])
     return np.column_stack([np.interp(at_m, arc_m, polyline[:, k]) for k in range(3)])
@@ -1754,7 +1758,7 @@ def _walked_runs(
     (horizontally, and 1.5 m of height): the whole polyline when all of it was walked, else each
     run at least 2 × ``within_m`` long (shorter ones are where a walk crossed the corridor at a
     junction)."""
-    arc_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    arc_m = walked_distances_m(polyline)
     length_m = float(arc_m[-1])
     at_m = np.linspace(0.0, length_m, max(1, math.ceil(length_m / 0.5)) + 1)
     samples = np.column_stack([np.interp(at_m, arc_m, polyline[:, k]) for k in range(3)])
