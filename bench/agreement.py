@@ -38,9 +38,8 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     SimulatedWalk,
     SimulationConfig,
     WalkerConfig,
-    build_building,
     fused_skeleton,
-    simulate_walk,
+    walks_of_one_building,
 )
 from app.domain.evaluation.turn_metrics import (  # noqa: E402
     Decisions,
@@ -139,15 +138,7 @@ def real_table() -> str:
 
 def simulated_walks(config: SimulationConfig, seed: int) -> list[SimulatedWalk]:
     """The walks of the six walkers of one building (its frame)."""
-    building = build_building(dataclasses.replace(config, seed=seed), np.random.default_rng(seed))
-    return [
-        simulate_walk(
-            config,
-            dataclasses.replace(w, seed=100 * seed + k, length_m=500.0),
-            building=building,
-        )
-        for k, (_, w) in enumerate(WALKERS)
-    ]
+    return walks_of_one_building(config, seed, [w for _, w in WALKERS])
 
 
 def simulated_table() -> str:

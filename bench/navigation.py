@@ -60,6 +60,7 @@ from app.domain.navigation.path_graph import JUNCTION, PathGraph  # noqa: E402
 from app.domain.navigation.routing import PositionEnd, TagEnd  # noqa: E402
 from app.domain.navigation.skeleton import build_skeleton, build_skeleton_from_arrays  # noqa: E402
 from app.domain.upload.session import load_session  # noqa: E402
+from bench.agreement import BUILDINGS, simulated_walks  # noqa: E402
 from bench.navigation_quality import quality_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
@@ -142,8 +143,6 @@ def simulation_table() -> str:
 def building_map_table() -> str:
     """Table 2b: building maps of simulated walks (walks 1–3, walks 4–6 of each of
     ``bench.agreement``'s buildings), scored against the corridors their walks went along."""
-    from bench.agreement import BUILDINGS, simulated_walks
-
     rows = [["building", "walks", "routes", "turns told", "precision", "recall", "zigzag",
              "turn-around", "route p90 / ref"]]  # fmt: skip
     for label, config, seed in BUILDINGS:

@@ -16,10 +16,10 @@ from app.domain.evaluation.simulate import (
     UNSEEN_WALKERS,
     SimulationConfig,
     WalkerConfig,
-    build_building,
     corridor_graph,
     fused_skeleton,
     simulate_walk,
+    walks_of_one_building,
 )
 from app.domain.evaluation.turn_metrics import (
     decisions_agreement,
@@ -222,13 +222,10 @@ def test_building_maps_of_disjoint_walks_tell_the_same_decisions() -> None:
     tag pairs), on issue 18's 2 m building (``bench.agreement``'s seed 3) walked by its six
     walkers: the map of walks 1–3 against that of walks 4–6. 89% before look rounds left the
     band (the lobby and ``all`` walkers' loops bent their junctions), 99% now."""
-    config, seed = SimulationConfig(num_poses=2), 3
-    building = build_building(replace(config, seed=seed), np.random.default_rng(seed))
-    walkers = [WalkerConfig(), *UNSEEN_WALKERS.values()]
-    walks = [
-        simulate_walk(config, replace(w, seed=100 * seed + k, length_m=500.0), building=building)
-        for k, w in enumerate(walkers)
-    ]
+    seed = 3
+    walks = walks_of_one_building(
+        SimulationConfig(num_poses=2), seed, [WalkerConfig(), *UNSEEN_WALKERS.values()]
+    )
     pairs = sampled_pairs(walks[0].tag_ids, 200, seed)
     first, second = (
         route_decisions(fused_skeleton(part), pairs, plan=plan_guided_route)
@@ -244,14 +241,12 @@ def test_a_building_map_of_two_floors_is_scored_on_what_its_walks_walked() -> No
     hold and no route turns round. Its six stair passes each ended a few centimetres from the
     corridor's end and were linked to it by a link that doubled back (a 7 cm reversal in 53% of
     routes); they now start at the corridor's node."""
-    config = replace(UNSEEN_BUILDING, two_floors=True)
     seed = 2
-    building = build_building(replace(config, seed=seed), np.random.default_rng(seed))
-    walkers = [WalkerConfig(), *UNSEEN_WALKERS.values()][:3]
-    walks = [
-        simulate_walk(config, replace(w, seed=100 * seed + k, length_m=500.0), building=building)
-        for k, w in enumerate(walkers)
-    ]
+    walks = walks_of_one_building(
+        replace(UNSEEN_BUILDING, two_floors=True),
+        seed,
+        [WalkerConfig(), *UNSEEN_WALKERS.values()][:3],
+    )
     ids = sorted({t for w in walks for t in w.seen_tags()[0]})
     score = score_tag_routes(
         fused_skeleton(walks),

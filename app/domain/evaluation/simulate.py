@@ -1731,6 +1731,26 @@ def _along(polyline: FloatArray, start_m: float, stop_m: float) -> FloatArray:
     return np.column_stack([np.interp(at_m, arc_m, polyline[:, k]) for k in range(3)])
 
 
+def walks_of_one_building(
+    config: SimulationConfig,
+    seed: int,
+    walkers: Sequence[WalkerConfig],
+    *,
+    length_m: float = 500.0,
+) -> list[SimulatedWalk]:
+    """The walks of ``walkers`` through one building (``config`` with ``seed``), each in the
+    building's frame: walker k walks with seed ``100 × seed + k``, ``length_m`` long."""
+    building = build_building(dataclasses.replace(config, seed=seed), np.random.default_rng(seed))
+    return [
+        simulate_walk(
+            config,
+            dataclasses.replace(w, seed=100 * seed + k, length_m=length_m),
+            building=building,
+        )
+        for k, w in enumerate(walkers)
+    ]
+
+
 def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
     """The corridor skeleton a building map of ``walks`` (one building, its frame, their true
     positions) gets: fused from all of them, with the tags any of them saw (a map holds no
