@@ -766,9 +766,7 @@ def _add_floor_change(
         _add_walk_edge(G, a, b, lower, kind=change.kind)
     for end, floor in ((chain[0], change.floor_from), (chain[-1], change.floor_to)):
         G.nodes[end]["floor"] = floor
-        joint = _split_nearest(
-            G, np.asarray(G.nodes[end]["position_m"]), floor, avoid={*chain}, at=end
-        )
+        joint = _split_nearest(G, np.asarray(G.nodes[end]["position_m"]), floor, avoid={*chain})
         if joint is None or joint == end:
             continue
         if _horizontal_m(G, joint, end) <= SNAP_TO_END_M and G.degree[end] == 1:
@@ -777,7 +775,6 @@ def _add_floor_change(
             (following,) = G.neighbors(end)
             _add_walk_edge(G, joint, following, lower, kind=change.kind)
             G.remove_node(end)
-            chain = [joint if n == end else n for n in chain]
         else:
             _add_walk_edge(G, joint, end, floor)
 
@@ -805,18 +802,10 @@ def _walk_edges(G: nx.Graph[int], floor: int, avoid: set[int]) -> list[tuple[int
 
 
 def _split_nearest(
-    G: nx.Graph[int],
-    world_p: FloatArray,
-    floor: int,
-    *,
-    avoid: set[int] | None = None,
-    at: int | None = None,
+    G: nx.Graph[int], world_p: FloatArray, floor: int, *, avoid: set[int] | None = None
 ) -> int | None:
     """The node at the nearest point (x–z) of a walk edge of ``floor``: an end when within
-    ``SNAP_TO_END_M`` of it, else a new node splitting the edge; None if the floor has no edge.
-    With ``at`` (a node at ``world_p``, the end of the stairs) within ``SNAP_TO_END_M`` of the
-    edge, ``at`` itself splits it: a link of a few centimetres would double back on the
-    corridor (a walker turned round on the spot, as drawn)."""
+    ``SNAP_TO_END_M`` of it, else a new node splitting the edge; None if the floor has no edge."""
     edges = _walk_edges(G, floor, avoid or set())
     if not edges:
         lone = [n for n in G.nodes if G.nodes[n]["floor"] == floor and n not in (avoid or set())]
@@ -839,10 +828,7 @@ def _split_nearest(
     if (1 - t[e]) * length_m <= SNAP_TO_END_M:
         return v
     data = G.edges[u, v]
-    if at is not None and distance[e] <= SNAP_TO_END_M:
-        node = at
-    else:
-        node = _new_node(G, (a[e] + t[e] * (b[e] - a[e]))[[0, 2]], floor, float(a[e, 1]))
+    node = _new_node(G, (a[e] + t[e] * (b[e] - a[e]))[[0, 2]], floor, float(a[e, 1]))
     G.remove_edge(u, v)
     _add_walk_edge(G, u, node, data["floor"])
     _add_walk_edge(G, node, v, data["floor"])
