@@ -38,6 +38,7 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     SimulatedWalk,
     SimulationConfig,
     WalkerConfig,
+    corridor_graph,
     fused_skeleton,
     walks_of_one_building,
 )
@@ -50,6 +51,7 @@ from app.domain.evaluation.turn_metrics import (  # noqa: E402
 )
 from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
 from app.domain.navigation.path_graph import PathGraph  # noqa: E402
+from app.domain.navigation.routing import RouteError, TagEnd, plan_walk  # noqa: E402
 from bench.navigation_quality import (  # noqa: E402
     MAPS,
     map_name,
@@ -69,6 +71,9 @@ BUILDINGS = (
     ("two floors, 3.2 m corridors", dataclasses.replace(UNSEEN_BUILDING, two_floors=True), 2),
     ("one floor, 2 m corridors (issue 18)", SimulationConfig(num_poses=2), 3),
 )
+#: A tag pair is walked by a walk when its route along the corridors that walk went along is no
+#: longer than along the corridors all the building's walks went along, plus this share.
+WALKED_SLACK = 0.02
 #: The six walkers of a simulated building, in order.
 WALKERS: tuple[tuple[str, WalkerConfig], ...] = (
     ("issue 18", WalkerConfig()),
@@ -102,6 +107,7 @@ def _row(kind: str, first: str, second: str, a: Sides, b: Sides) -> list[str]:
         f"{strict:.0%}",
         f"{same_way_share(a, b):.0%}",
         f"{decisions_agreement(a, b, same_way_only=True):.0%}",
+        "",
     ]
 
 
@@ -114,6 +120,7 @@ HEADER = [
     "strict",
     "same way",
     "agreement, same way",
+    "agreement, both walked",
 ]
 
 
@@ -141,6 +148,26 @@ def simulated_walks(config: SimulationConfig, seed: int) -> list[SimulatedWalk]:
     return walks_of_one_building(config, seed, [w for _, w in WALKERS])
 
 
+def walked_pairs(
+    walk: SimulatedWalk, every: PathGraph, pairs: list[tuple[int, int]]
+) -> set[tuple[int, int]]:
+    """The tag pairs whose shortest way through the building (along the corridors any of its
+    walks went along, ``every``) ``walk`` went along: two single walks can only tell the same
+    decisions on the pairs both walked; elsewhere one of them knows a shorter way than the
+    other, through a corridor the other never saw."""
+    own = corridor_graph(walk)
+    out = set()
+    for a, b in pairs:
+        try:
+            mine = plan_walk(own, TagEnd(a), TagEnd(b)).length_m
+            best = plan_walk(every, TagEnd(a), TagEnd(b)).length_m
+        except RouteError:
+            continue
+        if mine <= best * (1 + WALKED_SLACK):
+            out.add((a, b))
+    return out
+
+
 def simulated_table() -> str:
     rows = [HEADER]
     summary: dict[str, list[float]] = {}
@@ -158,6 +185,15 @@ def simulated_table() -> str:
 
         single = [decide(fused_skeleton([w])) for w in walks]
         singles = [decisions_agreement(a, b) for a, b in itertools.combinations(single, 2)]
+        every = corridor_graph(walks)
+        walked = [walked_pairs(w, every, pairs) for w in walks]
+        both = [
+            decisions_agreement(
+                {k: v for k, v in single[i].items() if k in walked[i] & walked[j]},
+                {k: v for k, v in single[j].items() if k in walked[i] & walked[j]},
+            )
+            for i, j in itertools.combinations(range(len(walks)), 2)
+        ]
         same = [
             decisions_agreement(a, b, same_way_only=True)
             for a, b in itertools.combinations(single, 2)
@@ -165,6 +201,7 @@ def simulated_table() -> str:
         ways = [same_way_share(a, b) for a, b in itertools.combinations(single, 2)]
         summary.setdefault("single walks", []).extend(singles)
         summary.setdefault("single walks, same way", []).extend(same)
+        summary.setdefault("single walks, both walked", []).extend(both)
         first_three, last_three = (
             decide(fused_skeleton(walks[:3])),
             decide(fused_skeleton(walks[3:])),
@@ -181,6 +218,7 @@ def simulated_table() -> str:
                 "",
                 f"{min(ways):.0%}–{max(ways):.0%}",
                 f"{min(same):.0%}–{max(same):.0%}",
+                f"{min(both):.0%}–{max(both):.0%}",
             ]
         )
         rows.append(
