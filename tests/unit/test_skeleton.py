@@ -203,6 +203,49 @@ def test_a_walk_veering_to_tags_on_both_walls_is_a_straight_corridor_given_their
     assert told_turns(with_normals) == 0  # … and is a corridor once the tags' walls are known
 
 
+def test_a_pass_that_keeps_to_each_wall_between_its_tags_draws_the_corridors_middle() -> None:
+    # A 3.2 m wide corridor along x; its tags two by two on one wall, then on the other. The
+    # walker stands 0.4 m from the wall at each tag and walks straight from one to the next, so
+    # it keeps to one wall for 3 m and then crosses: the tags' own clearance (0.8 m out) leaves
+    # its line 0.8–1.2 m off the middle, swinging from side to side.
+    xs = [5, 8, 11, 14, 17, 20, 23, 26]
+    sides = [1, 1, -1, -1, 1, 1, -1, -1]
+    positions = walk((0, 0), *((x, 1.2 * side) for x, side in zip(xs, sides, strict=True)), (31, 0))
+    tags = [(x, 1.4, 1.6 * side) for x, side in zip(xs, sides, strict=True)]
+    normals = [(0.0, 0.0, -side) for side in sides]
+
+    def off_middle_m(params: SkeletonParams) -> float:
+        pg = build_skeleton_from_arrays(
+            positions,
+            tag_ids=list(range(len(xs))),
+            tag_positions_m=tags,
+            tag_normals=normals,
+            params=params,
+        )
+        return max(abs(pg.graph.nodes[n]["position_m"][2]) for n in pg.graph)
+
+    assert off_middle_m(SkeletonParams(facing_max_apart_m=0.0)) > 0.8  # one wall at a time
+    assert off_middle_m(DEFAULT_SKELETON_PARAMS) < 0.5  # the walls that face each other
+
+
+def test_tags_facing_each_other_across_a_junction_leave_it_where_it_was_walked() -> None:
+    # A corridor along x with a branch north at x = 10. Two tags on the junction's corners face
+    # each other diagonally across it (as tags 312 and 313 do on the real floor 2): their middle
+    # line runs north-west through the junction, along neither corridor. Moved onto it, the
+    # junction went 1.4 m off and the 90° turn north was told as 65°.
+    positions = np.concatenate([walk((0, 0), (20, 0)), walk((20, 0), (10, 0), (10, 12))[1:]])
+    d = 1 / math.sqrt(2)
+    tags = [(2, 1.4, -1.6), (11.6, 1.4, 1.6), (8.4, 1.4, -1.6), (18, 1.4, 1.6), (8.4, 1.4, 11)]
+    normals = [(0, 0, 1), (-d, 0, -d), (d, 0, d), (0, 0, -1), (1, 0, 0)]
+    pg = build_skeleton_from_arrays(
+        positions, tag_ids=[1, 2, 3, 4, 5], tag_positions_m=tags, tag_normals=normals
+    )
+    (junction,) = junctions(pg)
+    assert np.hypot(junction[0] - 10.0, junction[2]) < 0.5
+    (turn,) = announced_turns(plan_guided_route(pg, TagEnd(1), TagEnd(5)))
+    assert -100 < turn.turn_deg < -80
+
+
 def test_tag_normals_must_match_the_tags() -> None:
     with pytest.raises(ParameterError, match="tag_normals"):
         build_skeleton_from_arrays(

@@ -12,7 +12,11 @@ How it is built (every threshold is a field of :class:`SkeletonParams`):
    floor change, widened over the steps around it that still climb ``stairs_min_rise_per_run``:
    an elevator when it moves at most ``elevator_max_horizontal_m`` horizontally or
    rises at least ``elevator_min_rise_per_run`` m per m, stairs otherwise.
-2. **Occupancy per floor.** First each walk's *look rounds* (a round loop on one floor, back
+2. **Occupancy per floor.** With the tags' normals, the walked positions are first moved off the
+   walls the tags mark (``app.domain.navigation.tag_walls``): between two tags whose walls face
+   each other onto the corridor's middle (unless a junction of the skeleton drawn without that
+   step lies between them), and in front of a single tag out to ``tag_clearance_m``. Then each
+   walk's *look rounds* (a round loop on one floor, back
    where it began within ``loop_max_m`` of walking: a lobby walked round) are collapsed onto where
    they began, so they do not fill a lobby beside a corner or a junction. The walked segments of
    each floor are drawn on a grid of ``cell_m``
@@ -75,6 +79,11 @@ from app.domain.navigation.path_graph import (
 )
 from app.domain.navigation.path_graph.geometry import douglas_peucker, points_array
 from app.domain.navigation.raster import densify, dilate, thin
+from app.domain.navigation.tag_walls import (
+    away_from_tag_walls,
+    between_facing_walls,
+    facing_walls,
+)
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -104,6 +113,12 @@ class SkeletonParams:
                                 from it: a walker who stepped or veered to a tag was at the wall,
                                 not in the corridor's middle, m (needs the tags' normals).
     tag_reach_m                 how far along the wall from a tag that holds, m.
+    facing_max_apart_m          two tags whose walls face each other at most this far apart
+                                (across) bound a corridor: the positions between them are moved
+                                onto its middle line (0: never), m (needs the tags' normals).
+    facing_max_along_m          … when they are at most this far apart along the walls, m.
+    facing_taper_m              … and the positions up to this far beyond the two tags less and
+                                less, m.
     stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
                                 that still climb at least this steeply (rise over run), so it
                                 starts where the stairs start.
@@ -122,6 +137,9 @@ class SkeletonParams:
     straight_tolerance_m: float = 0.4
     tag_clearance_m: float = 0.8
     tag_reach_m: float = 1.0
+    facing_max_apart_m: float = 5.0
+    facing_max_along_m: float = 8.0
+    facing_taper_m: float = 2.0
     stairs_min_rise_per_run: float = 0.25
     elevator_max_horizontal_m: float = 1.5
     elevator_min_rise_per_run: float = 2.0
@@ -180,7 +198,10 @@ def build_skeleton_from_arrays(
         are evidence of one centreline (a *fused* skeleton, issue 26).
     tag_ids, tag_positions_m: (K,) ids and (K, 3) positions of the tags, m.
     tag_normals: (K, 3) each tag's +z axis (out of its wall), map frame; with them, positions
-        near a tag's wall are moved out to ``params.tag_clearance_m`` (step 2).
+        between the walls of two tags that face each other are moved onto the corridor's
+        middle, and positions near a single tag's wall out to ``params.tag_clearance_m`` (step
+        2). When two tags face each other the skeleton is drawn twice: first without the
+        middle lines, to find the junctions they must not cross.
     poi_names, poi_positions_m: (P,) names and (P, 3) positions of the points of interest, m.
     """
     world_p_phone = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
@@ -188,9 +209,44 @@ def build_skeleton_from_arrays(
     world_p_poi = points_array(poi_positions_m, len(poi_names), "poi_positions_m")
     if not np.all(np.isfinite(world_p_phone)):
         raise ParameterError("positions_m must be finite")
-    if tag_normals is not None:
-        world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
-        world_p_phone = _away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, params)
+    anchors = (tag_ids, world_p_tag, poi_names, world_p_poi)
+    if tag_normals is None:
+        return _skeleton(world_p_phone, walk_starts, anchors, params)
+    world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
+    off_walls = away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, params)
+    walls = facing_walls(world_p_tag, world_n_tag, params)
+    if not walls:
+        return _skeleton(off_walls, walk_starts, anchors, params)
+    # Two facing tags bound one corridor only away from its junctions (where they may be on the
+    # walls of two corridors): the junctions are those of the skeleton drawn without them.
+    first = _skeleton(off_walls, walk_starts, anchors, params, corridors_only=True).graph
+    junctions = np.array(
+        [first.nodes[n]["position_m"] for n in first if first.nodes[n]["kind"] == JUNCTION],
+        dtype=np.float64,
+    ).reshape(-1, 3)
+    walls = [w for w in walls if not w.holds_any(junctions)]
+    between = between_facing_walls(world_p_phone, walls, params)
+    return _skeleton(
+        away_from_tag_walls(between, world_p_tag, world_n_tag, params),
+        walk_starts,
+        anchors,
+        params,
+    )
+
+
+def _skeleton(
+    world_p_phone: FloatArray,
+    walk_starts: Sequence[int],
+    anchors: tuple[Sequence[int], FloatArray, Sequence[str], FloatArray],
+    params: SkeletonParams,
+    *,
+    corridors_only: bool = False,
+) -> PathGraph:
+    """:func:`build_skeleton_from_arrays` from the positions (N, 3) moved off the tags' walls,
+    steps 1 and 2 on (``anchors``: the tags' ids and positions, the points of interest's names
+    and positions); with ``corridors_only``, the floors' corridors alone (no stairs, no
+    anchors): where their junctions are."""
+    tag_ids, world_p_tag, poi_names, world_p_poi = anchors
     levels_m = find_floor_levels(world_p_phone[:, 1])
     G: nx.Graph[int] = nx.Graph()
     if world_p_phone.shape[0] == 0:
@@ -207,6 +263,9 @@ def build_skeleton_from_arrays(
             starts = ends = p_xz[lone[:1]]
         if starts.shape[0]:
             _add_floor(G, starts, ends, floor, float(levels_m[floor]), params)
+    if corridors_only:
+        _mark_junctions(G)
+        return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels_m))
     # tags and points of interest go on the corridors before the stairs' links to them exist: a
     # tag beside the top of the stairs is on the corridor, not on the link (issue 26)
     corridors_present = G.number_of_nodes() > 0
@@ -220,45 +279,6 @@ def build_skeleton_from_arrays(
     return PathGraph(
         graph=G, floor_levels_m=tuple(float(v) for v in levels_m), tags=tags, pois=pois
     )
-
-
-# --------------------------------------------------------------------------- tags on walls
-
-
-#: A tag this far above or below a position is on another floor, m.
-TAG_SAME_FLOOR_M = 1.5
-
-
-def _away_from_tag_walls(
-    world_p_phone: FloatArray,
-    world_p_tag: FloatArray,
-    world_n_tag: FloatArray,
-    params: SkeletonParams,
-) -> FloatArray:
-    """``world_p_phone`` (N, 3) with each position in front of a tag (on its floor, within
-    ``tag_reach_m`` of it along its wall) and nearer its wall than ``tag_clearance_m`` moved
-    straight out from the wall to that distance (step 2): the passes that stepped or veered to a
-    tag then draw the corridor, not the way to its wall."""
-    out = world_p_phone.copy()
-    clearance_m = params.tag_clearance_m
-    for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
-        normal = np.array([n_tag[0], n_tag[2]])
-        norm = float(np.linalg.norm(normal))
-        if norm < 0.5 or clearance_m <= 0:  # a tag on the floor or the ceiling: no wall
-            continue
-        normal /= norm
-        along_wall = np.array([-normal[1], normal[0]])
-        rel = out[:, [0, 2]] - p_tag[[0, 2]]
-        out_m, beside_m = rel @ normal, rel @ along_wall
-        near = (
-            (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
-            & (out_m > -0.5)  # a position just behind the tag's plane is still at its wall
-            & (out_m < clearance_m)
-            & (np.abs(beside_m) < params.tag_reach_m)
-        )
-        if near.any():
-            out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
-    return out
 
 
 # --------------------------------------------------------------------------- look rounds

@@ -1,0 +1,209 @@
+"""Tags mark walls (issue 26): the walked positions a corridor skeleton is drawn from, moved off
+the walls that the tags' normals reveal, so that a walk that veered to its tags draws the corridor
+and not the way to its walls.
+
+    walls = facing_walls(world_p_tag, world_n_tag, params)          # tags across a corridor
+    moved = between_facing_walls(world_p_phone, walls, params)        # onto the corridor's middle
+    moved = away_from_tag_walls(moved, world_p_tag, world_n_tag, params)
+
+1. **Facing walls.** Two tags whose walls face each other (normals within
+   ``FACING_MAX_ANGLE_DEG`` of opposite, each in front of the other, ``FACING_MIN_APART_M`` to
+   ``params.facing_max_apart_m`` apart across, at most ``params.facing_max_along_m`` apart along
+   the walls) bound a corridor. The positions between the two walls, from ``tag_reach_m``
+   before the first tag to ``tag_reach_m`` past the second, are moved onto the line midway
+   between the walls, and those up to ``params.facing_taper_m`` beyond less and less: a walker
+   who crossed from a tag on one wall to a tag on the other then draws the corridor's
+   middle, not a zigzag. Where two such stretches overlap, a position moves by the weighted mean.
+   The caller leaves out the pairs with a junction of the corridors between them (see
+   :func:`FacingWalls.holds_any`): there the two tags may be on the walls of different corridors
+   (on the real floor 2 of the mac building, tags 312 and 313 face each other 3 m apart across
+   the corners of a junction, and their middle line is neither corridor's).
+2. **One wall.** A position in front of a tag (on its floor, within ``tag_reach_m`` of it along
+   its wall) nearer its wall than ``tag_clearance_m`` is moved straight out to that distance.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from app.domain.frames import FloatArray
+
+if TYPE_CHECKING:
+    from app.domain.navigation.skeleton import SkeletonParams
+
+#: A tag this far above or below a position is on another floor, m.
+TAG_SAME_FLOOR_M = 1.5
+#: Two tags' walls face each other when their normals are within this of opposite, degrees.
+FACING_MAX_ANGLE_DEG = 25.0
+#: … and they are at least this far apart across (two tags on one pillar are not), m.
+FACING_MIN_APART_M = 1.0
+#: A position this far behind either wall is beyond it, not between the two, m.
+BEHIND_WALL_M = 0.5
+#: A normal shorter than this in the horizontal plane belongs to a tag on the floor or the
+#: ceiling: no wall.
+MIN_HORIZONTAL_NORMAL = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class FacingWalls:
+    """The walls of two tags that face each other, in the frame of the corridor between them:
+    ``across`` the unit horizontal (x, z) direction from the first wall to the second, ``along``
+    perpendicular to it; the walls at ``first_m`` and ``second_m`` across; the tags from
+    ``from_m`` to ``to_m`` along (each widened by the reach); ``height_m`` the tags' mean height."""
+
+    across: FloatArray
+    along: FloatArray
+    first_m: float
+    second_m: float
+    from_m: float
+    to_m: float
+    height_m: float
+
+    def holds_any(self, world_p: FloatArray) -> bool:
+        """Whether any of the positions (K, 3) is between the walls, within the tags' stretch
+        and on their floor."""
+        if world_p.shape[0] == 0:
+            return False
+        xz = world_p[:, [0, 2]]
+        across_m, along_m = xz @ self.across, xz @ self.along
+        return bool(
+            np.any(
+                (np.abs(world_p[:, 1] - self.height_m) < TAG_SAME_FLOOR_M)
+                & (across_m > self.first_m - BEHIND_WALL_M)
+                & (across_m < self.second_m + BEHIND_WALL_M)
+                & (along_m >= self.from_m)
+                & (along_m <= self.to_m)
+            )
+        )
+
+
+def facing_walls(
+    world_p_tag: FloatArray, world_n_tag: FloatArray, params: SkeletonParams
+) -> list[FacingWalls]:
+    """Every pair of tags (K, 3 positions; K, 3 normals out of their walls) whose walls face each
+    other across a corridor (module step 1)."""
+    if params.facing_max_apart_m <= 0:
+        return []
+    normals = world_n_tag[:, [0, 2]]
+    lengths = np.linalg.norm(normals, axis=1)
+    walled = np.flatnonzero(lengths >= MIN_HORIZONTAL_NORMAL).tolist()
+    max_cos = -math.cos(math.radians(FACING_MAX_ANGLE_DEG))
+    out = []
+    for i, j in itertools.combinations(walled, 2):
+        if abs(world_p_tag[i, 1] - world_p_tag[j, 1]) >= TAG_SAME_FLOOR_M:
+            continue
+        n_i, n_j = normals[i] / lengths[i], normals[j] / lengths[j]
+        if float(n_i @ n_j) > max_cos:
+            continue
+        p_i, p_j = world_p_tag[i, [0, 2]], world_p_tag[j, [0, 2]]
+        if float((p_j - p_i) @ n_i) <= 0 or float((p_i - p_j) @ n_j) <= 0:
+            continue  # back to back: each behind the other's wall
+        across = (n_i - n_j) / float(np.linalg.norm(n_i - n_j))
+        along = np.array([-across[1], across[0]])
+        first_m, second_m = float(p_i @ across), float(p_j @ across)
+        a_i, a_j = float(p_i @ along), float(p_j @ along)
+        if not FACING_MIN_APART_M <= second_m - first_m <= params.facing_max_apart_m:
+            continue
+        if abs(a_j - a_i) > params.facing_max_along_m:
+            continue
+        out.append(
+            FacingWalls(
+                across=across,
+                along=along,
+                first_m=first_m,
+                second_m=second_m,
+                from_m=min(a_i, a_j) - params.tag_reach_m,
+                to_m=max(a_i, a_j) + params.tag_reach_m,
+                height_m=0.5 * float(world_p_tag[i, 1] + world_p_tag[j, 1]),
+            )
+        )
+    return out
+
+
+def between_facing_walls(
+    world_p_phone: FloatArray, walls: list[FacingWalls], params: SkeletonParams
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with the positions between each pair of ``walls`` moved onto
+    their middle line, fully along the tags' stretch and less and less over
+    ``params.facing_taper_m`` beyond it (module step 1)."""
+    if not walls or world_p_phone.shape[0] == 0:
+        return world_p_phone
+    order = np.argsort(world_p_phone[:, 0], kind="stable")
+    sorted_x = world_p_phone[order, 0]
+    shift_sum = np.zeros((world_p_phone.shape[0], 2))
+    weight_sum = np.zeros(world_p_phone.shape[0])
+    weight_max = np.zeros(world_p_phone.shape[0])
+    taper_m = params.facing_taper_m
+    for w in walls:
+        # only the positions whose x is within the stretch's box are looked at
+        corners_x = [
+            a * w.along[0] + c * w.across[0]
+            for a in (w.from_m - taper_m, w.to_m + taper_m)
+            for c in (w.first_m - BEHIND_WALL_M, w.second_m + BEHIND_WALL_M)
+        ]
+        rows = order[
+            np.searchsorted(sorted_x, min(corners_x), "left") : np.searchsorted(
+                sorted_x, max(corners_x), "right"
+            )
+        ]
+        if rows.size == 0:
+            continue
+        xz = world_p_phone[rows][:, [0, 2]]
+        across_m, along_m = xz @ w.across, xz @ w.along
+        beyond_m = np.maximum(w.from_m - along_m, along_m - w.to_m)
+        if taper_m > 0:
+            weight = np.clip(1.0 - beyond_m / taper_m, 0.0, 1.0)
+        else:
+            weight = (beyond_m <= 0).astype(np.float64)
+        weight[
+            (across_m <= w.first_m - BEHIND_WALL_M)
+            | (across_m >= w.second_m + BEHIND_WALL_M)
+            | (np.abs(world_p_phone[rows, 1] - w.height_m) >= TAG_SAME_FLOOR_M)
+        ] = 0.0
+        middle_m = 0.5 * (w.first_m + w.second_m)
+        shift_sum[rows] += (weight * (middle_m - across_m))[:, None] * w.across
+        weight_sum[rows] += weight
+        weight_max[rows] = np.maximum(weight_max[rows], weight)
+    moved = np.flatnonzero(weight_sum > 0)
+    out = world_p_phone.copy()
+    shift = shift_sum[moved] / weight_sum[moved, None] * weight_max[moved, None]
+    out[moved, 0] += shift[:, 0]
+    out[moved, 2] += shift[:, 1]
+    return out
+
+
+def away_from_tag_walls(
+    world_p_phone: FloatArray,
+    world_p_tag: FloatArray,
+    world_n_tag: FloatArray,
+    params: SkeletonParams,
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with each position in front of a tag (on its floor, within
+    ``tag_reach_m`` of it along its wall) and nearer its wall than ``tag_clearance_m`` moved
+    straight out from the wall to that distance (module step 2): the passes that stepped or
+    veered to a tag then draw the corridor, not the way to its wall."""
+    out = world_p_phone.copy()
+    clearance_m = params.tag_clearance_m
+    for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
+        normal = np.array([n_tag[0], n_tag[2]])
+        norm = float(np.linalg.norm(normal))
+        if norm < MIN_HORIZONTAL_NORMAL or clearance_m <= 0:
+            continue
+        normal /= norm
+        along_wall = np.array([-normal[1], normal[0]])
+        rel = out[:, [0, 2]] - p_tag[[0, 2]]
+        out_m, beside_m = rel @ normal, rel @ along_wall
+        near = (
+            (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
+            & (out_m > -BEHIND_WALL_M)  # a position just behind the tag's plane is at its wall
+            & (out_m < clearance_m)
+            & (np.abs(beside_m) < params.tag_reach_m)
+        )
+        if near.any():
+            out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
+    return out
