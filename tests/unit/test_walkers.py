@@ -235,6 +235,25 @@ def test_building_maps_of_disjoint_walks_tell_the_same_decisions() -> None:
     assert decisions_agreement(first, second) >= 0.95
 
 
+def test_a_walk_from_wall_to_wall_and_one_down_the_middle_tell_the_same_decisions() -> None:
+    """Issue 26's target for single walks (two single-walk maps of one floor agree on ≥ 80%), on
+    the two walkers of ``bench.agreement``'s seed 1 that walk the same corridors: issue 18's,
+    down the middle, and the oblique one, who keeps to one wall between two tags there and
+    crosses to a tag on the other. 78.5% before facing walls moved the oblique pass onto the
+    middle between tags facing each other (its map told 46° turns where the corridor runs
+    straight), 98.5% now."""
+    seed = 1
+    walks = walks_of_one_building(
+        UNSEEN_BUILDING, seed, [WalkerConfig(), UNSEEN_WALKERS["oblique"]]
+    )
+    pairs = sampled_pairs(walks[0].tag_ids, 200, seed)
+    down_the_middle, wall_to_wall = (
+        route_decisions(fused_skeleton([walk]), pairs, plan=plan_guided_route) for walk in walks
+    )
+    assert len(down_the_middle.keys() & wall_to_wall.keys()) >= 150
+    assert decisions_agreement(down_the_middle, wall_to_wall) >= 0.95
+
+
 def test_a_building_map_of_two_floors_is_scored_on_what_its_walks_walked() -> None:
     """A building map of three walks of the two-floor building (``bench.agreement``'s seed 2;
     table 2b of ``bench.navigation``), against the corridors any of the three walked: its turns
