@@ -213,8 +213,15 @@ def build_skeleton_from_arrays(
     if tag_normals is None:
         return _skeleton(world_p_phone, walk_starts, anchors, params)
     world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
-    off_walls = away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, params)
-    walls = facing_walls(world_p_tag, world_n_tag, params)
+    clearance = {"clearance_m": params.tag_clearance_m, "reach_m": params.tag_reach_m}
+    off_walls = away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, **clearance)
+    walls = facing_walls(
+        world_p_tag,
+        world_n_tag,
+        max_apart_m=params.facing_max_apart_m,
+        max_along_m=params.facing_max_along_m,
+        reach_m=params.tag_reach_m,
+    )
     if not walls:
         return _skeleton(off_walls, walk_starts, anchors, params)
     # Two facing tags bound one corridor only away from its junctions (where they may be on the
@@ -225,9 +232,9 @@ def build_skeleton_from_arrays(
         dtype=np.float64,
     ).reshape(-1, 3)
     walls = [w for w in walls if not w.holds_any(junctions)]
-    between = between_facing_walls(world_p_phone, walls, params)
+    between = between_facing_walls(world_p_phone, walls, taper_m=params.facing_taper_m)
     return _skeleton(
-        away_from_tag_walls(between, world_p_tag, world_n_tag, params),
+        away_from_tag_walls(between, world_p_tag, world_n_tag, **clearance),
         walk_starts,
         anchors,
         params,

@@ -2,24 +2,28 @@
 the walls that the tags' normals reveal, so that a walk that veered to its tags draws the corridor
 and not the way to its walls.
 
-    walls = facing_walls(world_p_tag, world_n_tag, params)          # tags across a corridor
-    moved = between_facing_walls(world_p_phone, walls, params)        # onto the corridor's middle
-    moved = away_from_tag_walls(moved, world_p_tag, world_n_tag, params)
+    walls = facing_walls(world_p_tag, world_n_tag, max_apart_m=5.0, max_along_m=8.0, reach_m=1.0)
+    moved = between_facing_walls(world_p_phone, walls, taper_m=2.0)    # onto the corridor's middle
+    moved = away_from_tag_walls(moved, world_p_tag, world_n_tag, clearance_m=0.8, reach_m=1.0)
+
+The distances are the :class:`~app.domain.navigation.skeleton.SkeletonParams` of the same names
+(``facing_max_apart_m``, ``facing_max_along_m``, ``tag_reach_m``, ``facing_taper_m``,
+``tag_clearance_m``).
 
 1. **Facing walls.** Two tags whose walls face each other (normals within
    ``FACING_MAX_ANGLE_DEG`` of opposite, each in front of the other, ``FACING_MIN_APART_M`` to
-   ``params.facing_max_apart_m`` apart across, at most ``params.facing_max_along_m`` apart along
-   the walls) bound a corridor. The positions between the two walls, from ``tag_reach_m``
-   before the first tag to ``tag_reach_m`` past the second, are moved onto the line midway
-   between the walls, and those up to ``params.facing_taper_m`` beyond less and less: a walker
+   ``max_apart_m`` apart across, at most ``max_along_m`` apart along the walls) bound a
+   corridor. The positions between the two walls, from ``reach_m`` before the first tag to
+   ``reach_m`` past the second, are moved onto the line midway between the walls, and those up
+   to ``taper_m`` beyond less and less: a walker
    who crossed from a tag on one wall to a tag on the other then draws the corridor's
    middle, not a zigzag. Where two such stretches overlap, a position moves by the weighted mean.
    The caller leaves out the pairs with a junction of the corridors between them (see
    :func:`FacingWalls.holds_any`): there the two tags may be on the walls of different corridors
    (on the real floor 2 of the mac building, tags 312 and 313 face each other 3 m apart across
    the corners of a junction, and their middle line is neither corridor's).
-2. **One wall.** A position in front of a tag (on its floor, within ``tag_reach_m`` of it along
-   its wall) nearer its wall than ``tag_clearance_m`` is moved straight out to that distance.
+2. **One wall.** A position in front of a tag (on its floor, within ``reach_m`` of it along its
+   wall) nearer its wall than ``clearance_m`` is moved straight out to that distance.
 """
 
 from __future__ import annotations
@@ -27,14 +31,10 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from app.domain.frames import FloatArray
-
-if TYPE_CHECKING:
-    from app.domain.navigation.skeleton import SkeletonParams
 
 #: A tag this far above or below a position is on another floor, m.
 TAG_SAME_FLOOR_M = 1.5
@@ -83,11 +83,16 @@ class FacingWalls:
 
 
 def facing_walls(
-    world_p_tag: FloatArray, world_n_tag: FloatArray, params: SkeletonParams
+    world_p_tag: FloatArray,
+    world_n_tag: FloatArray,
+    *,
+    max_apart_m: float,
+    max_along_m: float,
+    reach_m: float,
 ) -> list[FacingWalls]:
     """Every pair of tags (K, 3 positions; K, 3 normals out of their walls) whose walls face each
-    other across a corridor (module step 1)."""
-    if params.facing_max_apart_m <= 0:
+    other across a corridor (module step 1); none when ``max_apart_m`` is 0."""
+    if max_apart_m <= 0:
         return []
     normals = world_n_tag[:, [0, 2]]
     lengths = np.linalg.norm(normals, axis=1)
@@ -107,9 +112,9 @@ def facing_walls(
         along = np.array([-across[1], across[0]])
         first_m, second_m = float(p_i @ across), float(p_j @ across)
         a_i, a_j = float(p_i @ along), float(p_j @ along)
-        if not FACING_MIN_APART_M <= second_m - first_m <= params.facing_max_apart_m:
+        if not FACING_MIN_APART_M <= second_m - first_m <= max_apart_m:
             continue
-        if abs(a_j - a_i) > params.facing_max_along_m:
+        if abs(a_j - a_i) > max_along_m:
             continue
         out.append(
             FacingWalls(
@@ -117,8 +122,8 @@ def facing_walls(
                 along=along,
                 first_m=first_m,
                 second_m=second_m,
-                from_m=min(a_i, a_j) - params.tag_reach_m,
-                to_m=max(a_i, a_j) + params.tag_reach_m,
+                from_m=min(a_i, a_j) - reach_m,
+                to_m=max(a_i, a_j) + reach_m,
                 height_m=0.5 * float(world_p_tag[i, 1] + world_p_tag[j, 1]),
             )
         )
@@ -126,11 +131,11 @@ def facing_walls(
 
 
 def between_facing_walls(
-    world_p_phone: FloatArray, walls: list[FacingWalls], params: SkeletonParams
+    world_p_phone: FloatArray, walls: list[FacingWalls], *, taper_m: float
 ) -> FloatArray:
     """``world_p_phone`` (N, 3) with the positions between each pair of ``walls`` moved onto
-    their middle line, fully along the tags' stretch and less and less over
-    ``params.facing_taper_m`` beyond it (module step 1)."""
+    their middle line, fully along the tags' stretch and less and less over ``taper_m`` beyond
+    it (module step 1)."""
     if not walls or world_p_phone.shape[0] == 0:
         return world_p_phone
     order = np.argsort(world_p_phone[:, 0], kind="stable")
@@ -138,7 +143,6 @@ def between_facing_walls(
     shift_sum = np.zeros((world_p_phone.shape[0], 2))
     weight_sum = np.zeros(world_p_phone.shape[0])
     weight_max = np.zeros(world_p_phone.shape[0])
-    taper_m = params.facing_taper_m
     for w in walls:
         # only the positions whose x is within the stretch's box are looked at
         corners_x = [
@@ -181,14 +185,15 @@ def away_from_tag_walls(
     world_p_phone: FloatArray,
     world_p_tag: FloatArray,
     world_n_tag: FloatArray,
-    params: SkeletonParams,
+    *,
+    clearance_m: float,
+    reach_m: float,
 ) -> FloatArray:
     """``world_p_phone`` (N, 3) with each position in front of a tag (on its floor, within
-    ``tag_reach_m`` of it along its wall) and nearer its wall than ``tag_clearance_m`` moved
-    straight out from the wall to that distance (module step 2): the passes that stepped or
-    veered to a tag then draw the corridor, not the way to its wall."""
+    ``reach_m`` of it along its wall) and nearer its wall than ``clearance_m`` moved straight out
+    from the wall to that distance (module step 2): the passes that stepped or veered to a tag
+    then draw the corridor, not the way to its wall."""
     out = world_p_phone.copy()
-    clearance_m = params.tag_clearance_m
     for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
         normal = np.array([n_tag[0], n_tag[2]])
         norm = float(np.linalg.norm(normal))
@@ -202,7 +207,7 @@ def away_from_tag_walls(
             (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
             & (out_m > -BEHIND_WALL_M)  # a position just behind the tag's plane is at its wall
             & (out_m < clearance_m)
-            & (np.abs(beside_m) < params.tag_reach_m)
+            & (np.abs(beside_m) < reach_m)
         )
         if near.any():
             out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
