@@ -148,24 +148,30 @@ def simulated_walks(config: SimulationConfig, seed: int) -> list[SimulatedWalk]:
     return walks_of_one_building(config, seed, [w for _, w in WALKERS])
 
 
-def walked_pairs(
-    walk: SimulatedWalk, every: PathGraph, pairs: list[tuple[int, int]]
-) -> set[tuple[int, int]]:
-    """The tag pairs whose shortest way through the building (along the corridors any of its
-    walks went along, ``every``) ``walk`` went along: two single walks can only tell the same
-    decisions on the pairs both walked; elsewhere one of them knows a shorter way than the
-    other, through a corridor the other never saw."""
-    own = corridor_graph(walk)
-    out = set()
+def route_lengths_m(pg: PathGraph, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], float]:
+    """The length of the shortest route of each tag pair ``pg`` can route, m."""
+    out = {}
     for a, b in pairs:
         try:
-            mine = plan_walk(own, TagEnd(a), TagEnd(b)).length_m
-            best = plan_walk(every, TagEnd(a), TagEnd(b)).length_m
+            out[(a, b)] = plan_walk(pg, TagEnd(a), TagEnd(b)).length_m
         except RouteError:
             continue
-        if mine <= best * (1 + WALKED_SLACK):
-            out.add((a, b))
     return out
+
+
+def walked_pairs(
+    walk: SimulatedWalk, shortest_m: dict[tuple[int, int], float]
+) -> set[tuple[int, int]]:
+    """The tag pairs whose shortest way through the building (``shortest_m``: along the
+    corridors any of its walks went along) ``walk`` went along: two single walks can only tell
+    the same decisions on the pairs both walked; elsewhere one of them knows a shorter way than
+    the other, through a corridor the other never saw."""
+    own_m = route_lengths_m(corridor_graph(walk), list(shortest_m))
+    return {k for k, m in own_m.items() if m <= shortest_m[k] * (1 + WALKED_SLACK)}
+
+
+def only(sides: Sides, pairs: set[tuple[int, int]]) -> Sides:
+    return {k: v for k, v in sides.items() if k in pairs}
 
 
 def simulated_table() -> str:
@@ -185,13 +191,10 @@ def simulated_table() -> str:
 
         single = [decide(fused_skeleton([w])) for w in walks]
         singles = [decisions_agreement(a, b) for a, b in itertools.combinations(single, 2)]
-        every = corridor_graph(walks)
-        walked = [walked_pairs(w, every, pairs) for w in walks]
+        shortest_m = route_lengths_m(corridor_graph(walks), pairs)
+        walked = [walked_pairs(w, shortest_m) for w in walks]
         both = [
-            decisions_agreement(
-                {k: v for k, v in single[i].items() if k in walked[i] & walked[j]},
-                {k: v for k, v in single[j].items() if k in walked[i] & walked[j]},
-            )
+            decisions_agreement(*(only(single[k], walked[i] & walked[j]) for k in (i, j)))
             for i, j in itertools.combinations(range(len(walks)), 2)
         ]
         same = [

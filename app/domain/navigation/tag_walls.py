@@ -33,8 +33,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from app.domain.frames import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
 
 #: A tag this far above or below a position is on another floor, m.
 TAG_SAME_FLOOR_M = 1.5
@@ -64,22 +67,25 @@ class FacingWalls:
     to_m: float
     height_m: float
 
+    def between(self, world_p: FloatArray) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """(across_m, along_m, between) of the positions (K, 3): their coordinates in the
+        corridor's frame, and whether each is between the walls and on the tags' floor."""
+        xz = world_p[:, [0, 2]]
+        across_m, along_m = xz @ self.across, xz @ self.along
+        between = (
+            (across_m > self.first_m - BEHIND_WALL_M)
+            & (across_m < self.second_m + BEHIND_WALL_M)
+            & (np.abs(world_p[:, 1] - self.height_m) < TAG_SAME_FLOOR_M)
+        )
+        return across_m, along_m, between
+
     def holds_any(self, world_p: FloatArray) -> bool:
         """Whether any of the positions (K, 3) is between the walls, within the tags' stretch
         and on their floor."""
         if world_p.shape[0] == 0:
             return False
-        xz = world_p[:, [0, 2]]
-        across_m, along_m = xz @ self.across, xz @ self.along
-        return bool(
-            np.any(
-                (np.abs(world_p[:, 1] - self.height_m) < TAG_SAME_FLOOR_M)
-                & (across_m > self.first_m - BEHIND_WALL_M)
-                & (across_m < self.second_m + BEHIND_WALL_M)
-                & (along_m >= self.from_m)
-                & (along_m <= self.to_m)
-            )
-        )
+        _, along_m, between = self.between(world_p)
+        return bool(np.any(between & (along_m >= self.from_m) & (along_m <= self.to_m)))
 
 
 def facing_walls(
@@ -157,18 +163,13 @@ def between_facing_walls(
         ]
         if rows.size == 0:
             continue
-        xz = world_p_phone[rows][:, [0, 2]]
-        across_m, along_m = xz @ w.across, xz @ w.along
+        across_m, along_m, between = w.between(world_p_phone[rows])
         beyond_m = np.maximum(w.from_m - along_m, along_m - w.to_m)
         if taper_m > 0:
             weight = np.clip(1.0 - beyond_m / taper_m, 0.0, 1.0)
         else:
             weight = (beyond_m <= 0).astype(np.float64)
-        weight[
-            (across_m <= w.first_m - BEHIND_WALL_M)
-            | (across_m >= w.second_m + BEHIND_WALL_M)
-            | (np.abs(world_p_phone[rows, 1] - w.height_m) >= TAG_SAME_FLOOR_M)
-        ] = 0.0
+        weight[~between] = 0.0
         middle_m = 0.5 * (w.first_m + w.second_m)
         shift_sum[rows] += (weight * (middle_m - across_m))[:, None] * w.across
         weight_sum[rows] += weight
