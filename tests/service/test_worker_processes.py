@@ -4,7 +4,11 @@ PostgreSQL, and the embedded mode's start/stop.
 
 The jobs that must still be running when a signal arrives are simulated sessions of 12,000 poses
 (2–3 s of work); the signal is sent once the job's row says it is in the ``optimize``
-stage. Leases are short (2 s, heartbeat 0.5 s) so that a killed worker's job is reaped quickly.
+stage. A worker that is to be killed holds a short lease (2 s, heartbeat 0.5 s) so that its job
+is reaped quickly; every other worker a long one, so that a loaded machine, where gtsam keeps the
+GIL from the heartbeat thread for a whole Levenberg–Marquardt iteration, cannot expire the lease of
+a worker that is alive (with 2 s, a rescuer under three test processes once lost its own lease
+and ran the job a third time).
 """
 
 from __future__ import annotations
@@ -38,8 +42,11 @@ from workers.main import start_worker_processes, stop_worker_processes
 pytestmark = pytest.mark.slow
 
 LONG_JOB_POSES = 12_000
+#: The lease of a worker the test kills (its job is reaped this long after its last heartbeat), s.
+DOOMED_LEASE_S = 2.0
+#: The lease of every other worker, s: the default, far longer than a stalled heartbeat.
+LIVE_LEASE_S = 30.0
 WORKER_ENV = {
-    "INVISIBLE_MAP_LEASE_S": "2",
     "INVISIBLE_MAP_HEARTBEAT_S": "0.5",
     "INVISIBLE_MAP_POLL_S": "0.1",
     "INVISIBLE_MAP_RETRY_BACKOFF_S": "0",
@@ -53,8 +60,13 @@ STARTED_BY = re.compile(r"started by (\S+)$", re.MULTILINE)
 class WorkerProcess:
     """``python -m workers.main`` in a subprocess, its output in a file (shown on failure)."""
 
-    def __init__(self, database_url: str, log_path: Path, *args: str) -> None:
-        env = {**os.environ, **WORKER_ENV, "DATABASE_URL": database_url}
+    def __init__(self, database_url: str, log_path: Path, *args: str, lease_s: float) -> None:
+        env = {
+            **os.environ,
+            **WORKER_ENV,
+            "INVISIBLE_MAP_LEASE_S": str(lease_s),
+            "DATABASE_URL": database_url,
+        }
         self.log_path = log_path
         self._log = log_path.open("wb")
         self.proc = subprocess.Popen(
@@ -94,9 +106,14 @@ def workers() -> Iterator[list[WorkerProcess]]:
 
 
 def start(
-    workers: list[WorkerProcess], database_url: str, tmp_path: Path, *args: str
+    workers: list[WorkerProcess],
+    database_url: str,
+    tmp_path: Path,
+    *args: str,
+    lease_s: float = LIVE_LEASE_S,
 ) -> WorkerProcess:
-    worker = WorkerProcess(database_url, tmp_path / f"worker-{len(workers) + 1}.log", *args)
+    log_path = tmp_path / f"worker-{len(workers) + 1}.log"
+    worker = WorkerProcess(database_url, log_path, *args, lease_s=lease_s)
     workers.append(worker)
     return worker
 
@@ -120,7 +137,7 @@ def test_kill_9_mid_job_the_job_is_retried_and_stored_once(
     db: Database, database_url: str, tmp_path: Path, workers: list[WorkerProcess]
 ) -> None:
     job_id = insert_session(db, simulated_bytes(LONG_JOB_POSES)).job_id
-    doomed = start(workers, database_url, tmp_path)
+    doomed = start(workers, database_url, tmp_path, lease_s=DOOMED_LEASE_S)
     wait_until_optimizing(db, job_id, doomed)
 
     os.kill(doomed.proc.pid, signal.SIGKILL)
@@ -290,7 +307,7 @@ def test_kill_9_mid_sweep_every_trial_is_stored_exactly_once(
             max_attempts=3,
         )
         tx.get(Job, inserted.job_id).state = JobState.CANCELED.value  # only the sweep's jobs
-    doomed = start(workers, database_url, tmp_path)
+    doomed = start(workers, database_url, tmp_path, lease_s=DOOMED_LEASE_S)
 
     def running_trials() -> Job | None:
         if doomed.proc.poll() is not None:
