@@ -114,7 +114,6 @@ def _serve(args: argparse.Namespace) -> int:
     import asyncio
 
     from app.config import MAX_API_PROCESSES, default_api_processes
-    from workers.supervisor import WorkerSupervisor
 
     if not 0 < args.port < 65536:
         raise CommandError(f"--port must be 1–65535, got {args.port}")
@@ -149,6 +148,10 @@ def _serve(args: argparse.Namespace) -> int:
     except BaseException:
         listener.close()
         raise
+
+    # Imported only now (the worker pipeline, gtsam, matplotlib: ~1.5 s) so that a refused
+    # option, setting or port answers at once.
+    from workers.supervisor import WorkerSupervisor
 
     supervisor = WorkerSupervisor(settings, settings.workers)  # restarts any that dies
     supervisor.start()
@@ -251,13 +254,13 @@ def listening_socket(host: str, port: int) -> socket.socket:
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from workers.main import run_worker_processes
-
     if not 1 <= args.processes <= 64:
         raise CommandError(f"--processes must be 1–64, got {args.processes}")
     settings = load_settings()
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     open_database(settings).dispose()
+    from workers.main import run_worker_processes  # the pipeline: only once the checks pass
+
     return run_worker_processes(settings, args.processes)
 
 
