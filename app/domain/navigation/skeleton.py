@@ -331,25 +331,25 @@ def _without_look_rounds(
         return out
     window = int(min(n - 1, math.ceil(params.loop_max_m / float(np.median(moving))) + 1))
     returns = _first_returns(xz, arc_m, walk_of, window, params.loop_max_m)
+    starts = np.flatnonzero(returns >= 0)
+    ends = returns[starts]
+    # every candidate's enclosed area at once (shoelace, by prefix sums of the edges' cross
+    # products, about the walks' mean so that the sums stay small) and its perimeter
+    rel = xz - xz.mean(axis=0)
+    cross = rel[:-1, 0] * rel[1:, 1] - rel[1:, 0] * rel[:-1, 1]
+    swept = np.concatenate([[0.0], np.cumsum(cross)])
+    closing = rel[ends, 0] * rel[starts, 1] - rel[starts, 0] * rel[ends, 1]
+    area_m2 = 0.5 * np.abs(swept[ends] - swept[starts] + closing)
+    perimeter_m = arc_m[ends] - arc_m[starts] + np.hypot(*(xz[ends] - xz[starts]).T)
+    round_enough = (area_m2 >= LOOK_ROUND_MIN_AREA_M2) & (
+        4 * math.pi * area_m2 >= LOOK_ROUND_MIN_ROUNDNESS * perimeter_m**2
+    )
     k = 0
-    for i in np.flatnonzero(returns >= 0).tolist():
+    for i, j in zip(starts[round_enough].tolist(), ends[round_enough].tolist(), strict=True):
         if i < k:
             continue  # inside a loop already collapsed
-        j = int(returns[i])
-        loop = xz[i : j + 1]
         heights = out[i : j + 1, 1]
-        perimeter_m = float(arc_m[j] - arc_m[i]) + float(np.linalg.norm(loop[-1] - loop[0]))
-        area_m2 = 0.5 * abs(
-            float(
-                np.dot(loop[:, 0], np.roll(loop[:, 1], -1))
-                - np.dot(loop[:, 1], np.roll(loop[:, 0], -1))
-            )
-        )
-        if (
-            area_m2 < LOOK_ROUND_MIN_AREA_M2
-            or 4 * math.pi * area_m2 < LOOK_ROUND_MIN_ROUNDNESS * perimeter_m**2
-            or float(heights.max() - heights.min()) > LOOK_ROUND_MAX_RISE_M
-        ):
+        if float(heights.max() - heights.min()) > LOOK_ROUND_MAX_RISE_M:
             continue
         out[i + 1 : j, 0] = xz[i, 0]
         out[i + 1 : j, 2] = xz[i, 1]

@@ -195,6 +195,8 @@ def away_from_tag_walls(
     from the wall to that distance (module step 2): the passes that stepped or veered to a tag
     then draw the corridor, not the way to its wall."""
     out = world_p_phone.copy()
+    # a position in front of a tag is within this of it in x and in z (a cheap first look)
+    box_m = reach_m + max(clearance_m, BEHIND_WALL_M)
     for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
         normal = np.array([n_tag[0], n_tag[2]])
         norm = float(np.linalg.norm(normal))
@@ -202,14 +204,17 @@ def away_from_tag_walls(
             continue
         normal /= norm
         along_wall = np.array([-normal[1], normal[0]])
-        rel = out[:, [0, 2]] - p_tag[[0, 2]]
+        rows = np.flatnonzero(
+            (np.abs(out[:, 0] - p_tag[0]) < box_m) & (np.abs(out[:, 2] - p_tag[2]) < box_m)
+        )
+        rel = out[rows][:, [0, 2]] - p_tag[[0, 2]]
         out_m, beside_m = rel @ normal, rel @ along_wall
         near = (
-            (np.abs(out[:, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
+            (np.abs(out[rows, 1] - p_tag[1]) < TAG_SAME_FLOOR_M)
             & (out_m > -BEHIND_WALL_M)  # a position just behind the tag's plane is at its wall
             & (out_m < clearance_m)
             & (np.abs(beside_m) < reach_m)
         )
         if near.any():
-            out[np.ix_(near, [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
+            out[np.ix_(rows[near], [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
     return out
