@@ -89,6 +89,8 @@ _TILT_CORRELATION_S = 5.0  # time scale of ARKit's bounded roll/pitch error, s
 
 # Building.
 _CEILING_HEIGHT_M = 2.8  # free height of corridors above their floor, m
+#: A walked position at floor level this far below a box's floor is still in it (noise), m.
+_BOX_FLOOR_SLACK_M = 0.5
 _OBLIQUE_STANDOFF_M = 0.4  # an oblique pass stands this far from the wall at a tag, m
 _JUNCTION_CLEARANCE_M = 0.5  # no tag closer than this to a crossing corridor's wall, m
 _STAIR_RISE_PER_RUN = 0.6  # stair slope (rise over run), dimensionless (≈ 31°)
@@ -1658,11 +1660,12 @@ def corridor_graph(
 ) -> PathGraph:
     """The building's true corridors (and stairs) as far as the walks went along them (the runs
     of each corridor whose every point is within ``walked_within_m`` of a position of one walk,
-    at least twice that long or the whole corridor; of a partial corridor, the part walked; of
-    several walks of one building, every part any of them walked), as a path graph with the tags
-    attached: the reference that a skeleton of the walks is scored against. A corridor walked
-    part of the way is known that far: a tag beside it is reached along it, not from another
-    corridor it happens to be nearer once the corridor is left out."""
+    kept when that walk was *in* the corridor there: at a position inside the corridor's free
+    space and no other corridor's, not only crossing it at a junction; of a partial corridor,
+    the part walked; of several walks of one building, every part any of them walked), as a path
+    graph with the tags attached: the reference that a skeleton of the walks is scored against.
+    A corridor walked part of the way is known that far: a tag beside it is reached along it,
+    not from another corridor it happens to be nearer once the corridor is left out."""
     walks = [walks] if isinstance(walks, SimulatedWalk) else list(walks)
     building = walks[0].building
     G: nx.Graph[int] = nx.Graph()
@@ -1682,15 +1685,30 @@ def corridor_graph(
         (dict(w.partial_edges), w.positions_m - np.array([0.0, w.phone_height_m, 0.0]))
         for w in walks
     ]
+    boxes = building.free_space_boxes_m
     for e, polyline in enumerate(building.edge_polylines_m):
         runs: list[tuple[float, float]] = []
+        own_boxes = _inside_boxes(0.5 * (polyline[0] + polyline[-1])[None, :], boxes)[0]
         for partial, floor_m in walked:
-            known = polyline
-            if e in partial:  # only the part walked is known to the walker
-                known = np.array(
-                    [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
-                )
-            runs += _walked_runs(known, floor_m, walked_within_m)
+            inside = _inside_boxes(floor_m, boxes)
+            in_it = floor_m[inside[:, own_boxes].any(axis=1) & ~inside[:, ~own_boxes].any(axis=1)]
+            if e not in partial:
+                runs += _walked_runs(polyline, floor_m, walked_within_m, in_it)
+                continue
+            # walked in from its first node that share of the way and back: that part is known,
+            # and any part the walk went into from the other end (a step to a tag there)
+            turned_m = float(np.linalg.norm(polyline[-1] - polyline[0])) * partial[e]
+            first_part = np.array(
+                [polyline[0], polyline[0] + (polyline[-1] - polyline[0]) * partial[e]]
+            )
+            runs += _walked_runs(first_part, floor_m, walked_within_m, in_it)
+            runs += [
+                (start_m, stop_m)
+                for start_m, stop_m in _walked_runs(polyline, floor_m, walked_within_m, in_it)
+                # a run from the far end; or one through the turning point that goes on well
+                # past the within_m every run overshoots a walk's last position by
+                if start_m > turned_m or stop_m > turned_m + 2 * walked_within_m
+            ]
         stairs = abs(float(polyline[-1, 1] - polyline[0, 1])) > 1e-9
         for start_m, stop_m in _union(runs):
             run = _along(polyline, start_m, stop_m)
@@ -1771,13 +1789,13 @@ def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
 
 
 def _walked_runs(
-    polyline: FloatArray, positions_m: FloatArray, within_m: float
+    polyline: FloatArray, positions_m: FloatArray, within_m: float, in_it_m: FloatArray
 ) -> list[tuple[float, float]]:
     """The parts of ``polyline`` (P, 3), as (start, stop) along it in m, along which every point,
     sampled every 0.5 m, has a walked position (N, 3) at floor level within ``within_m``
     (horizontally, and 1.5 m of height): the whole polyline when all of it was walked, else each
-    run at least 2 × ``within_m`` long (shorter ones are where a walk crossed the corridor at a
-    junction)."""
+    run nearest to which one of the positions ``in_it_m`` (M, 3) lies, those inside this corridor
+    and no other (a run without one is where a walk crossed the corridor at a junction)."""
     arc_m = walked_distances_m(polyline)
     length_m = float(arc_m[-1])
     at_m = np.linspace(0.0, length_m, max(1, math.ceil(length_m / 0.5)) + 1)
@@ -1789,10 +1807,29 @@ def _walked_runs(
         walked[k] = horizontal.size > 0 and float(horizontal.min()) <= within_m
     if walked.all():
         return [(0.0, length_m)]
+    # the sample nearest to each position inside the corridor (and, for the stairs, its height)
+    nearest = np.unique(
+        np.argmin(np.linalg.norm(in_it_m[:, None, :] - samples[None, :, :], axis=2), axis=1)
+    )
     runs = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], walked.astype(np.int8), [0]])))
     for first, end in zip(edges[::2], edges[1::2], strict=True):
-        start_m, stop_m = float(at_m[first]), float(at_m[end - 1])
-        if stop_m - start_m >= 2 * within_m:
-            runs.append((start_m, stop_m))
+        if np.any((nearest >= first) & (nearest < end)):
+            runs.append((float(at_m[first]), float(at_m[end - 1])))
     return runs
+
+
+def _inside_boxes(points_m: FloatArray, boxes_m: FloatArray) -> npt.NDArray[np.bool_]:
+    """(N, B) whether each point (N, 3) at floor level lies in each box (B, 2, 3) of free space
+    (horizontally inside; at most ``_BOX_FLOOR_SLACK_M`` below its floor, not above its top)."""
+    low, high = boxes_m[None, :, 0, :], boxes_m[None, :, 1, :]
+    p = points_m[:, None, :]
+    return np.asarray(
+        (p[..., 0] >= low[..., 0])
+        & (p[..., 0] <= high[..., 0])
+        & (p[..., 2] >= low[..., 2])
+        & (p[..., 2] <= high[..., 2])
+        & (p[..., 1] >= low[..., 1] - _BOX_FLOOR_SLACK_M)
+        & (p[..., 1] <= high[..., 1]),
+        dtype=np.bool_,
+    )
