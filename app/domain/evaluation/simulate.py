@@ -1680,17 +1680,17 @@ def corridor_graph(
             G.add_node(ids[key], position_m=key, floor=floor, kind="node", pose_index=None)
         return ids[key]
 
-    # each walk's partial corridors and its positions at floor level, once
-    walked = [
-        (dict(w.partial_edges), w.positions_m - np.array([0.0, w.phone_height_m, 0.0]))
-        for w in walks
-    ]
+    # each walk's partial corridors, its positions at floor level and the free-space boxes each
+    # is in, once
     boxes = building.free_space_boxes_m
+    walked = []
+    for w in walks:
+        floor_m = w.positions_m - np.array([0.0, w.phone_height_m, 0.0])
+        walked.append((dict(w.partial_edges), floor_m, _inside_boxes(floor_m, boxes)))
     for e, polyline in enumerate(building.edge_polylines_m):
         runs: list[tuple[float, float]] = []
         own_boxes = _inside_boxes(0.5 * (polyline[0] + polyline[-1])[None, :], boxes)[0]
-        for partial, floor_m in walked:
-            inside = _inside_boxes(floor_m, boxes)
+        for partial, floor_m, inside in walked:
             in_it = floor_m[inside[:, own_boxes].any(axis=1) & ~inside[:, ~own_boxes].any(axis=1)]
             if e not in partial:
                 runs += _walked_runs(polyline, floor_m, walked_within_m, in_it)
