@@ -60,10 +60,10 @@ sys.path.insert(0, str(REPO))  # run from a checkout without installing
 from app.cli.tables import before_after_cell, change_cell, render_markdown_table  # noqa: E402
 from app.domain.evaluation.ground_truth import load_ground_truth  # noqa: E402
 from app.domain.evaluation.metrics import (  # noqa: E402
+    aligned_distances_m,
     ground_truth_metric,
     largest_tag_distance_m,
     tag_rmse_m,
-    umeyama_rigid,
 )
 from app.domain.evaluation.simulate import SimulationConfig  # noqa: E402
 from app.domain.evaluation.simulate_building import (  # noqa: E402
@@ -391,7 +391,8 @@ def add_cost(counts: Sequence[int], repeat: int, checks: list[tuple[str, bool]])
         singles, adds = [], []
         for _ in range(repeat):
             singles.append(_single_build(sessions[count]))
-            adds.append(_added_build(sessions, names, previous))
+            stages, joint = _added_build(sessions, names, previous)
+            adds.append(stages)
         single = _median_stages(singles)
         added = _median_stages(adds)
         ratio = added["total"] / single["total"]
@@ -416,9 +417,7 @@ def add_cost(counts: Sequence[int], repeat: int, checks: list[tuple[str, bool]])
                     f"{ratio:.2f}" if label != "its own single build" else "1",
                 ]
             )
-        moved_mm = _old_poses_moved_mm(
-            previous, optimize_sessions(sessions, names=names, initial=previous)
-        )
+        moved_mm = _old_poses_moved_mm(previous, joint)
         moves.append(f"{count} + 1: {moved_mm[0]:.1f} / {moved_mm[1]:.1f} / {moved_mm[2]:.1f} mm")
         out.append(
             {
@@ -451,10 +450,7 @@ def _old_poses_moved_mm(previous: JointMap, added: JointMap) -> tuple[float, flo
     (the same walks and one more, whose poses come after theirs) puts them, once ``added`` is
     fitted onto ``previous`` rigidly (its gauge may differ)."""
     before = previous.map.world_T_phone[:, :3, 3]
-    after = added.map.world_T_phone[: len(before), :3, 3]
-    previous_T_added = umeyama_rigid(after, before)
-    fitted = after @ previous_T_added[:3, :3].T + previous_T_added[:3, 3]
-    moved_mm = 1e3 * np.linalg.norm(fitted - before, axis=1)
+    moved_mm = 1e3 * aligned_distances_m(added.map.world_T_phone[: len(before), :3, 3], before)
     p50, p90, p100 = np.percentile(moved_mm, [50, 90, 100])
     return float(p50), float(p90), float(p100)
 
@@ -477,9 +473,12 @@ def _single_build(session: Session) -> dict[str, float]:
     }
 
 
-def _added_build(sessions: list[Session], names: list[str], previous: JointMap) -> dict[str, float]:
+def _added_build(
+    sessions: list[Session], names: list[str], previous: JointMap
+) -> tuple[dict[str, float], JointMap]:
     """The building with one more walk, from ``previous``: the joint build's stages (its own
-    timings, wall, scaled to this process's CPU time), then path graph and documents."""
+    timings, wall, scaled to this process's CPU time), then path graph and documents; and the
+    building map it made."""
     started, started_wall = time.process_time(), time.perf_counter()
     joint = optimize_sessions(sessions, names=names, initial=previous)
     optimized, optimized_wall = time.process_time(), time.perf_counter()
@@ -493,12 +492,13 @@ def _added_build(sessions: list[Session], names: list[str], previous: JointMap) 
         k: joint.timings_ms.get(k, 0.0) / 1e3 * cpu_per_wall
         for k in ("walks_alone", "placing", "scale_tests", "joint_optimize", "marginals")
     }
-    return {
+    timings = {
         **stages,
         "path_graph": graphed - optimized,
         "documents": done - graphed,
         "total": done - started,
     }
+    return timings, joint
 
 
 def _median_stages(rounds: list[dict[str, float]]) -> dict[str, float]:

@@ -169,11 +169,17 @@ def _aligned_distances_m(
     common = compare_tag_sets(map_T_tag, gt_T_tag).common
     if len(common) < 2:
         return None
-    map_xyz = _stack(map_T_tag, common)[:, :3, 3]
-    gt_xyz = _stack(gt_T_tag, common)[:, :3, 3]
-    gt_T_map = umeyama_rigid(map_xyz, gt_xyz)
-    aligned_xyz = map_xyz @ gt_T_map[:3, :3].T + gt_T_map[:3, 3]
-    distances_m: FloatArray = np.linalg.norm(aligned_xyz - gt_xyz, axis=1)
+    return aligned_distances_m(
+        _stack(map_T_tag, common)[:, :3, 3], _stack(gt_T_tag, common)[:, :3, 3]
+    )
+
+
+def aligned_distances_m(source_xyz: FloatArray, target_xyz: FloatArray) -> FloatArray:
+    """(N,) the distance from each target point (N, 3) to its source point (N, 3) once the source
+    is moved by the best-fit rigid transform onto the target (:func:`umeyama_rigid`), m."""
+    target_T_source = umeyama_rigid(source_xyz, target_xyz)
+    aligned_xyz = source_xyz @ target_T_source[:3, :3].T + target_T_source[:3, 3]
+    distances_m: FloatArray = np.linalg.norm(aligned_xyz - target_xyz, axis=1)
     return distances_m
 
 
