@@ -1819,7 +1819,7 @@ def _walked_runs(
     return runs
 
 
-def _inside_boxes(points_m: FloatArray, boxes_m: FloatArray) -> npt.NDArray[np.bool_]:
+def _inside_boxes(points_m: FloatArray, boxes_m: FloatArray) -> BoolArray:
     """(N, B) whether each point (N, 3) at floor level lies in each box (B, 2, 3) of free space
     (horizontally inside; at most ``_BOX_FLOOR_SLACK_M`` below its floor, not above its top)."""
     low, high = boxes_m[None, :, 0, :], boxes_m[None, :, 1, :]
