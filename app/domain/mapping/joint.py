@@ -365,19 +365,12 @@ def align_session(
                 continue
             # the turn about +y taking the horizontal direction d_world to d_map
             candidates.append(math.atan2(d_world[2], d_world[0]) - math.atan2(d_map[2], d_map[0]))
-    best: tuple[int, float, float, FloatArray] | None = None
-    for yaw in candidates:
-        map_T_world = _yaw_translation(yaw, world_p, map_p)
-        residual = _residuals_m(map_T_world, world_p, map_p)
-        inliers = int(np.sum(residual <= inlier_m))
-        score = (inliers, -float(np.median(residual)))
-        if best is None or score > (best[0], best[1]):
-            best = (inliers, score[1], yaw, map_T_world)
-    assert best is not None
-    inlier = _residuals_m(best[3], world_p, map_p) <= inlier_m
+    yaw = candidates[_best_candidate(candidates, world_p, map_p, inlier_m)]
+    first = _yaw_translation(yaw, world_p, map_p)
+    inlier = _residuals_m(first, world_p, map_p) <= inlier_m
     needed = max(min_shared_tags, math.ceil(min_inlier_fraction * len(shared)))
     if int(inlier.sum()) < needed:
-        residual = _residuals_m(best[3], world_p, map_p)
+        residual = _residuals_m(first, world_p, map_p)
         listed = ", ".join(f"{t}: {r:.2f} m" for t, r in zip(shared, residual, strict=True))
         raise AlignmentError(
             dataset,
@@ -386,7 +379,7 @@ def align_session(
             f"{inlier_m:g} m on one placement ({needed} needed); distances after the best "
             f"placement: {listed}",
         )
-    yaw = _refit_yaw(best[2], world_p[inlier], map_p[inlier])
+    yaw = _refit_yaw(yaw, world_p[inlier], map_p[inlier])
     map_T_world = _yaw_translation(yaw, world_p[inlier], map_p[inlier], mean=True)
     residual = _residuals_m(map_T_world, world_p, map_p)
     return SessionAlignment(
@@ -397,6 +390,22 @@ def align_session(
         inlier_tags=tuple(t for t, ok in zip(shared, residual <= inlier_m, strict=True) if ok),
         residual_m=residual,
     )
+
+
+def _best_candidate(
+    candidates: Sequence[float], world_p: FloatArray, map_p: FloatArray, inlier_m: float
+) -> int:
+    """The index of the candidate turn whose placement (:func:`_yaw_translation`, median offset)
+    puts the most tags within ``inlier_m``, then the smallest median residual; the first such.
+    All candidates at once: (C, n) offsets and residuals."""
+    R = np.stack([rotation_about_y(yaw) for yaw in candidates])
+    rotated = np.einsum("cij,nj->cni", R, world_p)
+    offsets = np.median(map_p[None] - rotated, axis=1)
+    residual = np.linalg.norm(rotated + offsets[:, None, :] - map_p[None], axis=2)
+    inliers = np.sum(residual <= inlier_m, axis=1)
+    spread = np.median(residual, axis=1)
+    most = inliers == inliers.max()
+    return int(np.flatnonzero(most & (spread == spread[most].min()))[0])
 
 
 def _yaw_translation(
