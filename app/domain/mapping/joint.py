@@ -1295,16 +1295,20 @@ def optimize_sessions(
         optimize_ms=(optimized - solved) * 1e3,
         warnings=_joint_warnings(joint, splits, reasons, disagreement, weighing, scale_drops),
     )
+    parts = _parts(joint, inputs, result, splits, disagreement, weighing, scale_drops)
+    done = time.perf_counter()
     timings = {
         **plan.timings_ms,
         "scale_tests": (scaled - solved - tests.first_solve_s) * 1e3,
         "joint_optimize": (optimized - scaled + tests.first_solve_s) * 1e3,
         "marginals": result.stats.marginals_ms,
-        "total": (time.perf_counter() - started) * 1e3,
+        # the last weighing, residuals and each walk's statistics (its report)
+        "report": (done - optimized) * 1e3 - result.stats.marginals_ms,
+        "total": (done - started) * 1e3,
     }
     return JointMap(
         map=result,
-        parts=_parts(joint, inputs, result, splits, disagreement, weighing, scale_drops),
+        parts=parts,
         combined=joint.combined,
         sessions=plan.sessions,
         detection_mask=joint.screening.used,
