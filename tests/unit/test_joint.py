@@ -31,6 +31,7 @@ from app.domain.frames import FloatArray, make_pose, rotation_about_y
 from app.domain.mapping.joint import (
     AlignmentError,
     JointMap,
+    _best_candidate,
     align_session,
     keep_poses,
     optimize_sessions,
@@ -81,6 +82,31 @@ def test_alignment_survives_a_moved_tag_and_names_it():
     np.testing.assert_allclose(alignment.map_T_world, MAP_T_WORLD, atol=1e-9)
     assert alignment.outlier_tags == (3,)
     assert alignment.residual_m[2] == pytest.approx(math.hypot(3.0, 2.0), abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_candidate_turns_scored_at_once_choose_as_one_by_one(seed):
+    """``_best_candidate`` against the plain loop it replaced: each turn placed by the median
+    offset, most tags within 1 m first, then the smallest median residual, the first such; on
+    noisy tags with outliers and with repeated candidates (ties)."""
+    rng = np.random.default_rng(seed)
+    world_p = rng.uniform(-20, 20, (9, 3))
+    map_p = world_p @ rotation_about_y(0.7).T + [12.0, 0.3, -40.0]
+    map_p += rng.normal(0, 0.1 + 0.1 * (seed % 10), map_p.shape)  # up to σ 1 m: inliers matter
+    map_p[: seed % 4] += rng.uniform(-5, 5, (seed % 4, 3))  # moved tags
+    candidates = [float(y) for y in rng.uniform(-math.pi, math.pi, 30)]
+    candidates += [0.7, 0.7, *(0.7 + rng.normal(0, 0.05, 10))]
+    best = None
+    for k, yaw in enumerate(candidates):
+        R = rotation_about_y(yaw)
+        residual = np.linalg.norm(
+            world_p @ R.T + np.median(map_p - world_p @ R.T, axis=0) - map_p, axis=1
+        )
+        score = (int(np.sum(residual <= 1.0)), -float(np.median(residual)))
+        if best is None or score > best[0]:
+            best = (score, k)
+    assert best is not None
+    assert _best_candidate(candidates, world_p, map_p, 1.0) == best[1]
 
 
 @pytest.mark.parametrize(
