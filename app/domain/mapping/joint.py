@@ -1255,6 +1255,7 @@ def optimize_sessions(
     start_T_local: dict[tuple[int, int], FloatArray] = {}
     reasons: dict[tuple[int, int], float] = {}
     rounds = 0
+    settled: _Weighing | None = None  # the last round's weighing, when it changed nothing
     while True:
         rounds += 1
         start = values_from(
@@ -1284,9 +1285,13 @@ def optimize_sessions(
                 disagreement = weighing.factors
                 inputs.noise_scales = joint.base_scales * disagreement[:, None]
                 continue
+            settled = weighing
         break
     optimized = time.perf_counter()
-    weighing = _disagreement(joint, inputs, fixed, solution, disagreement, splits)
+    if settled is not None:
+        weighing = settled
+    else:
+        weighing = _disagreement(joint, inputs, fixed, solution, disagreement, splits)
     result = map_result(
         inputs,
         params,
