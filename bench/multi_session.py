@@ -32,6 +32,9 @@ a shared 2-core machine); the wall time is printed beside for reference.
    ground-truth metric and tag RMSE, and the pre-optimized map's. Held out: the settings the
    *other* walks' ground truth chose, each built on this walk (a setting chosen without this
    walk's own ground truth: what a new building's walk can be given).
+   5b. The same walks (and the simulated walk whose odometry is 2% long) built with their
+   odometry lengths × 0.98 … 1.02: what their scale does to the ground-truth metric and tag RMSE,
+   and the parallax their sightings give a depth-scale fit (a walk alone cannot see its scale).
 6. The prior's weight (``noise_prior_dof``), chosen with each walk held out: for each candidate,
    each walk's ground-truth metric with its noise estimated; the choice for a walk is the
    candidate best on the others (mean over them of the metric relative to pre-optimized).
@@ -79,8 +82,14 @@ from app.domain.evaluation.tuning import SearchSpace, TuningTarget, best_trial  
 from app.domain.formats.derived_documents import packed_documents  # noqa: E402
 from app.domain.formats.map_io import map_to_json  # noqa: E402
 from app.domain.frames import FloatArray  # noqa: E402
-from app.domain.mapping.joint import JointMap, keep_poses, optimize_sessions  # noqa: E402
+from app.domain.mapping.joint import (  # noqa: E402
+    JointMap,
+    keep_poses,
+    optimize_sessions,
+    tag_depth_fit,
+)
 from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.screening import screen_detections  # noqa: E402
 from app.domain.mapping.slam import optimize_session  # noqa: E402
 from app.domain.navigation.skeleton import build_skeleton  # noqa: E402
 from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
@@ -117,6 +126,7 @@ def main() -> int:
     results["five_walks"] = five_walks((0,) if args.quick else (0, 1, 2), checks)
     results["add_cost"] = add_cost((5,) if args.quick else (5, 20), args.repeat, checks)
     results["single"] = single_walks(checks)
+    results["odometry_scale"] = odometry_scale_study()
     results["prior"] = prior_study()
 
     print("\n## Targets (issue 25)\n")
@@ -623,6 +633,65 @@ def _single_walk_rows(walks: Sequence[tuple[str, Session, Poses]]) -> list[dict[
             }
         )
     return rows
+
+
+#: Factors on a walk's odometry lengths that table 5b builds it with.
+ODOMETRY_FACTORS = (0.98, 0.99, 1.0, 1.01, 1.02)
+
+
+def odometry_scale_study() -> list[dict[str, Any]]:
+    """Table 5b: what separates a single walk's map from its ground truth that its own data
+    cannot show, its odometry's scale. Each walk built (noise estimated) with its odometry
+    lengths multiplied by each factor; the parallax its tag sightings give the depth-scale fit
+    (``tag_depth_fit``: at least ``MIN_SCALE_PARALLAX_M2`` = 1 m² is needed) and what it reads."""
+    print(
+        "## 5b. Single walks with their odometry lengths × a factor (GT metric / tag RMSE m;"
+        " noise estimated)\n"
+    )
+    building = simulate_building_sessions(
+        SimulationConfig(num_poses=SIMULATED_POSES, seed=SINGLE_WALKS_SEED),
+        count=len(MIXED_WALKS),
+        styles=MIXED_WALKS,
+    )
+    walks = [
+        (name, load_session(SESSIONS / f"{name}.json"), load_ground_truth(GROUND_TRUTH / truth))
+        for name, truth in REAL_SINGLES
+    ]
+    walks += [
+        (f"simulated ({style.label})", parse_session(sim.upload), building.world_T_tag_true)
+        for sim, style in zip(building.sessions, building.styles, strict=True)
+        if "odometry" in style.label
+    ]
+    lines = [["walk", "parallax m²", "depth-scale fit", *(f"× {k:g}" for k in ODOMETRY_FACTORS),
+              "pre-optimized"]]  # fmt: skip
+    out = []
+    for name, session, truth in walks:
+        fit, parallax_m2 = tag_depth_fit(
+            session, screen_detections(session.detections, SlamParams()).used
+        )
+        scored = []
+        for factor in ODOMETRY_FACTORS:
+            world_T_phone = session.world_T_phone.copy()
+            world_T_phone[:, :3, 3] *= factor
+            tags = optimize_session(
+                dataclasses.replace(session, world_T_phone=world_T_phone)
+            ).tag_poses()
+            scored.append((ground_truth_metric(tags, truth), tag_rmse_m(tags, truth)))
+        pre = TuningTarget.prepare(session, SlamParams(estimate_noise=False), truth).baseline()
+        lines.append(
+            [name, f"{parallax_m2:.1f}", f"{fit:.3f}", *(f"{g:.4f} / {r:.3f}" for g, r in scored),
+             f"{pre[1]:.4f} / {pre[2]:.3f}"]
+        )  # fmt: skip
+        out.append(
+            {"walk": name, "parallax_m2": parallax_m2, "depth_scale_fit": fit,
+             "by_factor": dict(zip(ODOMETRY_FACTORS, scored, strict=True)), "pre": pre[1:]}
+        )  # fmt: skip
+    print(render_markdown_table(lines))
+    print(
+        "\n(simulated: its odometry is 2% long, so × 0.98 is its true scale; the depth-scale fit"
+        " is the factor on its tag depths, about the inverse of the odometry's)\n"
+    )
+    return out
 
 
 def _gt_sweep(target: TuningTarget) -> Any:

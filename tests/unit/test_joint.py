@@ -29,6 +29,7 @@ from app.domain.evaluation.simulate_building import (
 from app.domain.evaluation.table import evaluate_joint
 from app.domain.frames import FloatArray, make_pose, rotation_about_y
 from app.domain.mapping.joint import (
+    MIN_SCALE_PARALLAX_M2,
     AlignmentError,
     JointMap,
     _best_candidate,
@@ -36,6 +37,7 @@ from app.domain.mapping.joint import (
     keep_poses,
     optimize_sessions,
     sighting_burst_sizes,
+    tag_depth_fit,
     tag_depth_scale,
     yaw_of,
 )
@@ -239,6 +241,23 @@ def test_depth_scale_is_one_when_the_sizes_are_right_and_found_when_wrong():
     assert tag_depth_scale(session) == 1.0
     shrunk = _scaled_depths(session, 0.8)  # as if the app had assumed a smaller tag
     assert tag_depth_scale(shrunk) == pytest.approx(1 / 0.8, rel=0.05)
+
+
+def test_depth_fit_reads_the_factor_and_the_parallax_it_rests_on():
+    """The fit behind ``tag_depth_scale``: what it reads whatever its size, and the parallax
+    (Σ‖Δ camera-to-tag vector‖² over the pairs of sightings, m²), which scales with the depths'
+    square; one sighting per tag gives no pair and no parallax."""
+    session = walks()[0]
+    fit, parallax_m2 = tag_depth_fit(session)
+    shrunk_fit, shrunk_parallax_m2 = tag_depth_fit(_scaled_depths(session, 0.8))
+    assert parallax_m2 > MIN_SCALE_PARALLAX_M2
+    assert shrunk_fit == pytest.approx(fit / 0.8, rel=1e-9)
+    assert shrunk_parallax_m2 == pytest.approx(parallax_m2 * 0.8**2, rel=1e-9)
+    tag_ids = session.detections.tag_id
+    once = np.zeros(len(tag_ids), dtype=bool)
+    once[np.unique(tag_ids, return_index=True)[1]] = True  # each tag's first sighting only
+    assert tag_depth_fit(session, once) == (1.0, 0.0)
+    assert tag_depth_scale(session, once) == 1.0
 
 
 def test_joint_shift_metric_uses_each_session_in_its_own_frame():

@@ -443,6 +443,15 @@ def tag_depth_scale(session: Session, used: BoolArray | None = None) -> float:
     (least squares over pairs of sightings), or 1.0 when the pairs' parallax is below
     ``MIN_SCALE_PARALLAX_M2`` (the data cannot tell) or the factor is within
     ``MIN_DEPTH_SCALE_CHANGE`` of 1."""
+    scale, parallax_m2 = tag_depth_fit(session, used)
+    if parallax_m2 < MIN_SCALE_PARALLAX_M2:
+        return 1.0
+    return scale if abs(scale - 1.0) > MIN_DEPTH_SCALE_CHANGE else 1.0
+
+
+def tag_depth_fit(session: Session, used: BoolArray | None = None) -> tuple[float, float]:
+    """:func:`tag_depth_scale`'s least-squares factor, whatever its size (1.0 without pairs),
+    and the parallax it rests on: Σ‖Δ camera-to-tag vector‖² over the pairs of sightings, m²."""
     detections = session.detections
     rows = np.arange(len(detections)) if used is None else np.flatnonzero(used)
     world_T_phone = session.world_T_phone[detections.pose_index[rows]]
@@ -463,10 +472,7 @@ def tag_depth_scale(session: Session, used: BoolArray | None = None) -> float:
         d_tag = world_v_tag[k[j[close]]] - world_v_tag[k[i[close]]]
         numerator -= float(np.sum(d_phone * d_tag))
         denominator += float(np.sum(d_tag * d_tag))
-    if denominator < MIN_SCALE_PARALLAX_M2:
-        return 1.0
-    scale = numerator / denominator
-    return scale if abs(scale - 1.0) > MIN_DEPTH_SCALE_CHANGE else 1.0
+    return (numerator / denominator if denominator > 0 else 1.0), denominator
 
 
 def scaled_tag_depths(session: Session, scale: float) -> Session:
