@@ -526,6 +526,28 @@ def _median_stages(rounds: list[dict[str, float]]) -> dict[str, float]:
 SINGLE_WALKS_SEED = 5
 
 
+def real_single_walks() -> list[tuple[str, Session, Poses]]:
+    """The shipped walks with ground truth (``REAL_SINGLES``): name, session, truth."""
+    return [
+        (name, load_session(SESSIONS / f"{name}.json"), load_ground_truth(GROUND_TRUTH / truth))
+        for name, truth in REAL_SINGLES
+    ]
+
+
+def simulated_single_walks(seed: int) -> list[tuple[str, Session, Poses]]:
+    """The walks of a simulated building of table 3's kinds (``MIXED_WALKS``), each by itself:
+    "simulated (<kind>)", session, the building's true tags."""
+    building = simulate_building_sessions(
+        SimulationConfig(num_poses=SIMULATED_POSES, seed=seed),
+        count=len(MIXED_WALKS),
+        styles=MIXED_WALKS,
+    )
+    return [
+        (f"simulated ({style.label})", parse_session(sim.upload), building.world_T_tag_true)
+        for sim, style in zip(building.sessions, building.styles, strict=True)
+    ]
+
+
 def single_walks(checks: list[tuple[str, bool]]) -> list[dict[str, Any]]:
     print(
         f"## 5. Single walks: their noise estimated, against the configured variances, the "
@@ -535,21 +557,11 @@ def single_walks(checks: list[tuple[str, bool]]) -> list[dict[str, Any]]:
     lines = [["walk", "GT pre", "GT configured", "GT estimated", f"GT best of {SWEEP_TRIALS}",
               "estimated / best", "GT other walks' best", "estimated / held-out best",
               "RMSE pre m", "RMSE estimated m", "RMSE best m"]]  # fmt: skip
-    real = [
-        (name, load_session(SESSIONS / f"{name}.json"), load_ground_truth(GROUND_TRUTH / truth))
-        for name, truth in REAL_SINGLES
-    ]
-    building = simulate_building_sessions(
-        SimulationConfig(num_poses=SIMULATED_POSES, seed=SINGLE_WALKS_SEED),
-        count=len(MIXED_WALKS),
-        styles=MIXED_WALKS,
-    )
-    simulated = [
-        (f"simulated ({style.label})", parse_session(sim.upload), building.world_T_tag_true)
-        for sim, style in zip(building.sessions, building.styles, strict=True)
-    ]
     out = []
-    for group, walks in (("real", real), ("simulated", simulated)):
+    for group, walks in (
+        ("real", real_single_walks()),
+        ("simulated", simulated_single_walks(SINGLE_WALKS_SEED)),
+    ):
         rows = _single_walk_rows(walks)
         lines.extend(row.pop("line") for row in rows)
         out.extend(rows)
@@ -596,7 +608,7 @@ def _single_walk_rows(walks: Sequence[tuple[str, Session, Poses]]) -> list[dict[
         prepared.append((name, truth, estimated, configured, target, _gt_sweep(target)))
     rows = []
     for name, truth, estimated, configured, target, best in prepared:
-        gt_pre, rmse_pre = target.baseline()[1], target.baseline()[2]
+        _, gt_pre, rmse_pre = target.baseline()
         gt_est = ground_truth_metric(estimated.tag_poses(), truth)
         rmse_est = tag_rmse_m(estimated.tag_poses(), truth)
         gt_conf = ground_truth_metric(configured.tag_poses(), truth)
@@ -648,19 +660,8 @@ def odometry_scale_study() -> list[dict[str, Any]]:
         "## 5b. Single walks with their odometry lengths × a factor (GT metric / tag RMSE m;"
         " noise estimated)\n"
     )
-    building = simulate_building_sessions(
-        SimulationConfig(num_poses=SIMULATED_POSES, seed=SINGLE_WALKS_SEED),
-        count=len(MIXED_WALKS),
-        styles=MIXED_WALKS,
-    )
-    walks = [
-        (name, load_session(SESSIONS / f"{name}.json"), load_ground_truth(GROUND_TRUTH / truth))
-        for name, truth in REAL_SINGLES
-    ]
-    walks += [
-        (f"simulated ({style.label})", parse_session(sim.upload), building.world_T_tag_true)
-        for sim, style in zip(building.sessions, building.styles, strict=True)
-        if "odometry" in style.label
+    walks = real_single_walks() + [
+        walk for walk in simulated_single_walks(SINGLE_WALKS_SEED) if "odometry" in walk[0]
     ]
     lines = [["walk", "parallax m²", "depth-scale fit", *(f"× {k:g}" for k in ODOMETRY_FACTORS),
               "pre-optimized"]]  # fmt: skip
@@ -669,22 +670,23 @@ def odometry_scale_study() -> list[dict[str, Any]]:
         fit, parallax_m2 = tag_depth_fit(
             session, screen_detections(session.detections, SlamParams()).used
         )
-        scored = []
+        scored, pre = [], (math.nan, math.nan)
         for factor in ODOMETRY_FACTORS:
             world_T_phone = session.world_T_phone.copy()
             world_T_phone[:, :3, 3] *= factor
-            tags = optimize_session(
-                dataclasses.replace(session, world_T_phone=world_T_phone)
-            ).tag_poses()
+            result = optimize_session(dataclasses.replace(session, world_T_phone=world_T_phone))
+            tags = result.tag_poses()
             scored.append((ground_truth_metric(tags, truth), tag_rmse_m(tags, truth)))
-        pre = TuningTarget.prepare(session, SlamParams(estimate_noise=False), truth).baseline()
+            if factor == 1.0:  # the walk as recorded: its first sightings are the pre-optimized map
+                first = result.tag_poses_pre()
+                pre = (ground_truth_metric(first, truth), tag_rmse_m(first, truth))
         lines.append(
             [name, f"{parallax_m2:.1f}", f"{fit:.3f}", *(f"{g:.4f} / {r:.3f}" for g, r in scored),
-             f"{pre[1]:.4f} / {pre[2]:.3f}"]
+             f"{pre[0]:.4f} / {pre[1]:.3f}"]
         )  # fmt: skip
         out.append(
             {"walk": name, "parallax_m2": parallax_m2, "depth_scale_fit": fit,
-             "by_factor": dict(zip(ODOMETRY_FACTORS, scored, strict=True)), "pre": pre[1:]}
+             "by_factor": dict(zip(ODOMETRY_FACTORS, scored, strict=True)), "pre": pre}
         )  # fmt: skip
     print(render_markdown_table(lines))
     print(
@@ -715,18 +717,7 @@ def _gt_sweep(target: TuningTarget) -> Any:
 
 def prior_study() -> dict[str, Any]:
     print("## 6. The prior's weight (noise_prior_dof), each walk held out\n")
-    walks: list[tuple[str, Session, Poses]] = []
-    for name, truth_file in REAL_SINGLES:
-        walks.append(
-            (name, load_session(SESSIONS / f"{name}.json"),
-             load_ground_truth(GROUND_TRUTH / truth_file))
-        )  # fmt: skip
-    building = simulate_building_sessions(
-        SimulationConfig(num_poses=SIMULATED_POSES, seed=3), count=4, styles=MIXED_WALKS
-    )
-    for sim, style in zip(building.sessions, building.styles, strict=True):
-        walks.append((f"simulated ({style.label})", parse_session(sim.upload),
-                      building.world_T_tag_true))  # fmt: skip
+    walks = real_single_walks() + simulated_single_walks(seed=3)
     relative: dict[tuple[str, float], float] = {}
     for name, session, truth in walks:
         pre = ground_truth_metric(optimize_session(session).tag_poses_pre(), truth)
