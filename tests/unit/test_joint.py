@@ -32,7 +32,6 @@ from app.domain.mapping.joint import (
     MIN_SCALE_PARALLAX_M2,
     AlignmentError,
     JointMap,
-    _best_candidate,
     align_session,
     keep_poses,
     optimize_sessions,
@@ -41,6 +40,7 @@ from app.domain.mapping.joint import (
     tag_depth_scale,
     yaw_of,
 )
+from app.domain.mapping.joint.alignment import _best_candidate
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import optimize_session
 from app.domain.upload.session import Session, load_session, parse_session
