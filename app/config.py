@@ -27,7 +27,8 @@ that directory agrees; it signs the admin dashboard's login cookies],
 [60] (PostgreSQL's limits on the API's and the workers' connections),
 ``INVISIBLE_MAP_KEY_CACHE_S`` [5: how long an API process trusts a key it checked; see
 ``key_cache_s``], ``INVISIBLE_MAP_MAP_CACHE_S`` [2: the same for a map's current version; see
-``map_cache_s``], ``INVISIBLE_MAP_VERSION_CACHE_BYTES`` [256 MiB: documents kept per process].
+``map_cache_s``], ``INVISIBLE_MAP_VERSION_CACHE_BYTES`` [256 MiB: documents kept per process],
+``INVISIBLE_MAP_LOG_FORMAT`` [text; or json: one JSON object per log line].
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import os
 from functools import lru_cache
 from ipaddress import ip_network
 from pathlib import Path
+from typing import Literal
 
 from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -149,6 +151,9 @@ class Settings(BaseSettings):
     #: default): none; the client address is the TCP peer's, and forwarded headers are ignored
     #: (anyone could send them).
     trusted_proxies: str = ""
+    #: How ``serve`` and ``worker`` write their log (``--log-format``): ``text``, one line per
+    #: record as before, or ``json``, one JSON object per line (docs/operations.md, "Logs").
+    log_format: Literal["text", "json"] = "text"
 
     @field_validator("database_url")
     @classmethod

@@ -6,7 +6,8 @@
 Nothing connects at import time: the lifespan creates the :class:`Database` from
 ``settings.resolved_database_url`` and keeps it on ``app.state.db``. CORS is not enabled (the API
 is for the app and for admins' tools, not for pages on other origins). The admin dashboard's pages
-are under ``/admin`` (``app.admin``).
+are under ``/admin`` (``app.admin``); ``/metrics``, for an admin key, and the timing of every
+request are ``app.observability``'s.
 """
 
 from __future__ import annotations
@@ -26,15 +27,17 @@ from app.api.routes import (
     keys,
     localization,
     maps,
+    metrics,
     navigation,
     sessions,
     sweeps,
     system,
 )
 from app.config import Settings, get_settings
+from app.observability.metrics import ApiMetrics, RequestMetrics
 from app.services.keys import PrincipalCache
 from app.services.maps import MapPages, MapStates
-from app.services.system import WorkerPool, package_version
+from app.services.system import ALIVE_HEARTBEATS, WorkerPool, package_version
 from app.services.version_cache import VersionCache
 from app.storage.db import Database, ServerTimeouts
 from app.storage.migrate import head_revision
@@ -114,8 +117,14 @@ def create_app(
     app.add_middleware(
         BodyLimit, max_bytes=app.state.settings.max_request_bytes, exempt_paths=[UPLOAD_PATH]
     )
-    app.add_middleware(SecurityHeaders)  # outermost: every answer, errors included
+    app.add_middleware(SecurityHeaders)  # every answer, errors included
+    app.state.metrics = ApiMetrics(
+        database=lambda: getattr(app.state, "db", None),
+        alive_within_s=ALIVE_HEARTBEATS * app.state.settings.heartbeat_s,
+    )
+    app.add_middleware(RequestMetrics, metrics=app.state.metrics)  # outermost: timed whole
     app.include_router(system.router)
+    app.include_router(metrics.router)  # /metrics: admin key (docs/operations.md, "Metrics")
     install_docs(app)  # /docs, /redoc: Swagger UI and ReDoc from the installed package
     authenticated = [Depends(current_principal)]  # every /v1 route: 401 without a valid key
     # A request is matched against the routers in this order, route by route: the phones'

@@ -40,7 +40,8 @@ from multiprocessing.process import BaseProcess
 from types import FrameType
 
 from app.config import Settings
-from app.storage import queue
+from app.observability import logs
+from app.storage import job_metrics, queue
 from app.storage.db import Database, ServerTimeouts, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
@@ -123,7 +124,7 @@ class Worker:
         return True
 
     def _run(self, lease: Lease) -> None:
-        extra = {"job_id": lease.job_id, "session_id": lease.session_id}
+        extra = {"job_id": lease.job_id, "map_id": lease.map_id, "session_id": lease.session_id}
         logger.info(
             "job %d (%s, attempt %d of %d) started",
             lease.job_id,
@@ -170,8 +171,22 @@ class Worker:
             self.current_job_id = None
         if report.outcome not in (Outcome.LEASE_LOST, Outcome.RELEASED):
             self.jobs_done += 1
+        self._record_stages(lease, report)
         self._log_outcome(lease, report, extra)
         self._beat(state="idle")
+
+    def _record_stages(self, lease: Lease, report: JobReport) -> None:
+        """Store how long the attempt's stages took (``/metrics``); best effort."""
+        try:
+            job_metrics.record_stages(
+                self.db,
+                job_id=lease.job_id,
+                kind=lease.kind,
+                attempt=lease.attempt,
+                durations_s=report.stage_durations_s,
+            )
+        except Exception as err:
+            log_failure(logger, f"job {lease.job_id}: could not store its stage durations", err)
 
     @staticmethod
     def _log_outcome(lease: Lease, report: JobReport, extra: dict[str, int | None]) -> None:
@@ -333,15 +348,16 @@ def _wake_only(_signum: int, _frame: FrameType | None) -> None:
 # --------------------------------------------------------------------------- processes
 
 
-def configure_logging() -> None:
-    """Log to stderr, one line per record (if nobody configured logging yet).
+def configure_logging(log_format: str = "text") -> None:
+    """Log to stderr, one line per record (if nobody configured logging yet): as text, or with
+    ``log_format="json"`` as one JSON object per line (``app.observability.logs``).
 
     httpx's line per request (INFO) is left out: the only client in these processes is
     ``serve --demo`` polling its own API, whose access log already has each request."""
-    logging.basicConfig(
-        level=logging.INFO,
-        format="%(asctime)s %(levelname)s %(processName)s[%(process)d] %(name)s: %(message)s",
-    )
+    if log_format == "json":
+        logs.configure_json_logging()
+    else:
+        logging.basicConfig(level=logging.INFO, format=logs.TEXT_FORMAT)
     logging.getLogger("httpx").setLevel(logging.WARNING)
 
 
@@ -379,7 +395,7 @@ def _worker_process_main(settings: Settings, parent_pid: int) -> None:
     it). SIGINT is ignored: a Ctrl-C reaches the whole process group, and the supervisor
     forwards it as SIGTERM, which must count once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    configure_logging()
+    configure_logging(settings.log_format)
     lower_priority(settings)
     db = Database(settings.resolved_database_url, timeouts=ServerTimeouts.of(settings))
     try:
@@ -452,7 +468,8 @@ def run_worker_processes(settings: Settings, processes: int) -> int:
     service manager then restarts the whole)."""
     if processes < 1:
         raise ValueError(f"processes must be at least 1, got {processes}")
-    configure_logging()  # `invisible-map worker` logs like the worker processes it starts
+    # `invisible-map worker` logs like the worker processes it starts
+    configure_logging(settings.log_format)
     if processes == 1:
         return run_worker(settings, signums=[signal.SIGTERM, signal.SIGINT])
 
@@ -506,11 +523,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--processes", type=int, default=1, help="worker processes to run (default 1)"
     )
+    parser.add_argument(
+        "--log-format",
+        choices=["text", "json"],
+        help="text (the default, INVISIBLE_MAP_LOG_FORMAT) or json: one JSON object per line",
+    )
     args = parser.parse_args(argv)
     if args.processes < 1:
         parser.error("--processes must be at least 1")
-    configure_logging()
-    return run_worker_processes(Settings(), args.processes)
+    settings = Settings(**({} if args.log_format is None else {"log_format": args.log_format}))
+    configure_logging(settings.log_format)
+    return run_worker_processes(settings, args.processes)
 
 
 if __name__ == "__main__":

@@ -143,6 +143,8 @@ class JobReport:
     error: str | None = None
     version: VersionInfo | None = None
     duration_s: float = 0.0
+    #: each stage that ran to its end in this attempt, in order: (name, duration in s)
+    stage_durations_s: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(slots=True, kw_only=True)
@@ -870,12 +872,14 @@ def run_job(
             error=error,
             version=ctx.version,
             duration_s=time.perf_counter() - started_s,
+            stage_durations_s=tuple(stage_durations_s),
         )
 
     def retrying(call: Callable[[], T], what: str) -> T:
         return through_outages(control, lease.job_id, what, call)
 
     done_weight = 0.0
+    stage_durations_s: list[tuple[str, float]] = []
     try:
         for stage in stages:
             if control.lease_lost:
@@ -898,7 +902,9 @@ def run_job(
                 ctx.log(f"cancel requested: stopping before {stage.name}")
                 retrying(lambda: queue.mark_canceled(db, lease, log_tail=ctx.log_tail), "cancel")
                 return ended(Outcome.CANCELED)
+            stage_started_s = time.perf_counter()
             retrying(functools.partial(stage.run, ctx), f"stage {stage.name}")
+            stage_durations_s.append((stage.name, time.perf_counter() - stage_started_s))
             if ctx.finished:
                 return ended(Outcome.SUPERSEDED if ctx.superseded else Outcome.SUCCEEDED)
             done_weight += stage.weight

@@ -261,6 +261,7 @@ def uvicorn_server(
     from app.api import access_log
     from app.api.connection_guard import guarded_protocol
     from app.main import create_app
+    from app.observability.logs import uvicorn_log_options
 
     config = uvicorn.Config(
         create_app(settings, worker_pool=worker_pool),
@@ -269,6 +270,7 @@ def uvicorn_server(
         http=guarded_protocol(settings),  # header/body timeouts, connections per address
         headers=headers,
         **proxy_options(settings),
+        **uvicorn_log_options(settings.log_format),  # --log-format json: JSON lines
     )
     access_log.install()  # after uvicorn configured its loggers: no key in the access log
     return uvicorn.Server(config)

@@ -1,8 +1,8 @@
 """The server's subcommands of ``invisible-map``.
 
     invisible-map serve [--host H] [--port P] [--workers N] [--api-processes N] [--demo]
-                        [--no-migrate]
-    invisible-map worker [--processes N]
+                        [--no-migrate] [--log-format text|json]
+    invisible-map worker [--processes N] [--log-format text|json]
     invisible-map migrate
     invisible-map keys create --role device|admin [--name NAME] [--expires-in-days D]
     invisible-map keys list
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import logging
 import secrets
 import signal
 import socket
@@ -24,7 +25,7 @@ import sys
 import threading
 import time
 from datetime import timedelta
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from app.cli.common import (
     CommandError,
@@ -76,6 +77,7 @@ def add_server_commands(commands: Any) -> None:
     serve.add_argument(
         "--no-migrate", action="store_true", help="do not run the migrations at start"
     )
+    _add_log_format(serve)
     serve.set_defaults(handler=_serve)
 
     worker = commands.add_parser(
@@ -85,6 +87,7 @@ def add_server_commands(commands: Any) -> None:
         "current job) or a second SIGTERM (release it).",
     )
     worker.add_argument("--processes", type=int, default=1, help="worker processes (1)")
+    _add_log_format(worker)
     worker.set_defaults(handler=_worker)
 
     migrate = commands.add_parser("migrate", help="bring the database schema up to date")
@@ -107,6 +110,19 @@ def add_server_commands(commands: Any) -> None:
 # --------------------------------------------------------------------------- helpers
 
 
+def _add_log_format(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--log-format",
+        choices=["text", "json"],
+        help="the log: text (the default, INVISIBLE_MAP_LOG_FORMAT) or json, one JSON object "
+        'per line (docs/operations.md, "Logs")',
+    )
+
+
+def _log_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    return {} if args.log_format is None else {"log_format": args.log_format}
+
+
 # --------------------------------------------------------------------------- commands
 
 
@@ -117,7 +133,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     if not 0 < args.port < 65536:
         raise CommandError(f"--port must be 1–65535, got {args.port}")
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, Any] = _log_overrides(args)
     if args.workers is not None:
         if not 0 <= args.workers <= 64:
             raise CommandError(f"--workers must be 0–64, got {args.workers}")
@@ -129,6 +145,10 @@ def _serve(args: argparse.Namespace) -> int:
             )
         overrides["api_processes"] = args.api_processes
     settings = load_settings(**overrides)
+    if settings.log_format == "json":
+        from app.observability.logs import configure_json_logging
+
+        configure_json_logging()  # serve's own lines too, from here on
     api_processes = settings.api_processes or default_api_processes()
     # Each API process then knows how many share the database's connections (their pools).
     settings = settings.model_copy(update={"api_processes": api_processes})
@@ -143,7 +163,7 @@ def _serve(args: argparse.Namespace) -> int:
         database = open_database(settings)
         if not args.no_migrate:
             revision = migrate_database(database, settings)
-            print(f"database {safe_url(settings)} at revision {revision}", file=sys.stderr)
+            _say(f"database {safe_url(settings)} at revision {revision}")
         database.dispose()
     except BaseException:
         listener.close()
@@ -156,12 +176,15 @@ def _serve(args: argparse.Namespace) -> int:
     supervisor = WorkerSupervisor(settings, settings.workers)  # restarts any that dies
     supervisor.start()
     url = f"http://{args.host}:{args.port}"
-    print(f"Invisible Map server at {url}  (API docs: {url}/docs)")
+    _say(f"Invisible Map server at {url}  (API docs: {url}/docs)", file=sys.stdout)
     if generated_key:
-        print(f"admin key for this run: {settings.admin_key}")
-        print("  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)")
-    print(f"API processes: {api_processes}")
-    print(f"worker processes: {supervisor.configured}", flush=True)
+        _say(f"admin key for this run: {settings.admin_key}", file=sys.stdout)
+        _say(
+            "  (set INVISIBLE_MAP_ADMIN_KEY to choose one; `invisible-map keys create` for more)",
+            file=sys.stdout,
+        )
+    _say(f"API processes: {api_processes}", file=sys.stdout)
+    _say(f"worker processes: {supervisor.configured}", file=sys.stdout)
     if args.demo:
         assert settings.admin_key is not None
         threading.Thread(
@@ -203,9 +226,10 @@ def _serve_api_processes(
     """Run ``processes`` API processes on ``listener`` until SIGTERM or SIGINT, replacing any
     that dies (``app.cli.api_processes``); then stop them, then the worker processes."""
     from app.cli.api_processes import ApiProcessSupervisor, WorkerPoolStatus
+    from app.observability.multiprocess import multiprocess_metrics
     from workers.main import configure_logging
 
-    configure_logging()  # the supervisors' lines (a death, a restart) in serve's log
+    configure_logging(settings.log_format)  # the supervisors' lines (a death, a restart)
     listener.listen(API_BACKLOG)  # connections wait in the queue while no process accepts
     status = WorkerPoolStatus() if settings.workers else None
     if status is not None:
@@ -219,10 +243,16 @@ def _serve_api_processes(
             for signum in (signal.SIGTERM, signal.SIGINT)
         }
     try:
-        api.start()
-        api.run_until(stop, tick=None if status is None else lambda: status.publish(supervisor))
+        # /metrics of any API process sums the request counts of all (app.observability)
+        with multiprocess_metrics():
+            try:
+                api.start()
+                api.run_until(
+                    stop, tick=None if status is None else lambda: status.publish(supervisor)
+                )
+            finally:
+                api.stop(timeout_s=30.0)
     finally:
-        api.stop(timeout_s=30.0)
         supervisor.stop(timeout_s=30.0)
         listener.close()
         if in_main_thread:
@@ -256,7 +286,7 @@ def listening_socket(host: str, port: int) -> socket.socket:
 def _worker(args: argparse.Namespace) -> int:
     if not 1 <= args.processes <= 64:
         raise CommandError(f"--processes must be 1–64, got {args.processes}")
-    settings = load_settings()
+    settings = load_settings(**_log_overrides(args))
     jemalloc_path()  # INVISIBLE_MAP_JEMALLOC: a path that is no file stops the command now
     open_database(settings).dispose()
     from workers.main import run_worker_processes  # the pipeline: only once the checks pass
@@ -460,5 +490,11 @@ def _attach_ground_truth(
         time.sleep(DEMO_POLL_S)
 
 
-def _say(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
+def _say(line: str, *, file: IO[str] | None = None) -> None:
+    """Say ``line`` on stderr (or ``file``); with the JSON log, as a log record instead."""
+    from app.observability.logs import json_logging_active
+
+    if json_logging_active():
+        logging.getLogger("app.cli.server").info(line)
+    else:
+        print(line, file=file or sys.stderr, flush=True)

@@ -319,6 +319,22 @@ class Job(Base):
     updated_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
+class JobStageRun(Base):
+    """One stage of one attempt at a job that ran to its end, and how long it took: what the
+    ``/metrics`` stage durations are counted from (``app.storage.job_metrics``). The worker
+    writes an attempt's stages when the attempt ends; they are deleted with their job."""
+
+    __tablename__ = "job_stage"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    job_id: Mapped[int] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    stage: Mapped[str] = mapped_column(String(32))
+    attempt: Mapped[int]
+    duration_s: Mapped[float] = mapped_column(Float)
+    finished_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
 class MapVersion(Base):
     """One optimization of a map's session: the result, its parameters, statistics and metrics."""
 
