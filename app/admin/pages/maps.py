@@ -7,11 +7,14 @@ app's map file and the path graph as GeoJSON).
 The plot's data is the version's overview, built once by the worker that stored the version
 (``app.domain.formats.derived_documents``) and read from its blob (tens of kB, not the whole map
 document); versions stored before have none, and their figure is built from the map document.
-Either way it is kept in the process's version cache (versions never change).
+Either way it is kept in the process's version cache (versions never change). A map with corridor
+edits is drawn with its path graph, nodes and points of interest taken from the edited graph
+(:func:`edited_figure`), the one routes use; the route tester draws the same.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import json
 from typing import Annotated, Any
@@ -25,12 +28,14 @@ from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import redirect, render
 from app.domain.formats.derived_documents import figure_of_overview, overview_document
+from app.domain.formats.map_figure import with_path_graph
 from app.domain.formats.map_io import map_from_json
 from app.domain.navigation.path_graph import PathGraph
 from app.domain.upload.session import Session as ParsedSession
 from app.services.corridor_edits import app_map_with_edits_gzip, edits_report
 from app.services.errors import ServiceError
 from app.services.maps import (
+    MapSessionUse,
     add_session_to_map,
     chosen_version,
     delete_map_and_jobs,
@@ -41,7 +46,7 @@ from app.services.maps import (
     remove_session_from_map,
     rename_map,
 )
-from app.services.navigation import geojson_bytes, version_path_graph
+from app.services.navigation import edited_version, geojson_bytes, version_path_graph
 from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
 from app.storage import maps, queue
@@ -118,6 +123,49 @@ def version_figure(
     return cache.get(("admin_figure", version.id), build)
 
 
+def edited_figure(
+    request: Request, db_session: Session, info: MapInfo, version: VersionInfo
+) -> dict[str, Any]:
+    """:func:`version_figure` with the map's corridor edits applied to its path graph, nodes and
+    points of interest (the stored figure is the version's graph as built): what routes use,
+    so that a point of interest added in the corridor editor is drawn and listed too."""
+    figure = version_figure(request, db_session, info, version)
+    if info.corridor_edits_revision == 0:
+        return figure
+    try:
+        edited = edited_version(
+            request.app.state.version_cache, db_session, version, info.corridor_edits_revision
+        )
+    except ServiceError:  # no path graph: no edit applies
+        return figure
+    return with_path_graph(figure, edited.path_graph)
+
+
+def session_uses(
+    db_session: Session, info: MapInfo, uses: list[MapSessionUse]
+) -> list[MapSessionUse]:
+    """The map's sessions, with what a one-walk map's session contributed taken from its current
+    version (a version of one session has no ``statistics["sessions"]``: its session is the
+    whole map)."""
+    version = info.current
+    if version is None or len(uses) != 1 or uses[0].contribution or not uses[0].in_current_version:
+        return uses
+    stats = version.statistics
+    contribution = {
+        "session_id": uses[0].session_id,
+        "poses": stats.get("poses"),
+        "tags": [tag.tag_id for tag in maps.tag_poses(db_session, version.id)],
+        "detections_used": version.detections_used,
+        "detections_rejected": version.detections_rejected,
+        "tag_chi2_mean": None,
+        "shared_tags": [],
+        "placed_by_tags": [],
+        "own_landmark_tags": [],
+        "odometry_variance_scale": 1.0,
+    }
+    return [dataclasses.replace(uses[0], contribution=contribution)]
+
+
 def map_page(
     request: Request,
     db_session: Session,
@@ -147,7 +195,7 @@ def map_page(
         version=version,
         versions=maps.list_versions(db_session, info.id),
         jobs=jobs,
-        figure=version_figure(request, db_session, info, version) if version else None,
+        figure=edited_figure(request, db_session, info, version) if version else None,
         has_path_graph=version is not None
         and path_graph_or_none(request, db_session, version) is not None,
         fields=rebuild_fields(info.current.params if info.current else None, submitted),
@@ -157,7 +205,7 @@ def map_page(
         shown_current=info.current.number if info.current else 0,
         rename_error=rename_error.detail if rename_error else None,
         submitted_name=submitted_name,
-        map_sessions=map_session_uses(info),
+        map_sessions=session_uses(db_session, info, map_session_uses(info)),
         sharing=_maps_sharing_tags(db_session, info),
         edits=_edits_on(request, db_session, info, version),
     )

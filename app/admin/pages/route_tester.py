@@ -13,7 +13,7 @@ from fastapi import Query, Request, Response
 
 from app.admin.auth import DashboardUserDep
 from app.admin.forms import parse_endpoint
-from app.admin.pages.maps import version_figure
+from app.admin.pages.maps import edited_figure
 from app.admin.paging import PAGE_SIZE, Page, PageNumber
 from app.admin.routing import admin_router
 from app.admin.templating import render
@@ -59,7 +59,7 @@ def route_tester(
         request.app.state.version_cache, db_session, info
     )  # 409 without one
     avoided = frozenset(avoid or ()) & AVOIDABLE
-    figure = version_figure(request, db_session, info, version)
+    figure = edited_figure(request, db_session, info, version)
     route: Route | None = None
     error: ServiceError | None = None
     if from_ and to:

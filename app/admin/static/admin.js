@@ -8,7 +8,8 @@
 //   app/admin/map_figure.py); each .plot element draws one floor of it with plotly.js, every
 //   user string escaped (plotlyLiteral).
 // - A form with data-confirm="…" asks before it is submitted.
-// - On the route tester, clicking the map sets the From or To list.
+// - On the route tester, clicking the map sets the From or To list; after planning (a page load)
+//   the focus goes to the result's heading (or why there is none) and the live region says it.
 "use strict";
 
 (function () {
@@ -225,8 +226,26 @@
     }
   });
 
+  // The route tester reloads the page to plan: the result (or why there is none) gets the
+  // focus and is said, instead of the focus starting again at the top in silence.
+  function announceRoute() {
+    const heading = document.querySelector("#route-result h2");
+    const error = document.getElementById("route-error");
+    if (heading) {
+      heading.tabIndex = -1;
+      heading.focus();
+      const steps = Array.from(document.querySelectorAll("#route-steps li")).map((li) => li.textContent.trim());
+      announce(`${heading.textContent.trim()}, ${steps.length} steps: ${steps.join("; ")}.`);
+    } else if (error) {
+      error.tabIndex = -1;
+      error.focus();
+      announce(`No route: ${error.textContent.trim()}`);
+    }
+  }
+
   document.addEventListener("DOMContentLoaded", () => {
     document.querySelectorAll("[data-live-url]").forEach(startLive);
     drawPlots();
+    announceRoute();
   });
 })();

@@ -5,6 +5,7 @@ tables next to each plot.
 
     figure = map_figure(result, raw_session, path_graph)     # JSON-ready dict
     figure = with_route(figure, route)                       # the route drawn too
+    figure = with_path_graph(figure, edited_graph)           # another graph's edges, nodes, POIs
 
 Shape of the figure (positions in m, rounded to mm)::
 
@@ -246,6 +247,33 @@ def _graph(path_graph: PathGraph | None, floor: int) -> dict[str, Any]:
             "z": [_mm(data["position_m"][2]) for _, data in nodes],
         },
     }
+
+
+def with_path_graph(figure: dict[str, Any], path_graph: PathGraph) -> dict[str, Any]:
+    """``figure`` with the path graph, its nodes and its points of interest taken from
+    ``path_graph`` instead (a copy): the version's graph with its map's corridor edits applied,
+    so that the plot shows what routes use (a point of interest added in the corridor editor is
+    drawn and listed; one removed or renamed is not shown as it was)."""
+    floors: list[dict[str, Any]] = []
+    for floor in figure["floors"]:
+        index = int(floor["index"])
+        floors.append(
+            {
+                **floor,
+                **_graph(path_graph, index),
+                "pois": [
+                    {
+                        "name": poi.name,
+                        "x": _mm(poi.position_m[0]),
+                        "y": _mm(poi.position_m[1]),
+                        "z": _mm(poi.position_m[2]),
+                    }
+                    for poi in path_graph.pois
+                    if poi.floor == index
+                ],
+            }
+        )
+    return {**figure, "floors": floors}
 
 
 def with_route(figure: dict[str, Any], route: Route) -> dict[str, Any]:
