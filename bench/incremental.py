@@ -1,0 +1,444 @@
+"""Building maps that grow a walk at a time (issue 38): one command, prints the tables.
+
+    .venv/bin/python bench/incremental.py               # N = 5, 20, 50, 100, 200 (long)
+    .venv/bin/python bench/incremental.py --quick       # N = 5, 20
+    .venv/bin/python bench/incremental.py --sizes 50 --batch-max 50 --json out.json
+
+For each N: N + 1 simulated walks of one building (``simulate_building_sessions``, seed 7, 1,200
+poses = 2 minutes each, as bench/multi_session.py's table 4), then, each in CPU seconds
+(``time.process_time``, OpenBLAS held to one thread: timings on the shared machine are noisy, CPU
+time less so):
+
+- *first build*: ``incremental.build`` of the first N walks;
+- *add*: walk N + 1 added to that state (``add_walk``), and how many walks it relinearized;
+- *remove*: the same walk removed again (``remove_walk``);
+- *peak MiB*: the process's peak resident memory after these three (``ru_maxrss``; every
+  session of the building is in memory, as a worker that relinearizes old walks would load
+  them) and the state's size as stored (the building row and the walks' rows);
+- for N + 1 ≤ ``--batch-max``: the batch build (``joint.optimize_sessions``) of the N walks
+  (cold) and of the N + 1 (warm from it: what the worker does today on an add), and the largest
+  tag and pose distance between what the incremental state serves and the batch map of the same
+  walks (same gauge: both are drawn in the first walk's world), for the build, the add and the
+  removal; and whether the batch map down-weighted a walk, rescaled one or set a tag apart
+  (which the summaries do not reproduce: docs/multi-session.md).
+
+Each N runs in a process of its own (its peak memory is its own). Then the shipped walks of the
+mac building (floor_2_straight, desnat_straight_once, straight_209_occam whole, and
+oblique_209_occam when it ships): the first two built, the third added, against the batch build
+of all three, with and without its down-weighting.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import dataclasses
+import json
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
+
+from app.cli.tables import render_markdown_table  # noqa: E402
+from app.domain.evaluation.simulate import SimulationConfig  # noqa: E402
+from app.domain.evaluation.simulate_building import (  # noqa: E402
+    MIXED_WALKS,
+    simulate_building_sessions,
+)
+from app.domain.mapping.incremental import (  # noqa: E402
+    IncrementalMap,
+    Walk,
+    add_walk,
+    build,
+    remove_walk,
+)
+from app.domain.mapping.joint import JointMap, optimize_sessions  # noqa: E402
+from app.domain.mapping.params import SlamParams  # noqa: E402
+from app.domain.mapping.slam import optimize_session  # noqa: E402
+from app.domain.upload.session import Session, load_session, parse_session  # noqa: E402
+
+SESSIONS = REPO / "data" / "sessions"
+MAC_WALKS = ("floor_2_straight", "desnat_straight_once", "straight_209_occam", "oblique_209_occam")
+SIMULATED_POSES = 1_200
+MIXED_SEEDS = (0, 1)
+SIZES = (5, 20, 50, 100, 200)
+QUICK_SIZES = (5, 20)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="N = 5 and 20 only")
+    parser.add_argument("--sizes", type=int, nargs="*", help="the building sizes N")
+    parser.add_argument(
+        "--batch-max", type=int, default=51, help="largest N + 1 the batch build runs at (51)"
+    )
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # one N, in this process
+    parser.add_argument("--no-real", action="store_true", help="skip the shipped walks")
+    parser.add_argument(
+        "--isam",
+        type=int,
+        nargs="*",
+        help="also time the other design, gtsam's ISAM2 on the joint graph, at these N",
+    )
+    parser.add_argument("--isam-one", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    if args.one is not None:
+        print(json.dumps(one_size(args.one, args.batch_max)))
+        return 0
+    if args.isam_one is not None:
+        print(json.dumps(isam_size(args.isam_one)))
+        return 0
+    sizes = args.sizes or (QUICK_SIZES if args.quick else SIZES)
+    rows = []
+    for n in sizes:
+        command = [sys.executable, __file__, "--one", str(n), "--batch-max", str(args.batch_max)]
+        done = subprocess.run(command, capture_output=True, text=True, check=True)
+        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        print(f"N = {n}: done", file=sys.stderr)
+    print("## Simulated buildings (CPU s; distances to the batch build of the same walks, mm)\n")
+    print(render_markdown_table(size_table(rows), justify="right"))
+    print()
+    results: dict[str, Any] = {"sizes": rows}
+    if not args.no_real:
+        mixed = mixed_walks()
+        results["mixed"] = mixed
+        print("## Simulated walks that differ (MIXED_WALKS): the last one added to the others\n")
+        print(render_markdown_table(real_table(mixed), justify="right"))
+        print()
+        real = real_walks()
+        results["real"] = real
+        print("## The mac building's shipped walks: the last one added to the others\n")
+        print(render_markdown_table(real_table(real), justify="right"))
+    if args.isam:
+        isam_rows = []
+        for n in args.isam:
+            command = [sys.executable, __file__, "--isam-one", str(n)]
+            done = subprocess.run(command, capture_output=True, text=True, check=True)
+            isam_rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        results["isam"] = isam_rows
+        print("\n## The other design: ISAM2 on the joint graph (CPU s)\n")
+        print(render_markdown_table(isam_table(isam_rows), justify="right"))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return 0
+
+
+def one_size(n: int, batch_max: int) -> dict[str, Any]:
+    params = SlamParams()
+    building = simulate_building_sessions(
+        SimulationConfig(num_poses=SIMULATED_POSES, seed=7), count=n + 1
+    )
+    walks = [
+        Walk(walk_id=f"walk {k + 1}", session=parse_session(s.upload))
+        for k, s in enumerate(building.sessions)
+    ]
+    by_id = {w.walk_id: w.session for w in walks}
+    started = time.process_time()
+    optimize_session(walks[-1].session, params)
+    single_s = time.process_time() - started
+
+    started = time.process_time()
+    state, built = build(walks[:n], params)
+    build_s = time.process_time() - started
+    started = time.process_time()
+    added_state, added = add_walk(state, walks[n], params, load=by_id.__getitem__)
+    add_s = time.process_time() - started
+    started = time.process_time()
+    _, removed = remove_walk(added_state, walks[n].walk_id, params, load=by_id.__getitem__)
+    remove_s = time.process_time() - started
+    peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rows = [added_state.to_dict(), *(w.to_dict() for w in added_state.walks)]
+    state_mib = sum(len(r["arrays"]) + len(json.dumps({**r, "arrays": ""})) for r in rows) / 2**20
+    out: dict[str, Any] = {
+        "n": n,
+        "tags": len(added_state.tag_ids),
+        "single_s": single_s,
+        "build_s": build_s,
+        "add_s": add_s,
+        "remove_s": remove_s,
+        "build_relinearized": len(built.relinearized),
+        "add_relinearized": len(added.relinearized),
+        "remove_relinearized": len(removed.relinearized),
+        "add_rounds": added.rounds,
+        "add_timings_ms": added.timings_ms,
+        "remove_timings_ms": removed.timings_ms,
+        "peak_mib": peak_mib,
+        "state_mib": state_mib,
+    }
+    if n + 1 <= batch_max:
+        sessions = [w.session for w in walks]
+        names = [w.walk_id for w in walks]
+        started = time.process_time()
+        before = optimize_sessions(sessions[:n], params, names=names[:n])
+        out["batch_build_s"] = time.process_time() - started
+        started = time.process_time()
+        after = optimize_sessions(sessions, params, names=names, initial=before)
+        out["batch_add_s"] = time.process_time() - started
+        out["build_diff_mm"] = differences_mm(built, before)
+        out["add_diff_mm"] = differences_mm(added, after)
+        out["remove_diff_mm"] = differences_mm(removed, before)
+        out["batch_features"] = batch_features(after)
+    return out
+
+
+def differences_mm(served: IncrementalMap, joint: JointMap) -> list[float]:
+    """The largest tag and pose position distances between the served map and the batch map,
+    mm (both in the first walk's world)."""
+    tags = joint.map.tag_poses()
+    mine = served.tag_poses()
+    tag_mm = max(1e3 * float(np.linalg.norm(tags[t][:3, 3] - mine[t][:3, 3])) for t in tags)
+    pose_mm = max(
+        1e3
+        * float(
+            np.max(
+                np.linalg.norm(
+                    joint.map.world_T_phone[part.pose_rows, :3, 3]
+                    - served.walk_poses(part.dataset)[:, :3, 3],
+                    axis=1,
+                )
+            )
+        )
+        for part in joint.parts
+    )
+    return [tag_mm, pose_mm]
+
+
+def batch_features(joint: JointMap) -> str:
+    """What the batch build did that the summaries do not: down-weighting, rescaling, split tags."""
+    notes = []
+    weighted = [p for p in joint.parts if p.disagreement_factor > 1.0]
+    if weighted:
+        notes.append(
+            "weights " + ", ".join(f"{p.dataset} ×{p.disagreement_factor:.3g}" for p in weighted)
+        )
+    scaled = [p for p in joint.parts if p.alignment.odometry_scale != 1.0]
+    if scaled:
+        notes.append(
+            "scales " + ", ".join(f"{p.dataset} ×{p.alignment.odometry_scale:.4f}" for p in scaled)
+        )
+    split = [p for p in joint.parts if p.local_tags]
+    if split:
+        notes.append("split " + ", ".join(f"{p.dataset} {list(p.local_tags)}" for p in split))
+    return "; ".join(notes) or "none"
+
+
+def size_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
+    lines = [
+        ["N", "tags", "single walk s", "first build s", "add s (relin.)", "remove s (relin.)",
+         "peak MiB", "state MiB", "batch build s", "batch add s", "build Δ tag/pose",
+         "add Δ tag/pose", "remove Δ tag/pose", "batch did"],
+    ]  # fmt: skip
+    for r in rows:
+
+        def diff(key: str, r: dict[str, Any] = r) -> str:
+            return f"{r[key][0]:.2f} / {r[key][1]:.1f}" if key in r else "—"
+
+        lines.append(
+            [
+                str(r["n"]),
+                str(r["tags"]),
+                f"{r['single_s']:.2f}",
+                f"{r['build_s']:.1f}",
+                f"{r['add_s']:.2f} ({r['add_relinearized']})",
+                f"{r['remove_s']:.2f} ({r['remove_relinearized']})",
+                f"{r['peak_mib']:.0f}",
+                f"{r['state_mib']:.1f}",
+                f"{r['batch_build_s']:.1f}" if "batch_build_s" in r else "not run",
+                f"{r['batch_add_s']:.1f}" if "batch_add_s" in r else "not run",
+                diff("build_diff_mm"),
+                diff("add_diff_mm"),
+                diff("remove_diff_mm"),
+                str(r.get("batch_features", "—")),
+            ]
+        )
+    return lines
+
+
+def real_walks() -> list[dict[str, Any]]:
+    present = [name for name in MAC_WALKS if (SESSIONS / f"{name}.json").exists()]
+    sessions: dict[str, Session] = {n: load_session(SESSIONS / f"{n}.json") for n in present}
+    return added_last([Walk(walk_id=n, session=s) for n, s in sessions.items()])
+
+
+def mixed_walks() -> list[dict[str, Any]]:
+    """Issue 25's building (as configured, 3× noisier, odometry +2%, oblique) and a fifth walk as
+    configured: the batch build down-weights and rescales there."""
+    out = []
+    for seed in MIXED_SEEDS:
+        building = simulate_building_sessions(
+            SimulationConfig(num_poses=SIMULATED_POSES, seed=seed), count=5, styles=MIXED_WALKS
+        )
+        walks = [
+            Walk(walk_id=f"seed {seed}: {style.label}", session=parse_session(s.upload))
+            for s, style in zip(building.sessions, building.styles, strict=True)
+        ]
+        walks[-1] = Walk(walk_id=f"seed {seed}: fifth", session=walks[-1].session)
+        out.extend(added_last(walks, only_last=True))
+    return out
+
+
+def added_last(walks: Sequence[Walk], *, only_last: bool = False) -> list[dict[str, Any]]:
+    """For each k ≥ 2 (only the last with ``only_last``): walks[:k] built, walks[k] added,
+    against the batch build of walks[:k + 1] with and without its down-weighting."""
+    params = SlamParams()
+    sessions = {w.walk_id: w.session for w in walks}
+    out = []
+    for last in [len(walks) - 1] if only_last else range(2, len(walks)):
+        started = time.process_time()
+        state, _ = build(walks[:last], params)
+        build_s = time.process_time() - started
+        started = time.process_time()
+        _, added = add_walk(state, walks[last], params, load=sessions.__getitem__)
+        add_s = time.process_time() - started
+        names = [w.walk_id for w in walks[: last + 1]]
+        chosen = [sessions[n] for n in names]
+        started = time.process_time()
+        batch = optimize_sessions(chosen, params, names=names)
+        batch_s = time.process_time() - started
+        plain = optimize_sessions(chosen, params, names=names, reweight=False)
+        out.append(
+            {
+                "walks": names,
+                "build_s": build_s,
+                "add_s": add_s,
+                "batch_s": batch_s,
+                "relinearized": len(added.relinearized),
+                "diff_mm": differences_mm(added, batch),
+                "diff_unweighted_mm": differences_mm(added, plain),
+                "batch_features": batch_features(batch),
+                "unweighted_features": batch_features(plain),
+            }
+        )
+    return out
+
+
+def real_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
+    lines = [
+        ["walks (last added)", "build s", "add s (relin.)", "batch s", "Δ tag/pose mm: batch",
+         "batch did", "Δ tag/pose mm: batch without down-weighting", "it did"],
+    ]  # fmt: skip
+    for r in rows:
+        lines.append(
+            [
+                " + ".join(r["walks"]),
+                f"{r['build_s']:.2f}",
+                f"{r['add_s']:.2f} ({r['relinearized']})",
+                f"{r['batch_s']:.2f}",
+                f"{r['diff_mm'][0]:.1f} / {r['diff_mm'][1]:.1f}",
+                r["batch_features"],
+                f"{r['diff_unweighted_mm'][0]:.1f} / {r['diff_unweighted_mm'][1]:.1f}",
+                r["unweighted_features"],
+            ]
+        )
+    return lines
+
+
+def isam_size(n: int) -> dict[str, Any]:
+    """gtsam's ISAM2 on the batch build's joint graph (each walk's own noise, no down-weighting):
+    N walks in from the batch build's start, walk N + 1's factors added, then taken out again
+    (its poses held by loose priors: a variable without factors is indeterminate), and a restart
+    (ISAM2 made anew from every factor at the stored optimum: what a worker without the tree in
+    memory pays). The walks' own fits (``prepare_joint``) are not counted: both designs need
+    them."""
+    import gtsam  # the bench only: the domain keeps gtsam calls in mapping/
+
+    from app.domain.mapping.joint import prepare_joint
+    from app.domain.mapping.slam import TrialGraph, values_from
+
+    params = SlamParams()
+    fixed = dataclasses.replace(params, estimate_noise=False)
+    building = simulate_building_sessions(
+        SimulationConfig(num_poses=SIMULATED_POSES, seed=7), count=n + 1
+    )
+    sessions = [parse_session(s.upload) for s in building.sessions]
+    joint = prepare_joint(sessions, params, names=[f"walk {k + 1}" for k in range(n + 1)])
+    started = time.process_time()
+    graph = TrialGraph(joint.inputs).graph(fixed)
+    graph_s = time.process_time() - started
+    values = values_from(joint.inputs, joint.start_T_keyframe, joint.start_T_tag)
+    first_new = joint.starts[-1]
+
+    def is_new(key: int) -> bool:
+        symbol = gtsam.Symbol(key)
+        return bool(symbol.chr() == ord("x") and symbol.index() >= first_new)
+
+    old, new = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+    for k in range(graph.size()):
+        factor = graph.at(k)
+        keys = list(factor.keys())
+        (new if any(is_new(key) for key in keys) else old).add(factor)
+    old_values, new_values = gtsam.Values(), gtsam.Values()
+    for key in values.keys():  # noqa: SIM118 (gtsam.Values)
+        (new_values if is_new(key) else old_values).insert(key, values.atPose3(key))
+    settings = gtsam.ISAM2Params()
+    settings.setRelinearizeThreshold(0.01)
+    settings.relinearizeSkip = 1
+    isam = gtsam.ISAM2(settings)
+    started = time.process_time()
+    isam.update(old, old_values)
+    for _ in range(5):
+        isam.update()
+    build_s = time.process_time() - started
+    started = time.process_time()
+    added = isam.update(new, new_values)
+    for _ in range(3):
+        isam.update()
+    estimate = isam.calculateEstimate()
+    add_s = time.process_time() - started
+    started = time.process_time()
+    loose = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e3)
+    for key in new_values.keys():  # noqa: SIM118 (gtsam.Values)
+        loose.add(gtsam.PriorFactorPose3(key, estimate.atPose3(key), noise))
+    isam.update(loose, gtsam.Values(), list(added.getNewFactorsIndices()))
+    for _ in range(3):
+        isam.update()
+    isam.calculateEstimate()
+    remove_s = time.process_time() - started
+    started = time.process_time()
+    gtsam.ISAM2(settings).update(graph, estimate)
+    restart_s = time.process_time() - started
+    return {
+        "n": n,
+        "graph_s": graph_s,
+        "build_s": build_s,
+        "add_s": add_s,
+        "remove_s": remove_s,
+        "restart_s": restart_s,
+        "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def isam_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
+    lines = [
+        ["N", "graph of N + 1 s", "first build s", "add s", "remove s", "restart s", "peak MiB"]
+    ]
+    for r in rows:
+        lines.append(
+            [
+                str(r["n"]),
+                f"{r['graph_s']:.2f}",
+                f"{r['build_s']:.2f}",
+                f"{r['add_s']:.2f}",
+                f"{r['remove_s']:.2f}",
+                f"{r['restart_s']:.2f}",
+                f"{r['peak_mib']:.0f}",
+            ]
+        )
+    return lines
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
