@@ -31,7 +31,13 @@ from app.admin.auth import CsrfRefused, LoginRequired
 from app.admin.templating import add_security_headers, render
 from app.services.errors import ServiceError, status_and_code
 from app.storage.db import database_fault, first_line
-from app.web.errors import FAULT_ANSWERS, field_path
+from app.web.errors import (
+    CODE_OF_STATUS,
+    FAULT_ANSWERS,
+    error_response,
+    field_path,
+    validation_error_response,
+)
 from app.web.route_class import SessionEndingRoute
 
 logger = logging.getLogger(__name__)
@@ -61,7 +67,11 @@ class AdminRoute(SessionEndingRoute):
             except LoginRequired as exc:
                 response = RedirectResponse(exc.login_url, status_code=303)
             except Exception as exc:  # every error is a page; unexpected ones are logged
-                response = error_page(request, exc)
+                response = (
+                    await error_json(request, exc)
+                    if _sent_json(request)
+                    else error_page(request, exc)
+                )
             add_security_headers(response)
             return response
 
@@ -90,6 +100,24 @@ def error_page(request: Request, exc: Exception) -> Response:
             if name.lower() != "www-authenticate":
                 response.headers[name] = value
     return response
+
+
+def _sent_json(request: Request) -> bool:
+    """Whether the request is a script's call with a JSON body (the corridor editor's): its
+    errors are answered as the API's are, in JSON, not as a page."""
+    content_type = request.headers.get("content-type", "")
+    return content_type.split(";")[0].strip().lower() == "application/json"
+
+
+async def error_json(request: Request, exc: Exception) -> Response:
+    """The API's JSON error (``app.web.errors``) for an error of a script's JSON request: a
+    malformed body is a 400 ``invalid_json`` naming it, as on ``/v1``."""
+    if isinstance(exc, RequestValidationError):
+        return await validation_error_response(request, exc)
+    status, message = _status_and_message(request, exc)
+    known = status_and_code(exc)
+    code = known[1] if known is not None else CODE_OF_STATUS.get(status, "error")
+    return error_response(status, code, message)
 
 
 def _status_and_message(request: Request, exc: Exception) -> tuple[int, str]:

@@ -61,5 +61,7 @@ def _content_length(scope: Scope) -> int | None:
     for name, value in scope.get("headers", ()):
         if name == b"content-length":
             text = value.decode("latin-1").strip()
-            return int(text) if text.isdigit() else None
+            # ASCII digits only ("²" is a digit to isdigit(), not to int()), and few enough
+            # for int(); anything else is counted as the body streams in
+            return int(text) if text.isascii() and text.isdigit() and len(text) <= 18 else None
     return None

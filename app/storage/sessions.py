@@ -54,6 +54,10 @@ GROUND_TRUTH = "ground_truth"
 MAX_MAP_NAME_LENGTH = 200
 #: Longest idempotency key, characters.
 MAX_IDEMPOTENCY_KEY_LENGTH = 200
+#: The largest id the ``session`` table's 32-bit INTEGER column holds: a larger number (or one
+#: below 1) names no session and is not sent to the database, which would refuse it (the API's
+#: rule for every id: ``app.web.deps.MAX_ID``).
+MAX_SESSION_ID = 2**31 - 1
 #: Compression level of stored uploads (6: zlib's default trade-off).
 GZIP_LEVEL = 6
 
@@ -280,18 +284,18 @@ def replay_upload(db_session: Session, session_id: int, sha256: str) -> UploadRe
         raise IdempotencyConflict(
             key, row.id, "the body differs from that upload; use a new key for a new upload"
         )
+    # the build queued for its own map: the first answer's job, while that map is there
+    own_job_id = db_session.scalar(
+        select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
+    )
     map_id = db_session.scalar(select(func.min(MapRow.id)).where(MapRow.session_id == row.id))
-    if map_id is None:  # its own map was merged into another: the map that holds it now
+    job_id = own_job_id
+    if map_id is None:  # uploaded into a map (or its map merged into one): the map holding it
         map_id = db_session.scalar(
             select(func.min(MapSession.map_id)).where(MapSession.session_id == row.id)
         )
-    job_id = db_session.scalar(
-        select(func.min(Job.id)).where(Job.session_id == row.id, Job.kind == BUILD_MAP)
-    )
-    if job_id is None and map_id is not None:  # uploaded into a map: that map's build
-        job_id = db_session.scalar(
-            select(func.max(Job.id)).where(Job.map_id == map_id, Job.kind == BUILD_MAP)
-        )
+        if map_id is not None:
+            job_id = _build_taking_in(db_session, map_id, row.id, own_job_id)
     if map_id is None or job_id is None:
         raise IdempotencyConflict(
             key, row.id, "its map has been deleted since; use a new key to upload again"
@@ -310,11 +314,42 @@ def replay_upload(db_session: Session, session_id: int, sha256: str) -> UploadRe
     )
 
 
+def _build_taking_in(
+    db_session: Session, map_id: int, session_id: int, own_job_id: int | None
+) -> int | None:
+    """The build of map ``map_id`` that took session ``session_id`` in: what the upload into
+    the map (or the merge of its own map into it) answered, so that a replay answers it again.
+
+    That change queued the session's own build (``own_job_id``), canceled it with its map, and
+    had the map's build under way in the same transaction: a new job (the first build of the
+    map after ``own_job_id`` listing the session), or the map's queued one, which absorbed it
+    (the last before ``own_job_id`` listing it; an older one cannot list it: absorbing cancels
+    the other queued builds). Later builds list it too, so neither "the newest" nor "the
+    first" would do. None if the map has no such build; then its newest build."""
+    rows = db_session.execute(
+        select(Job.id, Job.params)
+        .where(Job.map_id == map_id, Job.kind == BUILD_MAP)
+        .order_by(Job.id)
+    ).all()
+    job_ids: list[int] = [int(job_id) for job_id, _ in rows]
+    listing = [int(job_id) for job_id, params in rows if session_id in params.get(SESSION_IDS, [])]
+    if own_job_id is not None:
+        absorbed = [job_id for job_id in listing if job_id < own_job_id]
+        if absorbed:
+            return absorbed[-1]
+        listing = [job_id for job_id in listing if job_id > own_job_id]
+    if listing:
+        return listing[0]
+    return job_ids[-1] if job_ids else None
+
+
 # --------------------------------------------------------------------------- reading
 
 
 def get_session(db_session: Session, session_id: int) -> SessionInfo:
     """A stored session. Raises :class:`SessionNotFound`."""
+    if not 1 <= session_id <= MAX_SESSION_ID:
+        raise SessionNotFound(session_id)
     row = db_session.get(SessionRow, session_id)
     if row is None:
         raise SessionNotFound(session_id)

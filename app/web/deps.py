@@ -30,10 +30,10 @@ import threading
 import time
 from collections.abc import Iterator
 from datetime import timedelta
-from typing import Annotated
+from typing import Annotated, Any
 
 from anyio import to_thread
-from fastapi import Depends, Request
+from fastapi import Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.exc import SQLAlchemyError
@@ -45,7 +45,7 @@ from app.services.maps import MapState, MapStates
 from app.storage import keys, queue, sessions
 from app.storage.db import Database
 from app.storage.images import MAX_IMAGE_BYTES
-from app.storage.maps import MapInfo
+from app.storage.maps import MapInfo, MapNotFound
 from app.storage.orm import utc_now
 from app.storage.queue import JobInfo
 from app.storage.sessions import SessionInfo
@@ -54,8 +54,16 @@ from app.web.upload import RawBody, read_body, read_image_body
 
 logger = logging.getLogger(__name__)
 
-#: Ids are positive 64-bit integers; anything else names nothing (and must not reach the driver).
-MAX_ID = 2**63 - 1
+#: Ids are 1 … 2^31 - 1, the range of the columns (32-bit INTEGER on PostgreSQL; SQLite's are
+#: wider, but no id beyond it is ever made). Any other number names nothing: it gets the answer an
+#: id that does not exist gets (a 404 for a path's id, nothing found for a filter), and never
+#: reaches the driver, where PostgreSQL refuses it (issue 40).
+MAX_ID = 2**31 - 1
+#: The rule as the OpenAPI document states it for every id parameter.
+ID_RULE = (
+    f"an id, 1 to {MAX_ID}; any other number names nothing and is answered as an id that "
+    "does not exist"
+)
 #: ``last_used_at`` of a key is written at most this often per process, s.
 KEY_TOUCH_INTERVAL_S = 60.0
 
@@ -190,6 +198,52 @@ def admin_principal(principal: CurrentPrincipal) -> keys.Principal:
 AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
 
 
+# --------------------------------------------------------------------------- ids
+
+
+def is_id(value: int) -> bool:
+    """Whether ``value`` can be an id (:data:`MAX_ID`)."""
+    return 1 <= value <= MAX_ID
+
+
+def id_path(what: str) -> Any:
+    """A path parameter that is the id of ``what``, with :data:`ID_RULE` in its description."""
+    return Path(description=f"the {what}'s id: {ID_RULE} (404 not_found)")
+
+
+MapId = Annotated[int, id_path("map")]
+SessionId = Annotated[int, id_path("session")]
+JobId = Annotated[int, id_path("job")]
+KeyId = Annotated[int, id_path("API key")]
+SweepId = Annotated[int, id_path("sweep")]
+EditId = Annotated[int, id_path("corridor edit")]
+LocalizationId = Annotated[int, id_path("localization session")]
+#: ``?version=N``: a version of the map, the current one when left out.
+VersionQuery = Annotated[
+    int | None,
+    Query(
+        description=f"a version number, 1 to {MAX_ID}; the current version when left out; any "
+        "other number names nothing and is answered as a version that does not exist (404 "
+        "not_found)",
+    ),
+]
+#: A query parameter that lists only one map's: a number that is no id finds nothing, as the id
+#: of a map that does not exist would.
+MapFilter = Annotated[
+    int | None,
+    Query(
+        description=f"only this map's: {ID_RULE} (an empty list)",
+    ),
+]
+VersionNumber = Annotated[
+    int,
+    Path(
+        description=f"the version's number: 1 to {MAX_ID}; any other number names nothing and "
+        "is answered as a version that does not exist (404 not_found)"
+    ),
+]
+
+
 # --------------------------------------------------------------------------- validators
 
 
@@ -198,12 +252,12 @@ AdminPrincipal = Annotated[keys.Principal, Depends(admin_principal)]
 # (app.web.route_class says why that must not happen).
 
 
-async def valid_map_state(map_id: int, request: Request) -> MapState:
+async def valid_map_state(map_id: MapId, request: Request) -> MapState:
     """The map ``map_id`` with its current version and newest job, or 404: from this process's
     memory when it is fresh (``app.services.maps.MapStates``, on the event loop), else read on a
     thread. (The database from the app's state, not ``DbDep``: one dependency less to solve on
     the hot read path.)"""
-    if not 1 <= map_id <= MAX_ID:
+    if not is_id(map_id):
         raise not_found(f"map {map_id}")
     states: MapStates = request.app.state.map_states
     state = states.fresh(map_id)
@@ -223,9 +277,9 @@ async def valid_map(state: MapStateDep) -> MapInfo:
 MapDep = Annotated[MapInfo, Depends(valid_map)]
 
 
-def valid_session(session_id: int, db: DbDep, principal: CurrentPrincipal) -> SessionInfo:
+def valid_session(session_id: SessionId, db: DbDep, principal: CurrentPrincipal) -> SessionInfo:
     """The session ``session_id`` if the caller may see it (admin, or its uploader), or 404."""
-    if not 1 <= session_id <= MAX_ID:
+    if not is_id(session_id):
         raise not_found(f"session {session_id}")
     with db.read() as db_session:
         info = sessions.get_session(db_session, session_id)
@@ -237,10 +291,10 @@ def valid_session(session_id: int, db: DbDep, principal: CurrentPrincipal) -> Se
 SessionDep = Annotated[SessionInfo, Depends(valid_session)]
 
 
-async def valid_job(job_id: int, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
+async def valid_job(job_id: JobId, db: DbDep, principal: CurrentPrincipal) -> JobInfo:
     """The job ``job_id`` if the caller may see it (admin, or the uploader of its session),
     read on a thread (the request's one hop)."""
-    if not 1 <= job_id <= MAX_ID:
+    if not is_id(job_id):
         raise not_found(f"job {job_id}")
     return await run_in_threadpool(_visible_job, db, job_id, principal)
 
@@ -261,9 +315,17 @@ def _visible_job(db: Database, job_id: int, principal: keys.Principal) -> JobInf
 JobDep = Annotated[JobInfo, Depends(valid_job)]
 
 
+def valid_version(map_id: int, number: int) -> int:
+    """``number`` if it can be a version's number, else the 404 of a version map ``map_id``
+    does not have."""
+    if not is_id(number):
+        raise MapNotFound(map_id, number)
+    return number
+
+
 def valid_id(value: int, what: str) -> int:
     """``value`` if it can be an id, else 404 for ``what``."""
-    if not 1 <= value <= MAX_ID:
+    if not is_id(value):
         raise not_found(f"{what} {value}")
     return value
 

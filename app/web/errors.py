@@ -11,6 +11,8 @@ What becomes what::
     ApiError(status, code, detail, field)      as raised (401 also sends WWW-Authenticate: Bearer)
     ServiceError (NotFound, Conflict, …)       its class's status, its code, detail and field
     RequestValidationError                     422 validation_error, field = the parameter's path
+                                               (a body that is no JSON: 400 invalid_json, and
+                                               no body where one is needed: 422, field = body)
     UnstorableText (app.web.route_class)       422 validation_error, field = the JSON body's
                                                string that no database can hold (NUL, …)
     SessionFormatError                         422 invalid_session, field = the upload's JSON path
@@ -30,7 +32,10 @@ What becomes what::
 from __future__ import annotations
 
 import logging
+import math
+import re
 from collections.abc import Sequence
+from decimal import Decimal
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -127,9 +132,31 @@ def error_response(
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
     body = ErrorBody(
-        detail=_as_text(detail), code=code, field=None if field is None else _as_text(field)
+        detail=_shown(detail), code=code, field=None if field is None else _shown(field)
     )
     return JSONResponse(body.model_dump(), status_code=status_code, headers=headers)
+
+
+#: A run of more digits than this in an error's text is a number shown compactly (``%.6g``):
+#: 1e308 is not echoed as 309 digits. (2^64 and 2^70, 20 and 22 digits, are still shown whole.)
+MAX_DIGITS_SHOWN = 30
+_LONG_NUMBER = re.compile(rf"\d{{{MAX_DIGITS_SHOWN + 1},}}(?:\.\d+)?")
+#: The longest error text (detail or field) an answer carries, characters; the rest is cut.
+MAX_ERROR_TEXT = 2000
+
+
+def _shown(text: str) -> str:
+    """``text`` as an error answer shows it: long numbers compact, at most
+    :data:`MAX_ERROR_TEXT` characters, and UTF-8 (:func:`_as_text`)."""
+    text = _LONG_NUMBER.sub(_compact, text)
+    if len(text) > MAX_ERROR_TEXT:
+        text = text[: MAX_ERROR_TEXT - 1] + "…"
+    return _as_text(text)
+
+
+def _compact(match: re.Match[str]) -> str:
+    value = float(match.group())
+    return f"{value:.6g}" if math.isfinite(value) else f"{Decimal(match.group()):.6g}"
 
 
 def _as_text(text: str) -> str:
@@ -150,7 +177,7 @@ def install_error_handlers(app: FastAPI) -> None:
         return handler
 
     app.add_exception_handler(ServiceError, _service_error)
-    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(RequestValidationError, validation_error_response)
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     for types, status, code in STATUS_OF_ERROR:
         for error_type in types:
@@ -182,11 +209,24 @@ async def _http_exception(_request: Request, exc: Exception) -> JSONResponse:
     return error_response(exc.status_code, code, str(exc.detail), field=field, headers=headers)
 
 
-async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
+async def validation_error_response(_request: Request, exc: Exception) -> JSONResponse:
+    """The answer to a RequestValidationError (the dashboard's JSON endpoints use it too)."""
     assert isinstance(exc, RequestValidationError)
     errors = list(exc.errors())
     if not errors:
         return error_response(422, "validation_error", "invalid request")
+    first = errors[0]
+    if first.get("type") == "json_invalid":  # FastAPI's parse of the body failed
+        reason = str(first.get("ctx", {}).get("error", "malformed"))
+        at = first.get("loc", ())[1:]
+        where = f" at character {at[0]}" if at else ""
+        return error_response(
+            400, "invalid_json", f"the body is not valid JSON: {reason}{where}", field="body"
+        )
+    if first.get("type") == "missing" and tuple(first.get("loc", ())) == ("body",):
+        return error_response(
+            422, "validation_error", "the body is missing: this needs a JSON body", field="body"
+        )
     messages = []
     for error in errors:
         where = field_path(error.get("loc", ()))

@@ -80,7 +80,10 @@ class OrjsonRequest(Request):
                 # invalid JSON, a surrogate's bytes invalid UTF-8): without one, no walk.
                 suspect = b"\\u" in body
             except orjson.JSONDecodeError:
-                document = json.loads(body)  # a lone surrogate, UTF-16, NaN, …: walked
+                try:
+                    document = json.loads(body)  # a lone surrogate, UTF-16, NaN, …: walked
+                except UnicodeDecodeError as err:  # answered as any other malformed body
+                    raise json.JSONDecodeError(f"not UTF-8 text ({err.reason})", "", 0) from err
                 suspect = True
             fault = json_text_fault(document) if suspect else None
             if fault is not None:

@@ -99,10 +99,13 @@ async def read_body(request: Request, *, max_upload_bytes: int) -> RawBody:
     gzipped = is_gzip_encoding(request.headers.get("content-encoding"))
     declared = request.headers.get("content-length")
     if declared is not None:
-        if not declared.strip().isdigit():
-            raise ApiError(400, "bad_request", "Content-Length is not a number")
-        if int(declared) > max_upload_bytes:
-            raise _too_large(f"the body ({int(declared)} bytes) is", max_upload_bytes)
+        declared = declared.strip()
+        if not (declared.isascii() and declared.isdigit()):  # "²" is a digit to isdigit()
+            raise ApiError(
+                400, "bad_request", "Content-Length is not a number", field="Content-Length"
+            )
+        if len(declared) > 18 or int(declared) > max_upload_bytes:  # int() of no 5,000 digits
+            raise _too_large(f"the body ({_bytes_shown(declared)}) is", max_upload_bytes)
     # one buffer, grown in place (no list of chunks joined into a second copy)
     data = bytearray()
     async for chunk in request.stream():
@@ -215,6 +218,13 @@ class InflatedChunks:
                 return
 
 
+def _bytes_shown(declared: str) -> str:
+    """A declared Content-Length for a message: whole, or its number of digits if it is long."""
+    return (
+        f"{declared} bytes" if len(declared) <= 18 else f"a {len(declared)}-digit number of bytes"
+    )
+
+
 def _too_large(what: str, limit_bytes: int) -> ApiError:
     return ApiError(
         413, "payload_too_large", f"{what} larger than the limit of {limit_bytes} bytes"
@@ -241,8 +251,13 @@ async def read_image_body(request: Request, *, max_bytes: int) -> bytes:
             field="Content-Encoding",
         )
     declared = request.headers.get("content-length")
-    if declared is not None and declared.strip().isdigit() and int(declared) > max_bytes:
-        raise _too_large(f"the picture ({int(declared)} bytes) is", max_bytes)
+    declared = (declared or "").strip()
+    if (
+        declared.isascii()
+        and declared.isdigit()
+        and (len(declared) > 18 or int(declared) > max_bytes)
+    ):
+        raise _too_large(f"the picture ({_bytes_shown(declared)}) is", max_bytes)
     chunks: list[bytes] = []
     size = 0
     async for chunk in request.stream():

@@ -23,8 +23,11 @@ from app.web.deps import (
     AdminPrincipal,
     CurrentPrincipal,
     JobDep,
+    JobId,
+    MapFilter,
     ReadDbSessionDep,
     WriteDbSessionDep,
+    is_id,
     valid_id,
 )
 from app.web.errors import error_responses
@@ -47,13 +50,17 @@ def list_jobs(
     _admin: AdminPrincipal,
     db_session: ReadDbSessionDep,
     state: Annotated[JobState | None, Query(description="only jobs in this state")] = None,
-    map_id: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="only this map's")] = None,
+    map_id: MapFilter = None,
     limit: Limit = 50,
     offset: Offset = 0,
 ) -> JobsPublic:
-    jobs, total = queue.list_jobs(
-        db_session, state=state, map_id=map_id, limit=limit, offset=offset
-    )
+    if map_id is not None and not is_id(map_id):  # no map has it
+        jobs: list[JobInfo] = []
+        total = 0
+    else:
+        jobs, total = queue.list_jobs(
+            db_session, state=state, map_id=map_id, limit=limit, offset=offset
+        )
     return JobsPublic(
         data=[JobPublic.from_domain(job) for job in jobs], count=total, limit=limit, offset=offset
     )
@@ -79,7 +86,7 @@ async def get_job(job: JobDep, principal: CurrentPrincipal) -> Response:
     "for a job that has finished (admin).",
     responses=error_responses(401, 403, 404, 409, 422),
 )
-def cancel_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
+def cancel_job(job_id: JobId, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
     job = queue.request_cancel(db_session, valid_id(job_id, "job"))
     _note_map_change(db_session, job)
     return JobPublic.from_domain(job)
@@ -92,7 +99,7 @@ def cancel_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDe
     "a job in any other state (admin).",
     responses=error_responses(401, 403, 404, 409, 422),
 )
-def retry_job(job_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
+def retry_job(job_id: JobId, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> JobPublic:
     job = queue.retry(db_session, valid_id(job_id, "job"))
     _note_map_change(db_session, job)
     return JobPublic.from_domain(job)

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Response
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyPublic, KeysPublic
 from app.services.keys import create_checked_key
 from app.storage import keys
-from app.web.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.web.deps import AdminPrincipal, KeyId, ReadDbSessionDep, WriteDbSessionDep, valid_id
 from app.web.errors import error_responses
 from app.web.route_class import SessionEndingRoute
 
@@ -51,7 +51,7 @@ def list_keys(_admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeysPubli
     description="One key's record (never its secret).",
     responses=error_responses(401, 403, 404, 422),
 )
-def get_key(key_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeyPublic:
+def get_key(key_id: KeyId, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> KeyPublic:
     return KeyPublic.model_validate(keys.get_key(db_session, valid_id(key_id, "API key")))
 
 
@@ -62,5 +62,5 @@ def get_key(key_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -
     "a revoked key changes nothing.",
     responses=error_responses(401, 403, 404, 422),
 )
-def revoke_key(key_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> KeyPublic:
+def revoke_key(key_id: KeyId, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> KeyPublic:
     return KeyPublic.model_validate(keys.revoke_key(db_session, valid_id(key_id, "API key")))

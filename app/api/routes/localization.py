@@ -44,7 +44,14 @@ from app.storage import maps, navigation
 from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.navigation import LocalizationConflict, LocalizationInfo
-from app.web.deps import CurrentPrincipal, DbDep, ReadDbSessionDep, valid_id
+from app.web.deps import (
+    CurrentPrincipal,
+    DbDep,
+    LocalizationId,
+    MapId,
+    ReadDbSessionDep,
+    valid_id,
+)
 from app.web.errors import ApiError, error_responses
 from app.web.route_class import SessionEndingRoute
 
@@ -106,7 +113,7 @@ def _map_tags(request: Request, db: Database, version_id: int) -> dict[int, Floa
     responses=error_responses(401, 404, 409, 422),
 )
 def start(
-    map_id: int, principal: CurrentPrincipal, db: DbDep, response: Response
+    map_id: MapId, principal: CurrentPrincipal, db: DbDep, response: Response
 ) -> LocalizationPublic:
     # Committed here, in the route's own thread (not by a dependency after the answer is
     # validated on another thread): SQLite's write lock is never held while waiting for a thread.
@@ -132,7 +139,7 @@ def start(
     responses=error_responses(401, 404, 422),
 )
 def get(
-    localization_id: int, principal: CurrentPrincipal, db_session: ReadDbSessionDep
+    localization_id: LocalizationId, principal: CurrentPrincipal, db_session: ReadDbSessionDep
 ) -> LocalizationPublic:
     info = navigation.get_localization(
         db_session, valid_id(localization_id, "localization session")
@@ -163,7 +170,7 @@ def get(
     ),
 )
 async def post_update(
-    localization_id: int,
+    localization_id: LocalizationId,
     body: Annotated[LocalizationUpdate, Body()],
     principal: CurrentPrincipal,
     request: Request,

@@ -74,11 +74,16 @@ from app.web.deps import (
     AdminPrincipal,
     DbDep,
     MapDep,
+    MapId,
     MapStateDep,
     ReadDbSessionDep,
+    SessionId,
     SettingsDep,
+    VersionNumber,
+    VersionQuery,
     WriteDbSessionDep,
     valid_id,
+    valid_version,
 )
 from app.web.errors import ApiError, error_responses
 from app.web.http import (
@@ -95,10 +100,6 @@ router = APIRouter(prefix="/maps", tags=["maps"], route_class=SessionEndingRoute
 
 Limit = Annotated[int, Query(ge=1, le=200, description="page size")]
 Offset = Annotated[int, Query(ge=0, le=2**31, description="items to skip")]
-VersionQuery = Annotated[
-    int | None,
-    Query(ge=1, le=2**31, description="a version number; the current version when left out"),
-]
 
 NOT_MODIFIED: dict[int | str, dict[str, Any]] = {
     304: {"description": "Not modified: the copy with this ETag is current"}
@@ -206,8 +207,8 @@ def list_versions(info: MapDep, db_session: ReadDbSessionDep) -> VersionsPublic:
     description="One version with its tag poses and the detections it left out (and why).",
     responses=error_responses(401, 404, 422),
 )
-def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> VersionDetail:
-    version = maps.get_version(db_session, info.id, valid_id(number, f"version of map {info.id}"))
+def get_version(info: MapDep, number: VersionNumber, db_session: ReadDbSessionDep) -> VersionDetail:
+    version = maps.get_version(db_session, info.id, valid_version(info.id, number))
     return VersionDetail.with_details(version, maps.tag_poses(db_session, version.id))
 
 
@@ -226,7 +227,7 @@ def get_version(info: MapDep, number: int, db_session: ReadDbSessionDep) -> Vers
     responses=error_responses(401, 403, 404, 422),
 )
 def rebuild_map(
-    map_id: int,
+    map_id: MapId,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
     settings: SettingsDep,
@@ -277,7 +278,7 @@ def list_map_sessions(info: MapDep) -> MapSessionsPublic:
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def add_map_session(
-    map_id: int,
+    map_id: MapId,
     body: AddSessionRequest,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
@@ -302,8 +303,8 @@ def add_map_session(
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def remove_map_session(
-    map_id: int,
-    session_id: int,
+    map_id: MapId,
+    session_id: SessionId,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
     settings: SettingsDep,
@@ -312,7 +313,7 @@ def remove_map_session(
     build = remove_session_from_map(
         db_session,
         valid_id(map_id, "map"),
-        valid_id(session_id, "session"),
+        session_id,  # compared with the map's sessions: one out of range is not in the map
         max_attempts=settings.max_attempts,
     )
     return _accepted(response, build)
@@ -328,7 +329,7 @@ def remove_map_session(
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def merge_map(
-    map_id: int,
+    map_id: MapId,
     body: MergeRequest,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
@@ -381,6 +382,8 @@ async def get_app_map(
             (APP_MAP_DOCUMENT, APP_MAP_EXPORT, current_version(state).id, revision)
         )
     if document is None:
+        if version is not None:
+            valid_version(state.info.id, version)
         document = await run_in_threadpool(_app_map_document, cache, db, state.info, version)
     return document.response(if_none_match, accept_encoding)
 
@@ -431,7 +434,7 @@ def _ready_app_map(
     responses=error_responses(401, 403, 404, 422),
 )
 def update_map(
-    map_id: int, change: MapUpdate, _admin: AdminPrincipal, db_session: WriteDbSessionDep
+    map_id: MapId, change: MapUpdate, _admin: AdminPrincipal, db_session: WriteDbSessionDep
 ) -> MapSummary:
     return MapSummary.from_domain(
         rename_map(db_session, valid_id(map_id, "map"), change.display_name)
@@ -503,6 +506,8 @@ def get_plot(
     version: VersionQuery = None,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
+    if version is not None:
+        valid_version(info.id, version)
     chosen = chosen_version(db_session, info, version)
     etag = strong_etag("plot", chosen.map_id, chosen.number, chosen.content_sha256)
     if if_none_match_hits(if_none_match, etag):
@@ -522,5 +527,5 @@ def get_plot(
     response_class=Response,
     responses=error_responses(401, 403, 404, 422),
 )
-def delete_map(map_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> None:
+def delete_map(map_id: MapId, _admin: AdminPrincipal, db_session: WriteDbSessionDep) -> None:
     delete_map_and_jobs(db_session, valid_id(map_id, "map"))

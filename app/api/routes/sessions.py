@@ -27,6 +27,7 @@ from app.storage.db import Database
 from app.storage.keys import Principal
 from app.storage.sessions import MAX_IDEMPOTENCY_KEY_LENGTH, MAX_MAP_NAME_LENGTH, UploadResult
 from app.web.deps import (
+    ID_RULE,
     CurrentPrincipal,
     DbDep,
     ImageBodyDep,
@@ -35,6 +36,7 @@ from app.web.deps import (
     SettingsDep,
     UploadBodyDep,
     admin_principal,
+    is_id,
 )
 from app.web.errors import ApiError, error_responses, unauthorized
 from app.web.http import raw_upload_response
@@ -186,11 +188,9 @@ def upload_session(
     into_map: Annotated[
         int | None,
         Query(
-            ge=1,
-            le=2**31,
             description="admin: upload into this existing map (a building's map of several "
             "sessions): the session joins its sessions and the map is rebuilt; without it the "
-            "upload makes a map of its own",
+            f"upload makes a map of its own. The map's id: {ID_RULE} (404 not_found)",
         ),
     ] = None,
 ) -> SessionCreated:
@@ -229,6 +229,8 @@ def upload_session(
                 auto_tune_trials=auto_tune_trials,
             )
             if into_map is not None and not result.replayed:
+                if not is_id(into_map):  # as a map that does not exist: the upload rolled back
+                    raise maps.MapNotFound(into_map)
                 # its own map merged into the one named (404 there rolls the upload back)
                 build = merge_maps(
                     db_session, into_map, result.map_id, max_attempts=settings.max_attempts

@@ -30,9 +30,12 @@ from app.storage.sweeps import SweepInfo
 from app.web.deps import (
     AdminPrincipal,
     MapDep,
+    MapFilter,
     ReadDbSessionDep,
     SettingsDep,
+    SweepId,
     WriteDbSessionDep,
+    is_id,
     valid_id,
 )
 from app.web.errors import error_responses
@@ -103,11 +106,15 @@ def start_sweep(
 def list_sweeps(
     _admin: AdminPrincipal,
     db_session: ReadDbSessionDep,
-    map_id: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="only this map's")] = None,
+    map_id: MapFilter = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 50,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> SweepsPublic:
-    infos, total = sweeps.list_sweeps(db_session, map_id=map_id, limit=limit, offset=offset)
+    if map_id is not None and not is_id(map_id):  # no map has it
+        infos: list[SweepInfo] = []
+        total = 0
+    else:
+        infos, total = sweeps.list_sweeps(db_session, map_id=map_id, limit=limit, offset=offset)
     return SweepsPublic(
         data=[SweepPublic.from_domain(i, sweeps.summary(db_session, i), None) for i in infos],
         count=total,
@@ -116,7 +123,7 @@ def list_sweeps(
     )
 
 
-def _sweep(db_session: ReadDbSessionDep, sweep_id: int) -> SweepInfo:
+def _sweep(db_session: ReadDbSessionDep, sweep_id: SweepId) -> SweepInfo:
     return sweeps.get_sweep(db_session, valid_id(sweep_id, "sweep"))
 
 
@@ -128,7 +135,7 @@ def _sweep(db_session: ReadDbSessionDep, sweep_id: int) -> SweepInfo:
     responses=error_responses(401, 403, 404, 422),
 )
 def get_sweep(
-    sweep_id: int,
+    sweep_id: SweepId,
     _admin: AdminPrincipal,
     db_session: ReadDbSessionDep,
     runs: Annotated[bool, Query(description="include every finished trial")] = False,
@@ -146,7 +153,9 @@ def get_sweep(
     response_class=Response,
     responses={**PNG, **error_responses(401, 403, 404, 422)},
 )
-def get_heatmap(sweep_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep) -> Response:
+def get_heatmap(
+    sweep_id: SweepId, _admin: AdminPrincipal, db_session: ReadDbSessionDep
+) -> Response:
     info = _sweep(db_session, sweep_id)
     return Response(content=heatmap_content(db_session, info), media_type="image/png")
 
@@ -160,7 +169,7 @@ def get_heatmap(sweep_id: int, _admin: AdminPrincipal, db_session: ReadDbSession
     responses={**PNG, **error_responses(401, 403, 404, 409, 422, examples={409: NO_GROUND_TRUTH})},
 )
 def get_shift_vs_gt(
-    sweep_id: int, _admin: AdminPrincipal, db_session: ReadDbSessionDep
+    sweep_id: SweepId, _admin: AdminPrincipal, db_session: ReadDbSessionDep
 ) -> Response:
     info = _sweep(db_session, sweep_id)
     return Response(content=shift_vs_gt_content(db_session, info), media_type="image/png")
@@ -176,7 +185,7 @@ def get_shift_vs_gt(
     responses=error_responses(401, 403, 404, 409, 422, examples={409: NO_BEST}),
 )
 def apply_sweep(
-    sweep_id: int,
+    sweep_id: SweepId,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
     settings: SettingsDep,
@@ -197,7 +206,7 @@ def apply_sweep(
     responses=error_responses(401, 403, 404, 422),
 )
 def cancel_sweep(
-    sweep_id: int, _admin: AdminPrincipal, db_session: WriteDbSessionDep
+    sweep_id: SweepId, _admin: AdminPrincipal, db_session: WriteDbSessionDep
 ) -> SweepPublic:
     info = sweeps.cancel_sweep(db_session, valid_id(sweep_id, "sweep"))
     return SweepPublic.from_domain(info, sweeps.summary(db_session, info), None)

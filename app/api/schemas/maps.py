@@ -7,11 +7,12 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, examples
+from app.api.schemas.common import AT_EXAMPLE, LATER_EXAMPLE, SHA_EXAMPLE, BodyId, examples
 from app.api.schemas.jobs import JobBrief
 from app.services.maps import BuildQueued, image_url, map_session_uses
 from app.storage.maps import MapInfo, TagPose, VersionInfo
 from app.storage.queue import JobInfo
+from app.web.deps import ID_RULE
 
 TAG_EXAMPLE = {
     "tag_id": 3,
@@ -362,12 +363,13 @@ class RebuildRequest(BaseModel):
         "sampler trials (0: use the parameters as given); a map of one session only: for a map "
         "of several it is a 422 naming this field (tune those with a sweep)",
     )
-    session_ids: list[int] | None = Field(
+    session_ids: list[BodyId] | None = Field(
         default=None,
         min_length=1,
         max_length=1000,
         description="build from these sessions, in this order (e.g. an older version's "
-        "session_ids, to make it again); default: the map's sessions now",
+        f"session_ids, to make it again); default: the map's sessions now. Each {ID_RULE} "
+        "(422 invalid_sessions naming it)",
     )
     ground_truth: dict[str, Any] | None = Field(
         default=None,
@@ -537,7 +539,7 @@ class AddSessionRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"session_id": 18}]})
 
-    session_id: int = Field(ge=1, le=2**31, description="a session uploaded before")
+    session_id: BodyId = Field(description=f"a session uploaded before: {ID_RULE} (404 not_found)")
 
 
 class MergeRequest(BaseModel):
@@ -545,7 +547,9 @@ class MergeRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"map_id": 13}]})
 
-    map_id: int = Field(ge=1, le=2**31, description="the map to merge in; it is deleted")
+    map_id: BodyId = Field(
+        description=f"the map to merge in; it is deleted: {ID_RULE} (404 not_found)"
+    )
 
 
 class MapSessionPublic(BaseModel):
