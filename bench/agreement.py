@@ -15,6 +15,8 @@ scores precision and recall with). *Strict*: the sides of the told turns are the
 2. Simulated buildings, each walked by six walkers of different kinds (``UNSEEN_WALKERS`` and
    issue 18's walker) in the building's frame: single walks pairwise, the building maps of walks
    0–2 and 3–5 (disjoint), and walks 0–2 before and after walk 3 is added.
+
+``--nooks``: table 2 only, on buildings with hooks, alcoves and oblique visits (issue 39).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     fused_skeleton,
     walks_of_one_building,
 )
+from app.domain.evaluation.simulate_building import NookConfig, nook_walks  # noqa: E402
 from app.domain.evaluation.turn_metrics import (  # noqa: E402
     Decisions,
     decisions_agreement,
@@ -174,11 +177,17 @@ def only(sides: Sides, pairs: set[tuple[int, int]]) -> Sides:
     return {k: v for k, v in sides.items() if k in pairs}
 
 
-def simulated_table() -> str:
+def simulated_table(*, nooks: bool = False) -> str:
+    """Table 2; with ``nooks``, the buildings with hooks, alcoves and oblique visits (issue 39:
+    ``simulate_building.NookConfig()``)."""
     rows = [HEADER]
     summary: dict[str, list[float]] = {}
     for label, config, seed in BUILDINGS:
-        walks = simulated_walks(config, seed)
+        walks = (
+            nook_walks(config, seed, [w for _, w in WALKERS], NookConfig(), length_m=500.0)
+            if nooks
+            else simulated_walks(config, seed)
+        )
         all_pairs = list(itertools.permutations(walks[0].tag_ids, 2))
         rng = np.random.default_rng(seed)
         chosen = rng.choice(
@@ -239,7 +248,12 @@ def simulated_table() -> str:
     return f"{table}\n\n{means}\nwalkers: {', '.join(name for name, _ in WALKERS)}"
 
 
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else list(argv)
+    if "--nooks" in args:
+        print("2c. agreement of simulated maps, buildings with hooks, alcoves, oblique visits")
+        print(simulated_table(nooks=True))
+        return 0
     print("1. agreement of real maps of floor 2 of the mac building (no reference)")
     print(real_table())
     print("\n2. agreement of simulated maps of one building by different walkers")

@@ -12,6 +12,13 @@
 2b. The same on simulated building maps: ``bench.agreement``'s four buildings, each walked by its
    six walkers, the map of walks 1–3 and that of walks 4–6 (fused skeletons), against the
    corridors any of their walks went along.
+2c. (issue 39) Hooks, alcoves and oblique visits: ``UNSEEN_BUILDING`` (one and two floors,
+   seeds 0–3) with ``simulate_building.NookConfig()`` (corridor ends hooking round a corner to
+   their last tag, tags in alcoves 2–4 m off the corridor, walks that veer obliquely to a tag and
+   back), walked by the six walkers of ``bench.agreement``: single walks, and building maps of
+   walks 1–3 and 4–6, against the corridors their walks went along; the same buildings without
+   them (``NO_NOOKS``) beside. ``--nooks`` prints only this table; ``--before`` builds the
+   skeletons as before issue 39 (no tag spurs, oblique visits not straightened).
 3. Skeleton build time (CPU, best of N) and size: the real sessions (optimized with default
    parameters), simulated two-floor walks of 10,000 and 100,000 poses (true trajectory), and a
    building map fused from 20 simulated walks.
@@ -44,6 +51,7 @@ from app.cli.tables import render_markdown_table  # noqa: E402
 from app.domain.evaluation.simulate import (  # noqa: E402
     UNSEEN_BUILDING,
     UNSEEN_WALKERS,
+    SimulatedWalk,
     SimulationConfig,
     WalkerConfig,
     build_building,
@@ -52,15 +60,25 @@ from app.domain.evaluation.simulate import (  # noqa: E402
     simulate_session,
     simulate_walk,
 )
-from app.domain.evaluation.turn_metrics import score_tag_routes  # noqa: E402
+from app.domain.evaluation.simulate_building import (  # noqa: E402
+    NO_NOOKS,
+    NookConfig,
+    nook_walks,
+)
+from app.domain.evaluation.turn_metrics import RouteScore, score_tag_routes  # noqa: E402
 from app.domain.mapping.params import SlamParams  # noqa: E402
 from app.domain.mapping.slam import optimize_session  # noqa: E402
 from app.domain.navigation.instructions import plan_guided_route  # noqa: E402
 from app.domain.navigation.path_graph import JUNCTION, PathGraph  # noqa: E402
 from app.domain.navigation.routing import PositionEnd, TagEnd  # noqa: E402
-from app.domain.navigation.skeleton import build_skeleton, build_skeleton_from_arrays  # noqa: E402
+from app.domain.navigation.skeleton import (  # noqa: E402
+    DEFAULT_SKELETON_PARAMS,
+    SkeletonParams,
+    build_skeleton,
+    build_skeleton_from_arrays,
+)
 from app.domain.upload.session import load_session  # noqa: E402
-from bench.agreement import BUILDINGS, simulated_walks  # noqa: E402
+from bench.agreement import BUILDINGS, WALKERS, simulated_walks  # noqa: E402
 from bench.navigation_quality import quality_table  # noqa: E402
 
 SESSIONS = REPO / "data" / "sessions"
@@ -171,6 +189,112 @@ def building_map_table() -> str:
                     f"{score.length_ratio_p90:.2f}",
                 ]
             )
+    return render_markdown_table(rows, justify="right")
+
+
+#: The skeleton before issue 39: no tag spurs, oblique visits to tags not straightened.
+BEFORE_ISSUE_39 = dataclasses.replace(
+    DEFAULT_SKELETON_PARAMS, spur_min_m=0.0, straighten_tag_visits=False
+)
+#: Buildings of table 2c: label → config.
+NOOK_BUILDINGS = {
+    "3.2 m, one floor": UNSEEN_BUILDING,
+    "3.2 m, two floors": dataclasses.replace(UNSEEN_BUILDING, two_floors=True),
+}
+#: Seeds of table 2c (0–1 chose issue 39's parameters; 2–3 were held out).
+NOOK_SEEDS = (0, 1, 2, 3)
+
+
+def walk_skeleton(walk: SimulatedWalk, params: SkeletonParams) -> PathGraph:
+    """The skeleton of one simulated walk, with the tags it saw."""
+    ids, positions = walk.seen_tags()
+    return build_skeleton_from_arrays(
+        walk.positions_m,
+        tag_ids=ids,
+        tag_positions_m=positions,
+        tag_normals=walk.tag_normals(ids),
+        params=params,
+    )
+
+
+def building_skeleton(walks: list[SimulatedWalk], params: SkeletonParams) -> PathGraph:
+    """``simulate.fused_skeleton`` with ``params``: the building map of ``walks``."""
+    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
+    seen: dict[int, np.ndarray] = {}
+    for w in walks:
+        ids, positions = w.seen_tags()
+        seen.update(zip(ids, positions, strict=True))
+    tag_ids = sorted(seen)
+    return build_skeleton_from_arrays(
+        np.concatenate([w.positions_m for w in walks]),
+        walk_starts=starts,
+        tag_ids=tag_ids,
+        tag_positions_m=np.array([seen[t] for t in tag_ids]).reshape(-1, 3),
+        tag_normals=walks[0].tag_normals(tag_ids),
+        params=params,
+    )
+
+
+def sampled_pairs(ids: list[int], count: int, seed: int) -> list[tuple[int, int]]:
+    """``count`` ordered pairs of ``ids`` drawn with ``seed`` (all of them if fewer)."""
+    pairs = list(itertools.permutations(ids, 2))
+    chosen = np.random.default_rng(seed).choice(
+        len(pairs), size=min(count, len(pairs)), replace=False
+    )
+    return [pairs[i] for i in chosen]
+
+
+def nook_scores(
+    config: SimulationConfig, seed: int, nooks: NookConfig, params: SkeletonParams
+) -> tuple[list[RouteScore], list[RouteScore]]:
+    """(each of the six walkers' single-walk scores, the building maps of walks 1–3 and 4–6)."""
+    walks = nook_walks(config, seed, [w for _, w in WALKERS], nooks)
+    singles = [
+        score_tag_routes(
+            walk_skeleton(w, params),
+            corridor_graph(w),
+            sampled_pairs(list(w.seen_tags()[0]), SIMULATED_PAIRS, seed),
+            plan=plan_guided_route,
+        )
+        for w in walks
+    ]
+    maps = []
+    for part in (walks[:3], walks[3:]):
+        ids = sorted({t for w in part for t in w.seen_tags()[0]})
+        maps.append(
+            score_tag_routes(
+                building_skeleton(part, params),
+                corridor_graph(part),
+                sampled_pairs(ids, BUILDING_MAP_PAIRS, seed),
+                plan=plan_guided_route,
+            )
+        )
+    return singles, maps
+
+
+def nook_table(params: SkeletonParams = DEFAULT_SKELETON_PARAMS) -> str:
+    """Table 2c: per building and seed, with and without hooks, alcoves and oblique visits."""
+    rows = [["building", "seed", "nooks", "single walks: precision mean / min",
+             "recall mean / min", "building maps 1–3 / 4–6: precision", "recall",
+             "turn-around"]]  # fmt: skip
+    for label, config in NOOK_BUILDINGS.items():
+        for seed in NOOK_SEEDS:
+            for name, nooks in (("none", NO_NOOKS), ("hooks, alcoves, visits", NookConfig())):
+                singles, maps = nook_scores(config, seed, nooks, params)
+                rows.append(
+                    [
+                        label,
+                        str(seed),
+                        name,
+                        f"{statistics.fmean(s.precision for s in singles):.0%} / "
+                        f"{min(s.precision for s in singles):.0%}",
+                        f"{statistics.fmean(s.recall for s in singles):.0%} / "
+                        f"{min(s.recall for s in singles):.0%}",
+                        " / ".join(f"{m.precision:.0%}" for m in maps),
+                        " / ".join(f"{m.recall:.0%}" for m in maps),
+                        f"{max(s.turn_around_share for s in [*singles, *maps]):.0%}",
+                    ]
+                )
     return render_markdown_table(rows, justify="right")
 
 
@@ -296,13 +420,21 @@ def route_table(graph: PathGraph, queries: int = 2000) -> str:
     return render_markdown_table(rows, justify="right")
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    params = BEFORE_ISSUE_39 if "--before" in args else DEFAULT_SKELETON_PARAMS
+    if "--nooks" in args:
+        print("2c. hooks, alcoves and oblique visits (issue 39), simulated")
+        print(nook_table(params))
+        return 0
     print("1. turn-by-turn on floor 2 of the mac building (single walks and building maps)")
     print(quality_table())
     print("\n2. turn-by-turn on simulated walkers (fused skeleton of each walk)")
     print(simulation_table())
     print("\n2b. turn-by-turn on simulated building maps (walks 1–3 and 4–6 of six walkers, fused)")
     print(building_map_table())
+    print("\n2c. hooks, alcoves and oblique visits (issue 39), simulated")
+    print(nook_table(params))
     builds, floor_2 = build_table()
     print("\n3. skeleton build time (CPU, best of 5 / 1 / 3) and size")
     print(builds)

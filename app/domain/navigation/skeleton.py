@@ -83,6 +83,7 @@ from app.domain.navigation.tag_walls import (
     away_from_tag_walls,
     between_facing_walls,
     facing_walls,
+    without_tag_visits,
 )
 
 IntArray = npt.NDArray[np.int64]
@@ -119,6 +120,15 @@ class SkeletonParams:
     facing_max_along_m          … when they are at most this far apart along the walls, m.
     facing_taper_m              … and the positions up to this far beyond the two tags less and
                                 less, m.
+    straighten_tag_visits       a walk's oblique visit to a tag (off its line to the tag's wall
+                                and back, up to 5 m either side) is replaced by its line
+                                (``tag_walls.without_tag_visits``; issue 39).
+    spur_min_m                  a tag whose nearest walked position (within ``spur_reach_m``
+                                of it) is at least this far from the corridors gets a *spur*:
+                                the way the walk went from the corridors to it, as a short
+                                branch (an alcove, a corridor's end hooking round a corner to
+                                its last tag; issue 39). 0: never, m.
+    spur_reach_m                … a walked position this near the tag (horizontally) reached it, m.
     stairs_min_rise_per_run     a floor change reaches out from the floors' bands over the steps
                                 that still climb at least this steeply (rise over run), so it
                                 starts where the stairs start.
@@ -140,6 +150,9 @@ class SkeletonParams:
     facing_max_apart_m: float = 5.0
     facing_max_along_m: float = 8.0
     facing_taper_m: float = 2.0
+    straighten_tag_visits: bool = True
+    spur_min_m: float = 2.0
+    spur_reach_m: float = 1.5
     stairs_min_rise_per_run: float = 0.25
     elevator_max_horizontal_m: float = 1.5
     elevator_min_rise_per_run: float = 2.0
@@ -214,6 +227,9 @@ def build_skeleton_from_arrays(
         return _skeleton(world_p_phone, walk_starts, anchors, params)
     world_n_tag = points_array(tag_normals, len(tag_ids), "tag_normals")
     clearance = {"clearance_m": params.tag_clearance_m, "reach_m": params.tag_reach_m}
+    if params.straighten_tag_visits:
+        bounds = _walk_bounds(walk_starts, world_p_phone.shape[0])
+        world_p_phone = without_tag_visits(world_p_phone, bounds, world_p_tag, world_n_tag)
     off_walls = away_from_tag_walls(world_p_phone, world_p_tag, world_n_tag, **clearance)
     walls = facing_walls(
         world_p_tag,
@@ -270,6 +286,8 @@ def _skeleton(
             starts = ends = p_xz[lone[:1]]
         if starts.shape[0]:
             _add_floor(G, starts, ends, floor, float(levels_m[floor]), params)
+    if params.spur_min_m > 0 and len(tag_ids):
+        _add_tag_spurs(G, world_p_phone, pose_floor, bounds, world_p_tag, levels_m, params)
     if corridors_only:
         _mark_junctions(G)
         return PathGraph(graph=G, floor_levels_m=tuple(float(v) for v in levels_m))
@@ -769,6 +787,87 @@ def _add_walk_edge(G: nx.Graph[int], a: int, b: int, floor: int, kind: str = WAL
 def _kept_indices(points: FloatArray, tolerance_m: float) -> list[int]:
     """:func:`douglas_peucker`'s kept points as their indices."""
     return [int(i) for i in np.flatnonzero(douglas_peucker(points, tolerance_m))]
+
+
+# --------------------------------------------------------------------------- tag spurs
+
+
+#: A spur starts where the walk, going back from the tag, was last this near the corridors, m.
+SPUR_JOIN_M = 0.5
+#: … looking back at most this far along the walk, m.
+SPUR_MAX_M = 15.0
+
+
+def _add_tag_spurs(
+    G: nx.Graph[int],
+    world_p_phone: FloatArray,
+    pose_floor: IntArray,
+    bounds: list[tuple[int, int]],
+    world_p_tag: FloatArray,
+    levels_m: FloatArray,
+    params: SkeletonParams,
+) -> None:
+    """Add a spur to each tag the walks went to off the corridors (issue 39): where a walked
+    position within ``params.spur_reach_m`` of the tag lies ``params.spur_min_m`` or more from
+    every walk edge of its floor, the way that walk went to it (from where it last was within
+    ``SPUR_JOIN_M`` of the corridors, at most ``SPUR_MAX_M`` back), simplified as the branches
+    are, joins the corridors there. The band's thinning drops such a short branch (a stub, or a
+    hook merged with its corridor into one blob), so the route to an alcove's tag used to end on
+    the corridor beside it, its turn unsaid. A step to a tag on a corridor's wall stays within
+    the corridor (less than ``spur_min_m`` off its middle) and makes none."""
+    if world_p_tag.shape[0] == 0:
+        return
+    walk_of = np.full(world_p_phone.shape[0], -1, dtype=np.int64)
+    for k, (first, end) in enumerate(bounds):
+        walk_of[first:end] = k
+    tag_floor = assign_floors(world_p_tag[:, 1], levels_m)
+    xz = world_p_phone[:, [0, 2]]
+    for t in range(world_p_tag.shape[0]):
+        floor = int(tag_floor[t])
+        on_floor = np.flatnonzero(pose_floor == floor)
+        if on_floor.size == 0:
+            continue
+        to_tag_m = np.hypot(*(xz[on_floor] - world_p_tag[t, [0, 2]]).T)
+        near = on_floor[to_tag_m <= params.spur_reach_m]
+        if near.size == 0:
+            continue
+        edges = _walk_edges(G, floor, set())
+        if not edges:
+            continue
+        a = np.array([G.nodes[u]["position_m"] for u, _ in edges], dtype=np.float64)[:, [0, 2]]
+        b = np.array([G.nodes[v]["position_m"] for _, v in edges], dtype=np.float64)[:, [0, 2]]
+        off_m = _distance_to_segments(xz[near], a, b)
+        if float(off_m.max()) < params.spur_min_m:
+            continue
+        k = int(near[int(np.argmax(off_m))])  # the deepest the walks went
+        # back along k's walk, on its floor, to where it was last near the corridors
+        first = bounds[int(walk_of[k])][0]
+        step_m = np.hypot(*np.diff(xz[first : k + 1], axis=0).T)
+        back_m = np.concatenate([np.cumsum(step_m[::-1])[::-1], [0.0]])
+        rows = np.arange(first, k + 1)[back_m <= SPUR_MAX_M]
+        rows = rows[pose_floor[rows] == floor]
+        joined = rows[_distance_to_segments(xz[rows], a, b) <= SPUR_JOIN_M]
+        if joined.size == 0:
+            continue
+        i = int(joined.max())
+        if np.any(pose_floor[i : k + 1] != floor):
+            continue
+        path = xz[i : k + 1]
+        kept = _kept_indices(path, params.straight_tolerance_m)
+        start = _split_nearest(G, world_p_phone[i], floor)
+        if start is None:
+            continue
+        chain = [start] + [_new_node(G, path[j], floor, float(levels_m[floor])) for j in kept[1:]]
+        for u, v in itertools.pairwise(chain):
+            _add_walk_edge(G, u, v, floor)
+
+
+def _distance_to_segments(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """(N,) the distance of each point (N, 2) to the nearest of the segments a → b (E, 2), m."""
+    ab = b - a
+    ap = p[:, None, :] - a[None, :, :]
+    t = np.clip((ap * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-12), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(ap - t[..., None] * ab, axis=2).min(axis=1))
 
 
 # --------------------------------------------------------------------------- stairs, anchors

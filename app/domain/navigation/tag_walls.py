@@ -218,3 +218,100 @@ def away_from_tag_walls(
         if near.any():
             out[np.ix_(rows[near], [0, 2])] += (clearance_m - out_m[near])[:, None] * normal
     return out
+
+
+#: A visit to a tag leaves and rejoins the walk's line at most this far along the walk from the
+#: point nearest the tag, m.
+VISIT_MAX_REACH_M = 5.0
+#: … and the way it would have gone (from where it left to where it rejoined) runs at least this
+#: far along the tag's wall (a step in and back, or a dead end, goes nowhere along it), m.
+VISIT_MIN_ALONG_M = 2.0
+#: … within this of parallel to the wall, degrees.
+VISIT_MAX_ANGLE_DEG = 20.0
+#: … and the visit goes at most this much nearer the wall than that way (deeper is an alcove), m.
+VISIT_MAX_DEPTH_M = 2.5
+#: … and reaches within this of the wall (it went to the tag), m.
+VISIT_NEAR_WALL_M = 1.2
+#: … and comes back to its line: where it left and where it rejoined are within this of the same
+#: distance from the wall (a walk from wall to wall, to tags on both, is no visit), m.
+VISIT_SAME_LINE_M = 0.75
+
+
+def without_tag_visits(
+    world_p_phone: FloatArray,
+    bounds: list[tuple[int, int]],
+    world_p_tag: FloatArray,
+    world_n_tag: FloatArray,
+) -> FloatArray:
+    """``world_p_phone`` (N, 3) with every *oblique visit* to a tag straightened (issue 39): a
+    stretch of one walk (``bounds``: (first row, end row) of each) that leaves its line, goes
+    within ``VISIT_NEAR_WALL_M`` of a tag's wall in front of the tag and comes back to its line,
+    each within ``VISIT_MAX_REACH_M`` along the walk, is replaced by the straight way from where
+    it left to where it rejoined, when that way runs along the wall (at least
+    ``VISIT_MIN_ALONG_M``, within ``VISIT_MAX_ANGLE_DEG`` of parallel), the two ends are as far
+    from the wall (within ``VISIT_SAME_LINE_M``: it came back to its line) and the visit went
+    at most ``VISIT_MAX_DEPTH_M`` nearer the wall than them. A walker who veers to a tag 3 m
+    ahead and drifts back to the corridor's line drew a bend there, told as a turn (a 19° bend
+    on real floor 2 of the mac building). Where it left and rejoined: going away from the point
+    nearest the tag, the last position before the walk stops getting farther from the wall. A
+    step straight in and back, and a walk into an alcove and back, rejoin where they left, and
+    stay."""
+    out = world_p_phone.copy()
+    if world_p_tag.shape[0] == 0 or out.shape[0] < 3:
+        return out
+    xz = world_p_phone[:, [0, 2]]
+    cos_max = math.cos(math.radians(VISIT_MAX_ANGLE_DEG))
+    for p_tag, n_tag in zip(world_p_tag, world_n_tag, strict=True):
+        n_xz = n_tag[[0, 2]]
+        norm = float(np.hypot(*n_xz))
+        if norm < MIN_HORIZONTAL_NORMAL:
+            continue
+        n_xz = n_xz / norm
+        wall_dir = np.array([-n_xz[1], n_xz[0]])
+        for first, end in bounds:
+            rel = xz[first:end] - p_tag[[0, 2]]
+            off_wall_m = rel @ n_xz
+            along_m = rel @ wall_dir
+            same_floor = np.abs(world_p_phone[first:end, 1] - p_tag[1]) < TAG_SAME_FLOOR_M
+            near = same_floor & (off_wall_m > -BEHIND_WALL_M) & (off_wall_m < VISIT_NEAR_WALL_M)
+            near &= np.abs(along_m) < VISIT_NEAR_WALL_M
+            step_m = np.hypot(*np.diff(xz[first:end], axis=0).T)
+            arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
+            done_to = -1
+            for k in np.flatnonzero(near).tolist():
+                if k <= done_to:
+                    continue
+                i = _rejoined(off_wall_m, arc_m, same_floor, k, -1)
+                j = _rejoined(off_wall_m, arc_m, same_floor, k, +1)
+                done_to = j
+                way = xz[first + j] - xz[first + i]
+                way_m = float(np.hypot(*way))
+                if way_m < VISIT_MIN_ALONG_M or abs(float(way @ wall_dir)) < cos_max * way_m:
+                    continue
+                depth_m = min(off_wall_m[i], off_wall_m[j]) - float(off_wall_m[i : j + 1].min())
+                if (
+                    depth_m > VISIT_MAX_DEPTH_M
+                    or abs(off_wall_m[i] - off_wall_m[j]) > VISIT_SAME_LINE_M
+                ):
+                    continue
+                t = (arc_m[i : j + 1] - arc_m[i]) / max(arc_m[j] - arc_m[i], 1e-12)
+                out[first + i : first + j + 1, [0, 2]] = xz[first + i] + t[:, None] * way
+    return out
+
+
+def _rejoined(
+    off_wall_m: FloatArray, arc_m: FloatArray, same_floor: BoolArray, k: int, step: int
+) -> int:
+    """From row k, going ``step`` (±1) along the walk, the last row before the walk stops
+    getting farther from the wall (``off_wall_m``), at most ``VISIT_MAX_REACH_M`` along it and
+    on the tag's floor."""
+    at = k
+    while True:
+        nxt = at + step
+        if nxt < 0 or nxt >= off_wall_m.shape[0] or not same_floor[nxt]:
+            return at
+        if abs(arc_m[nxt] - arc_m[k]) > VISIT_MAX_REACH_M:
+            return at
+        if off_wall_m[nxt] < off_wall_m[at] + 0.01:  # no longer moving away from the wall
+            return at
+        at = nxt
