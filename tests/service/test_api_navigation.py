@@ -139,6 +139,85 @@ def test_route_faces_the_heading_and_words_the_style(nav):
         assert refused.status_code == 422, refused.text
 
 
+def test_route_with_a_stride_and_its_text_form(nav):
+    """Issue 39: steps counted in the walker's stride, each turn classed by its angle alone and
+    given as a clock hour, and the route's text form, in JSON and as ``text/plain``."""
+    api, map_id = nav
+    question = {"from": {"tag": 300}, "to": {"poi": "Room 209"}, "stride_m": 0.5}
+    response = route(api, map_id, question)
+    assert response.status_code == 200, response.text
+    assert response.headers["vary"] == "Accept"
+    body = response.json()
+    assert body["stride_m"] == 0.5
+    steps = body["steps"]
+    walked = [s for s in steps if s["kind"] == "go"]
+    assert walked
+    for step in walked:
+        assert step["steps_count"] == max(1, round(step["distance_m"] / 0.5))
+        metres = max(1, round(step["distance_m"]))
+        assert step["text"].startswith(f"Go straight {metres} metre")
+        assert f"({step['steps_count']} step" in step["text"]
+    turns = [s for s in steps if s["kind"] in ("face", "announce", "turn")]
+    for step in turns:
+        size = abs(step["turn_deg"])
+        want = (
+            "around" if size >= 150 else "sharp" if size >= 135 else "turn" if size >= 45
+            else "bear" if size >= 20 else "straight"
+        )  # fmt: skip
+        assert step["turn"] == want
+        assert 1 <= step["clock"] <= 12
+        assert f"to {step['clock']} o'clock" in step["text"]
+    assert steps[-1]["landmark"] == "Room 209"
+    assert steps[-1]["side"] in ("ahead", "left", "right", "behind", None)
+    told = [s["text"] for s in steps if s["kind"] != "announce"]
+    assert body["text"].split("\n") == [f"{i}. {t}" for i, t in enumerate(told, start=1)]
+    assert body["text"].endswith(steps[-1]["text"])
+    # The default stride is 0.7 m.
+    default = route(api, map_id, {"from": {"tag": 300}, "to": {"poi": "Room 209"}}).json()
+    assert default["stride_m"] == 0.7
+    assert default["steps"][0]["steps_count"] == max(1, round(steps[0]["distance_m"] / 0.7))
+    # The text form alone, by content negotiation.
+    for accept in ("text/plain", "text/*", "application/json;q=0.5, text/plain"):
+        plain = api.client.post(
+            f"/v1/maps/{map_id}/routes", json=question, headers={**ADMIN, "Accept": accept}
+        )
+        assert plain.status_code == 200, (accept, plain.text)
+        assert plain.headers["content-type"] == "text/plain; charset=utf-8"
+        assert plain.text == body["text"] + "\n"
+    for accept in ("application/json", "*/*", "text/plain;q=0.5, application/*", ""):
+        answer = api.client.post(
+            f"/v1/maps/{map_id}/routes", json=question, headers={**ADMIN, "Accept": accept}
+        )
+        assert answer.status_code == 200, (accept, answer.text)
+        assert answer.headers["content-type"].startswith("application/json")
+        assert answer.json() == body
+
+
+@pytest.mark.parametrize("stride_m", [0.29, 1.51, -1, "long", None])
+def test_a_stride_out_of_range_is_refused_naming_the_field(nav, stride_m):
+    api, map_id = nav
+    response = route(api, map_id, {"from": {"tag": 300}, "to": {"tag": 311}, "stride_m": stride_m})
+    assert response.status_code == 422, response.text
+    assert response.json()["code"] == "validation_error"
+    assert response.json()["field"] == "stride_m"
+
+
+@pytest.mark.parametrize(
+    "accept", ["image/png", "text/html", "application/json;q=0, text/plain;q=0", "text/plain;q=0"]
+)
+def test_a_route_in_a_media_type_it_has_not_is_refused(nav, accept):
+    api, map_id = nav
+    response = api.client.post(
+        f"/v1/maps/{map_id}/routes",
+        json={"from": {"tag": 300}, "to": {"tag": 311}},
+        headers={**ADMIN, "Accept": accept},
+    )
+    assert response.status_code == 406, response.text
+    error = response.json()
+    assert (error["code"], error["field"]) == ("not_acceptable", "Accept")
+    assert repr(accept) in error["detail"]
+
+
 def test_route_steps_are_decisions_only(nav):
     """On the corridor skeleton of floor 2 (one gently curving corridor), a route along it has
     no turn closer than 5 m to another and none that reverses."""
@@ -629,3 +708,31 @@ def test_localization_writes_do_not_wait_for_the_disk(nav):
         assert connection.exec_driver_sql("SHOW synchronous_commit").scalar() == "on"
     with api.db.transaction() as db_session:
         assert db_session.execute(text("SHOW synchronous_commit")).scalar() == "on"
+
+
+def test_the_route_answer_is_documented_for_its_readers(database_url):
+    """The OpenAPI document names the new step fields, the stride's range, the text form and
+    the 406, with examples (issue 39)."""
+    with running_api(database_url) as api:
+        spec = api.app.openapi()
+    operation = spec["paths"]["/v1/maps/{map_id}/routes"]["post"]
+    plain = operation["responses"]["200"]["content"]["text/plain"]
+    assert plain["example"].startswith("1. Go straight 12 metres (17 steps).\n")
+    assert operation["responses"]["406"]["content"]["application/json"]["example"]["field"] == (
+        "Accept"
+    )
+    assert any(p["name"] == "Accept" for p in operation["parameters"] if p["in"] == "header")
+    schemas = spec["components"]["schemas"]
+    stride = schemas["RouteRequest"]["properties"]["stride_m"]
+    assert (stride["minimum"], stride["maximum"], stride["default"]) == (0.3, 1.5, 0.7)
+    step = schemas["StepPublic"]["properties"]
+    new = {"turn", "clock", "steps_count", "landmark", "side", "text"}
+    old = {"instruction", "kind", "position", "distance_m", "turn_deg", "floor"}
+    assert new | old <= set(step)
+    assert all(step[name].get("description") for name in new)
+    example = schemas["RoutePublic"]["examples"][0]
+    assert {"text", "stride_m"} <= set(example)
+    turn = example["steps"][1]  # (the document leaves out an example's null members)
+    assert {"turn", "clock", "landmark", "text"} <= set(turn)
+    assert example["steps"][2]["steps_count"] == 13
+    assert example["steps"][2]["side"] == "right"

@@ -9,7 +9,15 @@ refusals — recorded from the code of 2026-11-25 before the route computation w
 Every answer must stay the same: polylines, lengths and step positions within 1e-9, the rest
 equal. To record again (only when an answer is meant to change):
 
-    .venv/bin/python tests/unit/test_route_answers.py --record
+    .venv/bin/python tests/unit/test_route_answers.py --record           # graphs and answers
+    .venv/bin/python tests/unit/test_route_answers.py --record-answers   # answers, same graphs
+
+Recorded again with ``--record-answers`` on 2026-12-02 (issue 39: one rule for turns, steps for
+blind travellers): the graphs, questions, polylines, lengths, step positions, kinds, distances
+and turn angles are those of 2026-11-25; the new step fields (``turn``, ``clock``,
+``steps_count``, ``landmark``, ``side``, ``text``) were added, and 513 of the 21,176 instructions
+changed words under the one rule: a facing turn of 135–150° is now "turn sharp left/right" (was
+"turn left/right"), and a goal 20–30° off the last leg is now "on your left/right" (was "ahead").
 """
 
 from __future__ import annotations
@@ -146,6 +154,12 @@ def route_document(route: Route) -> dict[str, Any]:
                 "distance_m": s.distance_m,
                 "turn_deg": s.turn_deg,
                 "floor": s.floor,
+                "turn": s.turn,
+                "clock": s.clock,
+                "steps_count": s.steps_count,
+                "landmark": s.landmark,
+                "side": s.side,
+                "text": s.text,
             }
             for s in route.steps
         ],
@@ -258,6 +272,17 @@ def record() -> None:  # pragma: no cover (run by hand, see the module docstring
     ANSWERS.write_bytes(gzip.compress(text.encode(), mtime=0))
 
 
+def record_answers() -> None:  # pragma: no cover (run by hand, see the module docstring)
+    """Record the answers again on the recorded graphs and questions (what changed in wording
+    alone, not in the graphs the current skeleton code would build)."""
+    document = recorded()
+    for name, recorded_map in document["maps"].items():
+        pg = recorded_graph(name)
+        recorded_map["answers"] = [answer(pg, q) for q in recorded_map["questions"]]
+    text = json.dumps(document, separators=(",", ":"))
+    ANSWERS.write_bytes(gzip.compress(text.encode(), mtime=0))
+
+
 def add_an_elevator(pg: PathGraph) -> None:  # pragma: no cover (run by hand)
     """An elevator between the floor-0 and floor-1 nodes nearest each other in x–z, farthest from
     the stairs (the simulated building has stairs only)."""
@@ -282,6 +307,10 @@ def add_an_elevator(pg: PathGraph) -> None:  # pragma: no cover (run by hand)
 
 
 if __name__ == "__main__":  # pragma: no cover
-    if sys.argv[1:] != ["--record"]:
-        sys.exit("usage: python tests/unit/test_route_answers.py --record")
-    record()
+    if sys.argv[1:] == ["--record"]:
+        record()
+    elif sys.argv[1:] == ["--record-answers"]:
+        sys.path.insert(0, str(Path(__file__).parents[2]))
+        record_answers()
+    else:
+        sys.exit("usage: python tests/unit/test_route_answers.py --record | --record-answers")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
 from app.api.schemas.navigation import PoiPublic, PoisPublic, RoutePublic, RouteRequest
@@ -31,7 +31,7 @@ from app.services.version_cache import VersionCache
 from app.storage.db import Database
 from app.storage.maps import VersionInfo
 from app.web.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
-from app.web.errors import error_responses
+from app.web.errors import ApiError, ErrorBody, error_responses
 from app.web.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
 from app.web.route_class import SessionEndingRoute
 
@@ -46,6 +46,63 @@ NOT_READY = (
     "map_not_ready",
     "map 12 has no version yet: its build job 31 is running",
 )
+
+#: What a route answer can be: JSON (the default) or its text form.
+TEXT_MEDIA_TYPE = "text/plain; charset=utf-8"
+_ROUTE_MEDIA_TYPES = ("application/json", "text/plain")
+
+#: The ``Accept`` request header of a route: JSON, or ``text/plain`` for its text form.
+RouteAccept = Annotated[
+    str | None,
+    Header(
+        alias="Accept",
+        description="`application/json` (the default) or `text/plain` for the route's text form "
+        "alone; anything else is a 406",
+    ),
+]
+
+
+def route_media_type(accept: str | None) -> str:
+    """The answer's media type for an ``Accept`` header (RFC 9110 §12.5.1): of
+    ``application/json`` and ``text/plain``, the one with the higher q-value (each takes the q of
+    the most specific range that matches it; JSON on a tie); none or empty means JSON. Raises a
+    406 naming the header when neither is acceptable."""
+    if accept is None or not accept.strip():
+        return _ROUTE_MEDIA_TYPES[0]
+    quality = dict.fromkeys(_ROUTE_MEDIA_TYPES, 0.0)
+    specificity = dict.fromkeys(_ROUTE_MEDIA_TYPES, -1)
+    for item in accept.split(","):
+        media_range, *params = (part.strip() for part in item.split(";"))
+        q = 1.0
+        for param in params:
+            name, _, value = param.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        kind, _, subtype = media_range.lower().partition("/")
+        for media_type in _ROUTE_MEDIA_TYPES:
+            want_kind, want_subtype = media_type.split("/")
+            if kind == "*" and subtype == "*":
+                rank = 0
+            elif kind == want_kind and subtype == "*":
+                rank = 1
+            elif kind == want_kind and subtype == want_subtype:
+                rank = 2
+            else:
+                continue
+            if rank > specificity[media_type]:
+                specificity[media_type], quality[media_type] = rank, q
+    best = max(_ROUTE_MEDIA_TYPES, key=lambda m: quality[m])  # the first (JSON) on a tie
+    if quality[best] <= 0.0:
+        raise ApiError(
+            406,
+            "not_acceptable",
+            f"a route is application/json or text/plain, not {accept!r}",
+            field="Accept",
+        )
+    return best
 
 
 @router.get(
@@ -80,26 +137,61 @@ def list_pois(
     "steps on the map's corridor skeleton, given at decision points only (turns of 45° or more, "
     "bears at junctions, 'in 5 m' announcements). With `heading_deg` (the phone's walking "
     "direction, e.g. from a localization) the first step says which way to face; `style` "
-    "chooses units (m, ft, steps) and clock-face directions. An unknown tag, point of interest "
+    "chooses units (m, ft, steps) and clock-face directions of `instruction`. Every step also "
+    "has its structure (`turn`: the turn's class by its angle alone, `clock`, `steps_count` in "
+    "steps of `stride_m`, `landmark`, `side`) and a `text` for a screen reader; the answer's "
+    "`text` is the whole route as numbered sentences, and `Accept: text/plain` answers with it "
+    "alone. An unknown tag, point of interest "
     "or node is a 404; a goal that cannot be reached "
-    "(at all, or without what is avoided) a 409 saying why; an ambiguous name a 422.",
+    "(at all, or without what is avoided) a 409 saying why; an ambiguous name or a `stride_m` "
+    "outside 0.3–1.5 m a 422; an `Accept` that allows neither JSON nor text a 406.",
     response_model=RoutePublic,
-    responses=error_responses(
-        401,
-        404,
-        409,
-        422,
-        examples={
-            409: (
-                "unreachable",
-                "no route from tag 300 to 'Room 209' without stairs: the goal is on floor 2 and "
-                "every way there uses stairs",
-            ),
-            404: ("not_found", "no point of interest named 'Room 999' in this map"),
+    responses={
+        200: {
+            "description": "the route (JSON), or its text form (`Accept: text/plain`)",
+            "content": {
+                "text/plain": {
+                    "schema": {"type": "string"},
+                    "example": "1. Go straight 12 metres (17 steps).\n"
+                    "2. At tag 305, turn left, to 9 o'clock.\n"
+                    "3. Go straight 9 metres (13 steps) to Room 209, on your right.\n"
+                    "4. Arrive at Room 209, on your right.\n",
+                }
+            },
         },
-    ),
+        406: {
+            "model": ErrorBody,
+            "description": "Accept allows neither application/json nor text/plain",
+            "content": {
+                "application/json": {
+                    "example": {
+                        "detail": "a route is application/json or text/plain, not 'image/png'",
+                        "code": "not_acceptable",
+                        "field": "Accept",
+                    }
+                }
+            },
+        },
+        **error_responses(
+            401,
+            404,
+            409,
+            422,
+            examples={
+                409: (
+                    "unreachable",
+                    "no route from tag 300 to 'Room 209' without stairs: the goal is on floor 2 "
+                    "and every way there uses stairs",
+                ),
+                404: ("not_found", "no point of interest named 'Room 999' in this map"),
+            },
+        ),
+    },
 )
-async def plan(state: MapStateDep, body: RouteRequest, request: Request) -> Response:
+async def plan(
+    state: MapStateDep, body: RouteRequest, request: Request, accept: RouteAccept = None
+) -> Response:
+    media_type = route_media_type(accept)
     version = current_version(state)
     cache: VersionCache = request.app.state.version_cache
     revision = state.info.corridor_edits_revision
@@ -115,9 +207,14 @@ async def plan(state: MapStateDep, body: RouteRequest, request: Request) -> Resp
         heading_rad=body.heading_rad(),
         style=body.guidance_style(),
     )
-    public = RoutePublic.from_domain(route, map_id=state.info.id, map_version=version.number)
+    public = RoutePublic.from_domain(
+        route, map_id=state.info.id, map_version=version.number, stride_m=body.stride_m
+    )
+    vary = {"Vary": "Accept"}
+    if media_type == "text/plain":
+        return Response(content=public.text + "\n", media_type=TEXT_MEDIA_TYPE, headers=vary)
     answer = public.__pydantic_serializer__.to_json(public)
-    return Response(content=answer, media_type=JSON_MEDIA_TYPE)
+    return Response(content=answer, media_type=JSON_MEDIA_TYPE, headers=vary)
 
 
 def _read_path_graph(

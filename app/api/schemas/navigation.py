@@ -12,7 +12,13 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from app.domain.navigation.instructions import GuidanceStyle
+from app.domain.navigation.instructions import (
+    STEP_LENGTH_M,
+    STRIDE_MAX_M,
+    STRIDE_MIN_M,
+    GuidanceStyle,
+    route_text,
+)
 from app.domain.navigation.path_graph import Anchor
 from app.domain.navigation.routing import (
     Endpoint,
@@ -138,7 +144,10 @@ class RouteRequest(BaseModel):
         extra="forbid",
         populate_by_name=True,
         json_schema_extra={
-            "examples": [{"from": {"tag": 300}, "to": {"poi": "Room 209"}, "avoid": ["stairs"]}]
+            "examples": [
+                {"from": {"tag": 300}, "to": {"poi": "Room 209"}, "avoid": ["stairs"]},
+                {"from": {"tag": 300}, "to": {"tag": 311}, "heading_deg": 180, "stride_m": 0.65},
+            ]
         },
     )
 
@@ -156,34 +165,117 @@ class RouteRequest(BaseModel):
         ),
     )
     style: RouteStyle | None = None
+    stride_m: FiniteFloat = Field(
+        default=STEP_LENGTH_M,
+        ge=STRIDE_MIN_M,
+        le=STRIDE_MAX_M,
+        description=(
+            "the walker's step, m: distances are also given in steps of this length "
+            '(`steps_count`, the text form, and `style.units` "steps")'
+        ),
+    )
 
     def heading_rad(self) -> float | None:
         return None if self.heading_deg is None else math.radians(self.heading_deg)
 
     def guidance_style(self) -> GuidanceStyle:
-        return GuidanceStyle() if self.style is None else self.style.to_domain()
+        style = RouteStyle() if self.style is None else self.style
+        return GuidanceStyle(units=style.units, clock=style.clock, stride_m=self.stride_m)
+
+
+_GO_EXAMPLE: dict[str, Any] = {
+    "instruction": "go straight 12 m",
+    "kind": "go",
+    "position": [0.0, 0.0, 0.0],
+    "distance_m": 12.0,
+    "turn_deg": None,
+    "floor": 1,
+    "turn": None,
+    "clock": None,
+    "steps_count": 17,
+    "landmark": None,
+    "side": None,
+    "text": "Go straight 12 metres (17 steps).",
+}
+_TURN_EXAMPLE: dict[str, Any] = {
+    "instruction": "turn left",
+    "kind": "turn",
+    "position": [0.0, 0.0, -12.0],
+    "distance_m": 0.0,
+    "turn_deg": 90.0,
+    "floor": 1,
+    "turn": "turn",
+    "clock": 9,
+    "steps_count": None,
+    "landmark": "tag 305",
+    "side": None,
+    "text": "At tag 305, turn left, to 9 o'clock.",
+}
+_LAST_GO_EXAMPLE: dict[str, Any] = {
+    **_GO_EXAMPLE,
+    "instruction": "go straight 9 m to Room 209, on your right",
+    "position": [0.0, 0.0, -12.0],
+    "distance_m": 9.0,
+    "steps_count": 13,
+    "landmark": "Room 209",
+    "side": "right",
+    "text": "Go straight 9 metres (13 steps) to Room 209, on your right.",
+}
+_ARRIVE_EXAMPLE: dict[str, Any] = {
+    **_GO_EXAMPLE,
+    "instruction": "arrive at Room 209, on your right",
+    "kind": "arrive",
+    "position": [-9.0, 0.0, -12.0],
+    "distance_m": 0.0,
+    "steps_count": None,
+    "landmark": "Room 209",
+    "side": "right",
+    "text": "Arrive at Room 209, on your right.",
+}
 
 
 class StepPublic(BaseModel):
-    """One spoken instruction and where to carry it out."""
+    """One instruction and where to carry it out: ``instruction`` as the app speaks it (worded by
+    the request's ``style``), its structure (``kind``, ``distance_m``, ``turn_deg``, ``turn``,
+    ``clock``, ``steps_count``, ``landmark``, ``side``: what a program or a simulated walker
+    reads), and ``text``, the same step as a plain sentence for a screen reader (metres and
+    steps, left/right and the clock, landmarks by name). A turn's word is a function of its angle
+    alone: |turn_deg| < 20 straight, 20–45 bear, 45–135 turn, 135–150 sharp, ≥ 150 around."""
 
-    model_config = _examples(
-        {
-            "instruction": "turn left",
-            "kind": "turn",
-            "position": [4.0, 0.0, -12.0],
-            "distance_m": 0.0,
-            "turn_deg": 88.5,
-            "floor": 1,
-        }
-    )
+    model_config = _examples(_TURN_EXAMPLE, _LAST_GO_EXAMPLE)
 
-    instruction: str
+    instruction: str = Field(description="as spoken, in the request's style")
     kind: Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
     position: list[float] = Field(description="[x, y, z], m, map frame")
-    distance_m: float
-    turn_deg: float | None = Field(description="signed horizontal turn, + is left")
+    distance_m: float = Field(description="length to walk (go) or of the stairs, m; else 0")
+    turn_deg: float | None = Field(
+        description="signed horizontal turn, + is left (face, announce and turn steps)"
+    )
     floor: int = Field(description="floor number where the step starts, 1 = lowest")
+    turn: Literal["straight", "bear", "turn", "sharp", "around"] | None = Field(
+        default=None,
+        description="the class of `turn_deg` by its size alone: < 20° straight, 20–45° bear, "
+        "45–135° turn, 135–150° sharp, ≥ 150° around (face, announce and turn steps)",
+    )
+    clock: int | None = Field(
+        default=None,
+        ge=1,
+        le=12,
+        description="`turn_deg` as a clock-face hour: 12 ahead, 3 right, 6 behind, 9 left "
+        "(face, announce and turn steps)",
+    )
+    steps_count: int | None = Field(
+        default=None, description="`distance_m` in steps of the request's `stride_m` (go steps)"
+    )
+    landmark: str | None = Field(
+        default=None,
+        description='the tag or point of interest at the step ("Room 210", "tag 305"; '
+        "within 3 m, on its floor), or the goal on the last go step and the arrival",
+    )
+    side: Literal["ahead", "left", "right", "behind"] | None = Field(
+        default=None, description="where the goal is: on the last go step and the arrival"
+    )
+    text: str = Field(default="", description="the step as a sentence for a screen reader")
 
     @classmethod
     def from_domain(cls, step: Step) -> StepPublic:
@@ -194,6 +286,12 @@ class StepPublic(BaseModel):
             distance_m=step.distance_m,
             turn_deg=step.turn_deg,
             floor=step.floor + 1,
+            turn=step.turn,
+            clock=step.clock,
+            steps_count=step.steps_count,
+            landmark=step.landmark,
+            side=step.side,
+            text=step.text,
         )
 
 
@@ -207,32 +305,12 @@ class RoutePublic(BaseModel):
             "length_m": 23.4,
             "polyline": [[0.0, 0.0, 0.0], [0.0, 0.0, -12.0], [-9.0, 0.0, -12.0]],
             "floors": [1],
-            "steps": [
-                {
-                    "instruction": "go straight 12 m",
-                    "kind": "go",
-                    "position": [0.0, 0.0, 0.0],
-                    "distance_m": 12.0,
-                    "turn_deg": None,
-                    "floor": 1,
-                },
-                {
-                    "instruction": "turn left",
-                    "kind": "turn",
-                    "position": [0.0, 0.0, -12.0],
-                    "distance_m": 0.0,
-                    "turn_deg": 90.0,
-                    "floor": 1,
-                },
-                {
-                    "instruction": "arrive at Room 209",
-                    "kind": "arrive",
-                    "position": [-9.0, 0.0, -12.0],
-                    "distance_m": 0.0,
-                    "turn_deg": None,
-                    "floor": 1,
-                },
-            ],
+            "steps": [_GO_EXAMPLE, _TURN_EXAMPLE, _LAST_GO_EXAMPLE, _ARRIVE_EXAMPLE],
+            "stride_m": 0.7,
+            "text": "1. Go straight 12 metres (17 steps).\n"
+            "2. At tag 305, turn left, to 9 o'clock.\n"
+            "3. Go straight 9 metres (13 steps) to Room 209, on your right.\n"
+            "4. Arrive at Room 209, on your right.",
         }
     )
 
@@ -242,9 +320,17 @@ class RoutePublic(BaseModel):
     polyline: list[list[float]] = Field(description="[[x, y, z], …], m, map frame (y up)")
     floors: list[int] = Field(description="floor numbers crossed, in order, 1 = lowest")
     steps: list[StepPublic]
+    stride_m: float = Field(description="the step length `steps_count` and `text` count in, m")
+    text: str = Field(
+        description="the route for a screen reader: numbered plain sentences, one a line, the "
+        "steps' `text` without the announcements (also the whole answer with "
+        "`Accept: text/plain`)"
+    )
 
     @classmethod
-    def from_domain(cls, route: Route, *, map_id: int, map_version: int) -> RoutePublic:
+    def from_domain(
+        cls, route: Route, *, map_id: int, map_version: int, stride_m: float = STEP_LENGTH_M
+    ) -> RoutePublic:
         return cls(
             map_id=map_id,
             map_version=map_version,
@@ -252,6 +338,8 @@ class RoutePublic(BaseModel):
             polyline=[list(point) for point in route.polyline_m],
             floors=[floor + 1 for floor in route.floors],
             steps=[StepPublic.from_domain(step) for step in route.steps],
+            stride_m=stride_m,
+            text=route_text(route),
         )
 
 

@@ -5,6 +5,7 @@
     # ['turn right to face the way', 'go straight 23 m', 'in 5 m, turn left', 'turn left',
     #  'go straight 9 m to tag 311, on your right', 'arrive at tag 311, on your right']
     plan_guided_route(pg, …, style=GuidanceStyle(units="ft", clock=True))   # "turn to 9 o'clock"
+    route_text(route)   # "1. Go straight 23 metres (33 steps).\n2. At tag 305, turn left, to …"
 
 How instructions are chosen (angles in the horizontal x–z plane, + is left, as in routing):
 
@@ -13,12 +14,13 @@ How instructions are chosen (angles in the horizontal x–z plane, + is left, as
 2. **Decision points.** A bend's turn is the change between the directions over ``CHORD_M``
    before and after it, so a zig and its zag cancel and a curve taken in small bends adds up;
    bends closer than ``MIN_SPACING_M`` to a stronger one are the same decision, and a bend near a
-   junction is placed at the junction. A decision is announced as
-   a turn when |turn| ≥ ``TURN_MIN_DEG``; as "bear left/right" when ``BEAR_MIN_DEG`` ≤ |turn| <
-   ``TURN_MIN_DEG`` and it is at a junction (a node where three or more corridors meet); else it is
-   silent. So instructions are at least ``MIN_SPACING_M`` apart except at junctions. A decision
-   at a node an operator quieted (a corridor edit, ``app.domain.navigation.corridor_edits``) is
-   silent too.
+   junction is placed at the junction. A decision is announced when |turn| ≥ ``TURN_MIN_DEG``,
+   and when ``BEAR_MIN_DEG`` ≤ |turn| < ``TURN_MIN_DEG`` at a junction (a node where three or
+   more corridors meet); else it is silent. Its words follow one rule of its angle alone
+   (:func:`turn_class`: straight < 20°, bear 20–45°, turn 45–135°, sharp 135–150°, around
+   ≥ 150°), whatever the map. So instructions are at least ``MIN_SPACING_M`` apart except at
+   junctions. A decision at a node an operator quieted (a corridor edit,
+   ``app.domain.navigation.corridor_edits``) is silent too.
 3. **Announcements.** Before a turn, a leg long enough to keep them ``MIN_SPACING_M`` apart gets
    "in N m, turn left" ``ANNOUNCE_BEFORE_M`` before the corner.
 4. **First and last steps.** Given the phone's heading (``heading_rad``: the walking direction's
@@ -27,8 +29,13 @@ How instructions are chosen (angles in the horizontal x–z plane, + is left, as
    tag or point of interest ("on your left"), which the arrival repeats.
 5. **Stairs and elevators** say their length and the floor you arrive at, by the building's floor
    labels when given (``floor_labels``), else numbered from 1.
+6. **The conventions blind travellers use** (issue 39). Each step also gets ``turn`` (its class),
+   ``clock`` (its clock hour), ``steps_count`` (in the walker's stride), ``landmark`` (the point
+   of interest or tag within ``LANDMARK_NEAR_M``, or the goal), ``side`` (of the goal) and
+   ``text``, a plain sentence for a screen reader ("At the tag by Room 150, turn left, to 9
+   o'clock."); :func:`route_text` numbers them.
 
-Distances are rounded to whole units (m, ft or steps of ``STEP_LENGTH_M``), at least 1.
+Distances are rounded to whole units (m, ft or steps of ``GuidanceStyle.stride_m``), at least 1.
 """
 
 from __future__ import annotations
@@ -36,12 +43,14 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, TypeAlias
 
 import numpy as np
 
+from app.domain.errors import ParameterError
 from app.domain.frames import FloatArray
 from app.domain.navigation.corridor_edits import QUIET_NODES
 from app.domain.navigation.floors import assign_floors
@@ -57,8 +66,10 @@ from app.domain.navigation.routing import (
     Point3,
     PositionEnd,
     Route,
+    Side,
     Step,
     TagEnd,
+    TurnClass,
     measured_walk,
     node_lookups,
     search_pois,
@@ -77,20 +88,35 @@ CHORD_M = 4.0
 END_MARGIN_M = 2.0
 #: A bend this close to a junction (along the route, m) is at that junction.
 JUNCTION_SNAP_M = 3.0
-#: A decision turning at least this much is a turn, degrees.
+#: One rule for the words of a turn, by its angle alone (:func:`turn_class`, docs/navigation.md
+#: "Instruction wording"): |turn| below this is straight on (no facing step, a goal "ahead"),
+#: degrees.
+STRAIGHT_MAX_DEG = 20.0
+#: From ``STRAIGHT_MAX_DEG`` up to this, "bear left/right"; from this, "turn left/right",
+#: degrees.
 TURN_MIN_DEG = 45.0
-#: … at least this much, at a junction, is "bear left/right", degrees.
-BEAR_MIN_DEG = 30.0
-#: Beyond this, "turn around", degrees.
+#: From this, "turn sharp left/right", degrees.
+SHARP_MIN_DEG = 135.0
+#: From this, "turn around" (a goal "behind you"), degrees.
 TURN_AROUND_MIN_DEG = 150.0
+#: A bend of a walked stretch is a decision from this much (and spoken if it is a turn, or a bear
+#: at a junction), degrees.
+BEAR_MIN_DEG = 30.0
 #: "in N m" is said this far before a turn, m.
 ANNOUNCE_BEFORE_M = 5.0
-#: The first step says nothing about facing when the way is within this of the heading, degrees.
-FACING_OK_DEG = 20.0
+#: The first step says nothing about facing when the way is within this of the heading (straight
+#: on), degrees.
+FACING_OK_DEG = STRAIGHT_MAX_DEG
 #: A tag this far from the arrival point (horizontally, m) gets a side; nearer, it is "here".
 SIDE_MIN_M = 0.2
-#: One walking step, m (units "steps").
+#: One walking step, m (units "steps"), unless the walker gives theirs (``GuidanceStyle.stride_m``).
 STEP_LENGTH_M = 0.7
+#: The strides a walker may give, m (a child's short step to a tall adult's long one).
+STRIDE_MIN_M = 0.3
+STRIDE_MAX_M = 1.5
+#: A tag or point of interest this near a step's place (horizontally, on its floor) is the step's
+#: landmark, m: the distance within which a bend is placed at a junction (``JUNCTION_SNAP_M``).
+LANDMARK_NEAR_M = 3.0
 #: Feet per metre.
 FT_PER_M = 1 / 0.3048
 
@@ -100,10 +126,19 @@ Units = Literal["m", "ft", "steps"]
 @dataclass(frozen=True, slots=True, kw_only=True)
 class GuidanceStyle:
     """How instructions are worded: ``units`` of distances, ``clock`` for clock-face directions
-    ("turn to 9 o'clock") instead of left/right."""
+    ("turn to 9 o'clock") instead of left/right in ``Step.instruction``; ``stride_m``: the
+    walker's step, m, for distances in steps (``units="steps"``, ``Step.steps_count`` and the
+    text form). ``Step.text`` always gives metres and steps, left/right and the clock."""
 
     units: Units = "m"
     clock: bool = False
+    stride_m: float = STEP_LENGTH_M
+
+    def __post_init__(self) -> None:
+        if not STRIDE_MIN_M <= self.stride_m <= STRIDE_MAX_M:
+            raise ParameterError(
+                f"stride_m must be {STRIDE_MIN_M}-{STRIDE_MAX_M} m, not {self.stride_m}"
+            )
 
 
 DEFAULT_STYLE = GuidanceStyle()
@@ -239,12 +274,13 @@ def _guidance_steps(
             steps.append(_floor_change(xyz, floors, kind, i, j + 1, style, floor_labels))
     end = points[-1] if points else (0.0, 0.0, 0.0)
     side = _side(heading, end, goal_thing_m)
+    said = SIDE_WORDS[side] if side else ""
     if steps and steps[-1].kind == "go" and side:
         last = steps[-1]
         steps[-1] = dataclasses.replace(
-            last, instruction=f"{last.instruction} to {goal_name}, {side}"
+            last, instruction=f"{last.instruction} to {goal_name}, {said}", side=side
         )
-    arrive = f"arrive at {goal_name}" + (f", {side}" if side else "")
+    arrive = f"arrive at {goal_name}" + (f", {said}" if side else "")
     steps.append(
         Step(
             instruction=arrive,
@@ -253,9 +289,12 @@ def _guidance_steps(
             distance_m=0.0,
             turn_deg=None,
             floor=floors[-1] if floors else 0,
+            side=side,
         )
     )
-    return steps
+    return _written(
+        steps, _landmarks(pg), goal_name=goal_name, style=style, floor_labels=floor_labels
+    )
 
 
 def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[bool]]]:
@@ -382,39 +421,90 @@ def walked_distances_m(xyz: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
 
 
+def turn_class(turn_deg: float) -> TurnClass:
+    """The one rule for the word of a turn, by the size of its angle alone (degrees, either
+    side; docs/navigation.md "Instruction wording")::
+
+        |turn| <  20°        straight   (STRAIGHT_MAX_DEG: no facing step; a goal "ahead")
+        20° ≤ |turn| <  45°  bear       (TURN_MIN_DEG)
+        45° ≤ |turn| < 135°  turn       (SHARP_MIN_DEG)
+       135° ≤ |turn| < 150°  sharp      (TURN_AROUND_MIN_DEG)
+       150° ≤ |turn|         around     (a goal "behind you")
+    """
+    size = abs(turn_deg)
+    if size >= TURN_AROUND_MIN_DEG:
+        return "around"
+    if size >= SHARP_MIN_DEG:
+        return "sharp"
+    if size >= TURN_MIN_DEG:
+        return "turn"
+    if size >= STRAIGHT_MAX_DEG:
+        return "bear"
+    return "straight"
+
+
 def _announced(turn_deg: float, at_junction: bool) -> bool:
-    """Whether a decision is spoken: a turn ≥ 45°, or a bear ≥ 30° at a junction."""
-    size = abs(turn_deg)
-    return size >= TURN_MIN_DEG or (size >= BEAR_MIN_DEG and at_junction)
+    """Whether a decision (a bend of at least ``BEAR_MIN_DEG``) is spoken: a turn or stronger
+    anywhere, a bear at a junction only (along a corridor the walker follows its bends)."""
+    return turn_class(turn_deg) != "bear" or at_junction
 
 
-def turn_words(turn_deg: float, style: GuidanceStyle, *, at_junction: bool = True) -> str:
-    """ "turn left", "bear right", "turn around", or "turn to 9 o'clock"."""
-    size = abs(turn_deg)
+def turn_words(turn_deg: float, style: GuidanceStyle = DEFAULT_STYLE) -> str:
+    """ "bear left", "turn right", "turn sharp left", "turn around" (:func:`turn_class`), or with
+    ``style.clock`` "turn to 9 o'clock"."""
     if style.clock:
         return f"turn to {clock_hour(turn_deg)} o'clock"
     side = "left" if turn_deg > 0 else "right"
-    if size >= TURN_AROUND_MIN_DEG:
-        return "turn around"
-    if size >= TURN_MIN_DEG or not at_junction:
-        return f"turn {side}"
-    return f"bear {side}"
+    match turn_class(turn_deg):
+        case "around":
+            return "turn around"
+        case "sharp":
+            return f"turn sharp {side}"
+        case "turn":
+            return f"turn {side}"
+        case "bear":
+            return f"bear {side}"
+    return "go straight on"
 
 
 def clock_hour(turn_deg: float) -> int:
     """The clock-face hour of a direction ``turn_deg`` from straight ahead (+ left): 12 ahead,
-    9 left, 3 right, 6 behind."""
-    hour = round(-turn_deg / 30.0) % 12
+    9 left, 3 right, 6 behind; the nearest hour, a half hour going away from 12 (so 45° is 2 or
+    10 o'clock, a turn, and 135° is 5 or 7, sharp: each class of :func:`turn_class` from bear on
+    has its own hours: bear 1/11, turn 2–4/8–10, sharp 5/7, around 5–7)."""
+    hours = math.floor(abs(turn_deg) / 30.0 + 0.5)  # 0…6, half hours away from 12
+    hour = (-hours if turn_deg > 0 else hours) % 12
     return 12 if hour == 0 else hour
 
 
-def distance_words(distance_m: float, units: Units) -> str:
-    """ "12 m", "39 ft", "17 steps" (whole units, at least 1)."""
+def distance_words(distance_m: float, units: Units, stride_m: float = STEP_LENGTH_M) -> str:
+    """ "12 m", "39 ft", "17 steps" (whole units, at least 1; steps of ``stride_m``)."""
     if units == "ft":
         return f"{max(1, round(distance_m * FT_PER_M))} ft"
     if units == "steps":
-        return f"{max(1, round(distance_m / STEP_LENGTH_M))} steps"
+        return f"{steps_count(distance_m, stride_m)} steps"
     return f"{max(1, round(distance_m))} m"
+
+
+def steps_count(distance_m: float, stride_m: float = STEP_LENGTH_M) -> int:
+    """``distance_m`` in strides of ``stride_m``: whole steps, at least 1."""
+    return max(1, round(distance_m / stride_m))
+
+
+def spoken_distance(distance_m: float, stride_m: float = STEP_LENGTH_M) -> str:
+    """ "12 metres (17 steps)", "1 metre (1 step)": whole metres and steps, at least 1, words a
+    screen reader does not mangle (no "m" alone)."""
+    metres = max(1, round(distance_m))
+    strides = steps_count(distance_m, stride_m)
+    return (
+        f"{metres} {'metre' if metres == 1 else 'metres'} "
+        f"({strides} {'step' if strides == 1 else 'steps'})"
+    )
+
+
+def clock_words(turn_deg: float) -> str:
+    """ "turn right, to 3 o'clock", "bear left, to 11 o'clock", "turn around, to 6 o'clock"."""
+    return f"{turn_words(turn_deg)}, to {clock_hour(turn_deg)} o'clock"
 
 
 def heading_direction(heading_rad: float) -> FloatArray:
@@ -449,9 +539,9 @@ def _walk_steps(
     if heading_rad is not None and first_dir is not None:
         facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction, x y z
         bearing = signed_turn_deg(facing, _xyz(first_dir))
-        if abs(bearing) >= FACING_OK_DEG:
+        if turn_class(bearing) != "straight":
             words = turn_words(bearing, style)
-            if not style.clock and abs(bearing) < TURN_AROUND_MIN_DEG:
+            if not style.clock and turn_class(bearing) != "around":
                 words = f"{words} {round(abs(bearing))}°"
             steps.append(_step(f"{words} to face the way", points[0], "face", 0.0, bearing, floor))
     decisions = _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
@@ -462,17 +552,17 @@ def _walk_steps(
         leg_m = along_m - from_m
         steps.append(
             _step(
-                f"go straight {distance_words(leg_m, style.units)}",
+                f"go straight {distance_words(leg_m, style.units, style.stride_m)}",
                 points[from_i],
                 "go",
                 leg_m,
                 floor=floor,
             )
         )
-        words = turn_words(turn_deg, style, at_junction=at_junction)
+        words = turn_words(turn_deg, style)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
             at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
-            ahead = distance_words(ANNOUNCE_BEFORE_M, style.units)
+            ahead = distance_words(ANNOUNCE_BEFORE_M, style.units, style.stride_m)
             steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, turn_deg, floor))
         steps.append(_step(words, points[index], "turn", 0.0, turn_deg, floor))
         from_m, from_i = along_m, index
@@ -480,7 +570,7 @@ def _walk_steps(
     if rest_m >= 0.5:
         steps.append(
             _step(
-                f"go straight {distance_words(rest_m, style.units)}",
+                f"go straight {distance_words(rest_m, style.units, style.stride_m)}",
                 points[from_i],
                 "go",
                 rest_m,
@@ -488,6 +578,194 @@ def _walk_steps(
             )
         )
     return last_dir
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Landmark:
+    """A tag or point of interest a step can be told by: ``name`` as said ("Room 210", "tag
+    305"), ``position_xz_m`` (map frame, m), ``floor`` (index), ``is_tag``."""
+
+    name: str
+    position_xz_m: tuple[float, float]
+    floor: int
+    is_tag: bool
+
+
+_LANDMARK_CACHE: dict[int, tuple[PathGraph, list[Landmark]]] = {}
+_LANDMARK_CACHE_SIZE = 8
+_LANDMARK_LOCK = threading.Lock()
+
+
+def _landmarks(pg: PathGraph) -> list[Landmark]:
+    """The map's points of interest, then its tags, as landmarks (made once per graph, as
+    routing's index is: a graph must not change once routed on)."""
+    with _LANDMARK_LOCK:
+        cached = _LANDMARK_CACHE.get(id(pg))
+    if cached is not None and cached[0] is pg:
+        return cached[1]
+    found = _landmarks_of(pg)
+    with _LANDMARK_LOCK:
+        _LANDMARK_CACHE[id(pg)] = (pg, found)
+        while len(_LANDMARK_CACHE) > _LANDMARK_CACHE_SIZE:
+            del _LANDMARK_CACHE[next(iter(_LANDMARK_CACHE))]
+    return found
+
+
+def _landmarks_of(pg: PathGraph) -> list[Landmark]:
+    found = [
+        Landmark(
+            name=poi.name,
+            position_xz_m=(poi.position_m[0], poi.position_m[2]),
+            floor=poi.floor,
+            is_tag=False,
+        )
+        for poi in pg.pois
+    ]
+    found += [
+        Landmark(
+            name=f"tag {tag_id}",
+            position_xz_m=(tag.position_m[0], tag.position_m[2]),
+            floor=tag.floor,
+            is_tag=True,
+        )
+        for tag_id, tag in sorted(pg.tags.items())
+    ]
+    return found
+
+
+def landmark_near(
+    landmarks: Sequence[Landmark], position_m: Point3, floor: int
+) -> tuple[str, str] | None:
+    """(name, phrase) of the landmark of a step at ``position_m`` on ``floor``: the nearest point
+    of interest within ``LANDMARK_NEAR_M`` (horizontally, on that floor), "at the tag by Room
+    210" when a tag is that near too, else "by Room 210"; else the nearest tag, "at tag 305";
+    else None. Ties go to the first listed (points of interest, then tags by id)."""
+    x, _, z = position_m
+    near_m2 = LANDMARK_NEAR_M * LANDMARK_NEAR_M
+    poi: tuple[float, str] | None = None
+    tag: tuple[float, str] | None = None
+    for landmark in landmarks:  # squared distances: the same order, no square roots
+        if landmark.floor != floor:
+            continue
+        dx, dz = landmark.position_xz_m[0] - x, landmark.position_xz_m[1] - z
+        d_m2 = dx * dx + dz * dz
+        if d_m2 > near_m2:
+            continue
+        if landmark.is_tag:
+            if tag is None or d_m2 < tag[0]:
+                tag = (d_m2, landmark.name)
+        elif poi is None or d_m2 < poi[0]:
+            poi = (d_m2, landmark.name)
+    if poi is not None:
+        return poi[1], (f"at the tag by {poi[1]}" if tag is not None else f"by {poi[1]}")
+    if tag is not None:
+        return tag[1], f"at {tag[1]}"
+    return None
+
+
+def _written(
+    steps: list[Step],
+    landmarks: Sequence[Landmark],
+    *,
+    goal_name: str,
+    style: GuidanceStyle,
+    floor_labels: Sequence[str] | None,
+) -> list[Step]:
+    """``steps`` with their structured words (``turn``, ``clock``, ``steps_count``,
+    ``landmark``) and each one's ``text``: a plain sentence for a screen reader, in metres and
+    the walker's steps, left/right and the clock, by landmarks. An announcement's landmark is its
+    turn's."""
+    written: list[Step] = []
+    # (place, floor) → landmark_near: an announcement's landmark is its turn's, looked up once
+    near_of: dict[tuple[Point3, int], tuple[str, str] | None] = {}
+
+    def near(at: Step) -> tuple[str, str] | None:
+        key = (at.position_m, at.floor)
+        if key not in near_of:
+            near_of[key] = landmark_near(landmarks, at.position_m, at.floor)
+        return near_of[key]
+
+    for k, step in enumerate(steps):
+        turn: TurnClass | None = None
+        clock: int | None = None
+        count: int | None = None
+        landmark: str | None = None
+        match step.kind:
+            case "face" | "turn" | "announce":
+                turn_deg = step.turn_deg or 0.0
+                turn, clock = turn_class(turn_deg), clock_hour(turn_deg)
+                at = step
+                if step.kind == "announce":
+                    at = next((t for t in steps[k + 1 :] if t.kind == "turn"), step)
+                found = near(at)
+                landmark, phrase = found if found else (None, "")
+                words = clock_words(turn_deg)
+                if step.kind == "face":
+                    text = f"{words}, to face the way"
+                elif step.kind == "announce":
+                    ahead = spoken_distance(ANNOUNCE_BEFORE_M, style.stride_m)
+                    text = f"in {ahead}, {phrase + ', ' if phrase else ''}{words}"
+                else:
+                    text = f"{phrase + ', ' if phrase else ''}{words}"
+            case "go":
+                count = steps_count(step.distance_m, style.stride_m)
+                text = f"go straight {spoken_distance(step.distance_m, style.stride_m)}"
+                if step.side is not None:
+                    landmark = goal_name
+                    text += f" to {goal_name}, {SIDE_WORDS[step.side]}"
+            case "stairs" | "elevator":
+                found = near(step)
+                landmark, phrase = found if found else (None, "")
+                following = steps[k + 1].floor if k + 1 < len(steps) else step.floor
+                label = (
+                    floor_labels[following]
+                    if floor_labels is not None and 0 <= following < len(floor_labels)
+                    else str(following + 1)
+                )
+                way = "up" if following > step.floor else "down"
+                if step.kind == "stairs":
+                    metres = max(1, round(step.distance_m))
+                    length = f"{metres} {'metre' if metres == 1 else 'metres'}"
+                    text = f"take the stairs {way}, {length}, to floor {label}"
+                else:
+                    text = f"take the elevator {way} to floor {label}"
+                if phrase:
+                    text = f"{phrase}, {text}"
+            case _:  # arrive
+                landmark = goal_name
+                side = f", {SIDE_WORDS[step.side]}" if step.side else ""
+                text = f"arrive at {goal_name}{side}"
+        written.append(
+            Step(  # not dataclasses.replace: a third of the time, on every route
+                instruction=step.instruction,
+                position_m=step.position_m,
+                kind=step.kind,
+                distance_m=step.distance_m,
+                turn_deg=step.turn_deg,
+                floor=step.floor,
+                turn=turn,
+                clock=clock,
+                steps_count=count,
+                landmark=landmark,
+                side=step.side,
+                text=text[:1].upper() + text[1:] + ".",
+            )
+        )
+    return written
+
+
+def route_text(route: Route) -> str:
+    """The route as a screen reader reads it well: plain sentences, one numbered step a line,
+    metres and steps spelled out, no symbols; the announcements ("in 5 metres, …"), which are for
+    walking, are left out, since their turn follows::
+
+        1. Go straight 29 metres (42 steps).
+        2. At tag 305, turn right, to 3 o'clock.
+        3. Go straight 7 metres (10 steps) to Room 210, on your right.
+        4. Arrive at Room 210, on your right.
+    """
+    said = [step.text for step in route.steps if step.kind != "announce" and step.text]
+    return "\n".join(f"{i}. {text}" for i, text in enumerate(said, start=1))
 
 
 def _floor_change(
@@ -508,7 +786,8 @@ def _floor_change(
     )
     length_m = float(np.linalg.norm(np.diff(xyz[first : last + 1], axis=0), axis=1).sum())
     if kind == STAIRS:
-        words = f"take the stairs {way}, {distance_words(length_m, style.units)}, to floor {label}"
+        stairs_m = distance_words(length_m, style.units, style.stride_m)
+        words = f"take the stairs {way}, {stairs_m}, to floor {label}"
     else:
         words = f"take the elevator {way} to floor {label}"
     return Step(
@@ -521,19 +800,34 @@ def _floor_change(
     )
 
 
-def _side(heading: tuple[float, float] | None, end: Point3, thing_m: FloatArray | None) -> str:
+#: How each side is said.
+SIDE_WORDS: dict[Side, str] = {
+    "ahead": "ahead",
+    "left": "on your left",
+    "right": "on your right",
+    "behind": "behind you",
+}
+
+
+def _side(
+    heading: tuple[float, float] | None, end: Point3, thing_m: FloatArray | None
+) -> Side | None:
+    """Where ``thing_m`` is from ``end`` facing ``heading`` (x–z): by :func:`turn_class` of its
+    bearing, straight "ahead", around "behind", else left or right; None when there is no thing,
+    no heading, or the thing is within ``SIDE_MIN_M``."""
     if thing_m is None:
-        return ""
+        return None
     thing_x, _, thing_z = np.asarray(thing_m, dtype=np.float64).tolist()
     offset_x, offset_z = thing_x - end[0], thing_z - end[2]
     if _norm_xz(offset_x, offset_z) < SIDE_MIN_M or heading is None:
-        return ""
+        return None
     bearing = signed_turn_deg(_xyz(heading), (offset_x, 0.0, offset_z))
-    if abs(bearing) < 30:
-        return "ahead"
-    if abs(bearing) > TURN_AROUND_MIN_DEG:
-        return "behind you"
-    return "on your left" if bearing > 0 else "on your right"
+    match turn_class(bearing):
+        case "straight":
+            return "ahead"
+        case "around":
+            return "behind"
+    return "left" if bearing > 0 else "right"
 
 
 def _segment_kinds(

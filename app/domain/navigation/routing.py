@@ -76,6 +76,10 @@ AVOID_SETS: tuple[frozenset[str], ...] = (
 SNAP_TO_NODE_M = 1e-6
 
 StepKind: TypeAlias = Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
+#: The class of a turn by its angle alone (:func:`app.domain.navigation.instructions.turn_class`).
+TurnClass: TypeAlias = Literal["straight", "bear", "turn", "sharp", "around"]
+#: Where a thing is from the walker: the side of the goal on arrival.
+Side: TypeAlias = Literal["ahead", "left", "right", "behind"]
 
 
 # --------------------------------------------------------------------------- errors
@@ -166,7 +170,15 @@ class Step:
     ``position_m``: where to do it (map frame, m): the start of a stretch to walk, the corner of a
     turn, the foot (or top) of the stairs, the arrival point. ``distance_m``: the stretch's length
     along the path (m; 0 for turns and arrival). ``turn_deg``: signed horizontal turn, + is left
-    (turns only). ``floor``: floor index (0 = lowest) where the step starts.
+    (face, announce and turn steps only). ``floor``: floor index (0 = lowest) where the step
+    starts.
+
+    Written by :mod:`app.domain.navigation.instructions` (the defaults are for steps made by
+    hand): ``turn``: the class of ``turn_deg`` (``turn_class``), ``clock``: its clock-face hour
+    (12 ahead, 3 right, 9 left), ``steps_count``: ``distance_m`` in the walker's strides (go
+    steps), ``landmark``: the tag or point of interest at the step ("Room 210", "tag 305"),
+    ``side``: where the goal is on the last walked step and the arrival, ``text``: the step as
+    one plain sentence for a screen reader ("Turn right, to 3 o'clock.").
     """
 
     instruction: str
@@ -175,6 +187,12 @@ class Step:
     distance_m: float
     turn_deg: float | None
     floor: int
+    turn: TurnClass | None = None
+    clock: int | None = None
+    steps_count: int | None = None
+    landmark: str | None = None
+    side: Side | None = None
+    text: str = ""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
