@@ -1,15 +1,21 @@
-"""What hostile files cost the offline commands (issue 28, findings 3 and 4): the peak memory and
-CPU time of ``invisible-map import --check``, ``import`` and ``import-firebase`` until each refuses
-its file, and what each says.
+"""What hostile and large files cost the offline commands (issue 28, findings 3 and 4; issue 40,
+finding 4): the peak memory and CPU time of ``invisible-map import --check``, ``import`` and
+``import-firebase`` until each refuses its file, and of ``import-firebase`` taking a large
+recording, and what each says.
 
     .venv/bin/python -m bench.hostile_files                       # 1.5 GB member, 1.2 GB file
-    .venv/bin/python -m bench.hostile_files --inflated-mib 256 --file-mib 256
+    .venv/bin/python -m bench.hostile_files --inflated-mib 256 --file-mib 256 --recording-mib 250
 
 - *backup member*: a real archive (the onetag session, exported) whose upload member is replaced
   by ``--inflated-mib`` MiB of zeros, deflated in the zip (a few MiB on disk), the manifest's size
   and SHA-256 updated to match, so only what the member is refuses it;
 - *Firebase file*: an export folder whose one recording is a sparse file of ``--file-mib`` MiB
-  (no disk used; reading it costs what reading a real one would).
+  (no disk used; reading it costs what reading a real one would);
+- *Firebase recording*: an export folder whose one recording is a real session (onetag) with
+  ``--recording-mib`` MiB of its own poses again under a key the parser passes over, taken
+  (``INVISIBLE_MAP_MAX_SESSION_BYTES`` raised to fit it). Issue 40: 666 MB peak for 250 MiB when
+  the recording was held whole (and again as text); read, inflated and parsed a MiB at a time,
+  the gzip of it kept to be stored, it is about 150 MB (most of it the program's own imports).
 
 Each command runs in a process of its own (``os.wait4`` gives its peak resident set and CPU
 time), on SQLite in a temporary folder. Prints a Markdown table.
@@ -85,10 +91,26 @@ def zeros_member_archive(source: Path, out: Path, inflated_bytes: int) -> Path:
     return out
 
 
+def padded_recording(path: Path, mib: int) -> int:
+    """A real session (onetag) with about ``mib`` MiB of its poses again under ``padding`` (a key
+    the parser passes over), written to ``path``; its size in bytes."""
+    document = json.loads(session_bytes("onetag"))
+    poses = json.dumps(document["pose_data"]).encode()[1:-1]  # "{…}, {…}"
+    with path.open("wb") as out:
+        out.write(json.dumps(document).encode()[:-1] + b', "padding": [' + poses)
+        for _ in range(mib * MIB // (len(poses) + 2)):
+            out.write(b", " + poses)
+        out.write(b"]}")
+    return path.stat().st_size
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--inflated-mib", type=int, default=1536, help="the upload member, MiB")
     parser.add_argument("--file-mib", type=int, default=1229, help="the Firebase file, MiB")
+    parser.add_argument(
+        "--recording-mib", type=int, default=250, help="the Firebase recording taken, MiB"
+    )
     args = parser.parse_args()
 
     rows = []
@@ -123,6 +145,15 @@ def main() -> None:
             sparse.truncate(args.file_mib * MIB)
         status, rss_mib, cpu_s, said = run(["import-firebase", str(export)], env)
         rows.append((f"import-firebase, a {args.file_mib} MiB file", status, rss_mib, cpu_s, said))
+
+        large = folder / "firebase-large"
+        (large / "rawMapData" / "carol").mkdir(parents=True)
+        size = padded_recording(large / "rawMapData" / "carol" / "Big.json", args.recording_mib)
+        limit = {"INVISIBLE_MAP_MAX_SESSION_BYTES": str(size)}
+        status, rss_mib, cpu_s, said = run(["import-firebase", str(large)], {**env, **limit})
+        rows.append(
+            (f"import-firebase, a {args.recording_mib} MiB recording", status, rss_mib, cpu_s, said)
+        )
         wall_s = time.perf_counter() - started
 
     print("| command | exit | peak RSS MiB | CPU s | last line |")

@@ -3,13 +3,22 @@
     settings = load_settings()                    # from the environment; CommandError if invalid
     database = open_migrated(settings)            # CommandError unless reachable and migrated
     add_param_option(parser); params = slam_params(args.param)
+    session = load_session_file(path)              # bounded, regular files only (also
+    truth = load_ground_truth_file(path)           # read_input_file: the bytes, inflated)
 
 Every failure a person can fix is a :class:`CommandError`, printed by ``main`` as one line.
+Every file a command reads is read through :func:`read_input_file` (or, for archives and
+exports, ``app.storage.backup`` and ``app.domain.formats.firebase_export``, which check the same
+way): a FIFO, a device or a folder is refused at once, and no file is read, or inflated, beyond
+a bound.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import stat
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -18,10 +27,17 @@ from app.domain.errors import ParameterError
 
 if TYPE_CHECKING:
     from app.config import Settings
+    from app.domain.frames import FloatArray
     from app.domain.mapping.params import SlamParams
+    from app.domain.upload.session import Session
     from app.storage.db import Database
 
 PROGRAM = "invisible-map"
+
+#: The largest file a command reads (a session, a ground truth, ``--space``), bytes, and the
+#: most a gzip one may inflate to: the server's own default limit on an upload
+#: (``INVISIBLE_MAP_MAX_SESSION_BYTES``).
+MAX_INPUT_BYTES = 256 * 2**20
 
 
 #: The demo sessions and their ground truth, shipped in the repository (see data/README.md).
@@ -136,3 +152,81 @@ def slam_params(pairs: Sequence[str]) -> SlamParams:
             raise ParameterError(f"--param expects NAME=VALUE, got {pair!r}")
         overrides[name.strip()] = value.strip()
     return SlamParams().with_overrides(overrides)
+
+
+def read_input_file(path: Path, *, max_bytes: int | None = None) -> bytes:
+    """The bytes of the file ``path``, inflated if they are gzip. CommandError (one line) for
+    what is not a regular file (a FIFO would hang, ``/dev/zero`` would be read without end:
+    refused at once, by its status before it is opened and again on the descriptor, opened
+    without blocking), for a file of more than ``max_bytes`` (checked before it is read, read no
+    further than ``max_bytes`` + 1) and for gzip that inflates further (inflated no further);
+    OSError (missing, unreadable) as the system says it. ``max_bytes``: :data:`MAX_INPUT_BYTES`
+    unless given."""
+    max_bytes = MAX_INPUT_BYTES if max_bytes is None else max_bytes
+    if not stat.S_ISREG(os.stat(path).st_mode):
+        raise CommandError(f"{path} is not a regular file (a FIFO, a device or a folder)")
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    with os.fdopen(descriptor, "rb", buffering=0) as file:
+        status = os.fstat(descriptor)
+        if not stat.S_ISREG(status.st_mode):
+            raise CommandError(f"{path} is not a regular file (a FIFO, a device or a folder)")
+        if status.st_size > max_bytes:
+            raise CommandError(f"{path} ({status.st_size} bytes) is larger than {max_bytes} bytes")
+        data = bytearray()
+        while len(data) <= max_bytes and (chunk := file.read(max_bytes + 1 - len(data))):
+            data += chunk
+    if len(data) > max_bytes:  # it grew since
+        raise CommandError(f"{path} is larger than {max_bytes} bytes")
+    if data[:2] != b"\x1f\x8b":
+        return bytes(data)
+    return _inflated(bytes(data), path, max_bytes=max_bytes)
+
+
+def _inflated(raw: bytes, path: Path, *, max_bytes: int) -> bytes:
+    """Gzip ``raw`` (every member) inflated no further than ``max_bytes``."""
+    pieces: list[bytes] = []
+    size, rest = 0, raw
+    try:
+        while rest:
+            inflater = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
+            piece = inflater.decompress(rest, max_bytes + 1 - size)
+            pieces.append(piece)
+            size += len(piece)
+            if size > max_bytes or inflater.unconsumed_tail:
+                raise CommandError(f"{path} inflates to more than {max_bytes} bytes")
+            if not inflater.eof:
+                raise CommandError(f"{path} is not valid gzip: cut short")
+            rest = inflater.unused_data
+    except zlib.error as err:
+        raise CommandError(f"{path} is not valid gzip: {err}") from None
+    return b"".join(pieces)
+
+
+def load_session_file(path: Path, *, correct_poi_pose_id: bool = True) -> Session:
+    """The session in the file ``path`` (JSON, may be gzip), read by :func:`read_input_file`;
+    SessionFormatError naming the file and the fault."""
+    from app.domain.upload.session import decode_json_bytes, parse_session
+
+    document = decode_json_bytes(read_input_file(path), source=str(path))
+    return parse_session(document, correct_poi_pose_id=correct_poi_pose_id)
+
+
+def load_ground_truth_file(path: Path) -> dict[int, FloatArray]:
+    """The tag poses of the ground-truth file ``path`` (either form, may be gzip), read by
+    :func:`read_input_file`; GroundTruthFormatError naming the file and the fault."""
+    from app.domain.errors import GroundTruthFormatError
+    from app.domain.evaluation.ground_truth import parse_ground_truth_text
+
+    try:
+        text = read_input_file(path).decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise GroundTruthFormatError(f"{path}: not UTF-8 text: {err.reason}") from None
+    try:
+        return parse_ground_truth_text(text)
+    except GroundTruthFormatError as err:
+        raise GroundTruthFormatError(f"{path}: {err}") from err
+    except RecursionError:
+        raise GroundTruthFormatError(f"{path}: nested too deeply to be a ground truth") from None
+    except ValueError as err:  # an integer of more digits than Python converts
+        reason = str(err).partition(";")[0]
+        raise GroundTruthFormatError(f"{path}: not valid JSON: {reason}") from None

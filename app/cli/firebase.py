@@ -9,8 +9,10 @@ JSON export (``maps/<uid>/<mapId>``, ``unprocessed_maps/…``) and the Storage f
 ``app/services/firebase_import.py``). Every recording is uploaded
 once into the database in ``DATABASE_URL`` (with its owner, typed name and picture), and its map
 is queued for building by the workers. Running it again takes nothing twice. It ends with a
-summary: what was taken, what was there already, and what was refused and why; the exit status
-is 1 when anything was refused (the rest is imported all the same).
+summary: what was taken, what was there already, and what was refused and why (one line each,
+``refused: <uid>/<mapId>: <reason>``; a recording that fails in a way no rule names is refused
+too, and the import goes on); the exit status is 1 when anything was refused (the rest is
+imported all the same).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def _import_firebase(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from app.domain.formats.firebase_export import FirebaseExportError, read_firebase_export
-    from app.services.firebase_import import ImportStatus, import_recording
+    from app.services.firebase_import import ImportOutcome, ImportStatus, import_recording
 
     try:
         export = read_firebase_export(args.directory)
@@ -60,15 +62,23 @@ def _import_firebase(args: argparse.Namespace) -> int:
         ) as bar:
             for entry in bar:
                 bar.set_postfix_str(shown(entry.key)[:40], refresh=False)
-                outcomes.append(
-                    import_recording(
+                try:
+                    outcome = import_recording(
                         database,
                         entry,
                         max_attempts=settings.max_attempts,
                         max_session_bytes=settings.max_session_bytes,
                         max_poses=settings.max_poses,
                     )
-                )
+                except SQLAlchemyError:
+                    raise
+                except Exception as err:  # a fault no rule names: this recording only
+                    outcome = ImportOutcome(
+                        key=entry.key,
+                        status=ImportStatus.REFUSED,
+                        reason=f"cannot be read ({type(err).__name__}: {first_line(err)})",
+                    )
+                outcomes.append(outcome)
     except SQLAlchemyError as err:  # the database itself (a bad recording is refused, not this)
         raise CommandError(
             f"stopped after {len(outcomes)} of {len(export.maps)} recording(s) (those are "

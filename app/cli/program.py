@@ -35,7 +35,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from app.cli.backup import add_backup_commands
-from app.cli.common import DATA_DIR, DEMO_SESSIONS, PROGRAM, CommandError
+from app.cli.common import (
+    DATA_DIR,
+    DEMO_SESSIONS,
+    PROGRAM,
+    CommandError,
+    load_ground_truth_file,
+    load_session_file,
+)
 from app.cli.common import add_param_option as _add_param_option
 from app.cli.common import slam_params as _params
 from app.cli.firebase import add_firebase_commands
@@ -131,13 +138,11 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _process(args: argparse.Namespace) -> int:
-    from app.domain.evaluation.ground_truth import load_ground_truth
     from app.domain.evaluation.table import evaluate_map
-    from app.domain.upload.session import load_session
 
     params = _params(args.param)
-    ground_truth = load_ground_truth(args.gt) if args.gt else None
-    session = load_session(args.session, correct_poi_pose_id=not args.no_poi_correction)
+    ground_truth = load_ground_truth_file(args.gt) if args.gt else None
+    session = load_session_file(args.session, correct_poi_pose_id=not args.no_poi_correction)
     result = _optimize_with_progress(session, params)
     evaluation = evaluate_map(session, result, ground_truth, dataset=args.session.stem)
 
@@ -211,8 +216,6 @@ def _optimize_with_progress(session: Session, params: SlamParams) -> MapResult:
 def _evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from app.domain.evaluation.ground_truth import load_ground_truth
-
     params = _params(args.param)
     ground_truth_paths: list[Path] = args.gt
     if len(ground_truth_paths) not in (1, len(args.sessions)):
@@ -220,7 +223,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"give one --gt for all sessions or one per session; got {len(ground_truth_paths)} "
             f"for {len(args.sessions)} sessions"
         )
-    truths = {path: load_ground_truth(path) for path in dict.fromkeys(ground_truth_paths)}
+    truths = {path: load_ground_truth_file(path) for path in dict.fromkeys(ground_truth_paths)}
     if args.joint:
         return _evaluate_joint(args, params, truths)
     pairs = list(zip(args.sessions, ground_truth_paths * len(args.sessions), strict=False))
@@ -248,7 +251,6 @@ def _evaluate_joint(
 
     from app.domain.evaluation.table import evaluate_joint, evaluate_map
     from app.domain.mapping.joint import optimize_sessions
-    from app.domain.upload.session import load_session
 
     if len(truths) != 1:
         raise CommandError("--joint compares every session with one ground truth: give one --gt")
@@ -256,7 +258,7 @@ def _evaluate_joint(
     names = [_dataset_name(path) for path in args.sessions]
     if len(set(names)) != len(names):
         raise CommandError(f"--joint needs sessions with different names, got {names}")
-    sessions = [load_session(path) for path in args.sessions]
+    sessions = [load_session_file(path) for path in args.sessions]
     with tqdm(
         total=len(sessions) + 1, desc="joint map", unit=" step", leave=False, disable=None,
         file=sys.stderr,
@@ -330,9 +332,8 @@ def _evaluate_one(
 ) -> Evaluation:
     from app.domain.evaluation.table import evaluate_map
     from app.domain.mapping.slam import optimize_session
-    from app.domain.upload.session import load_session
 
-    session = load_session(session_path)
+    session = load_session_file(session_path)
     result = optimize_session(session, params)
     return evaluate_map(session, result, ground_truth, dataset=_dataset_name(session_path))
 
@@ -380,12 +381,10 @@ def format_table(rows: Sequence[Evaluation]) -> str:
 def _demo(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from app.domain.evaluation.ground_truth import load_ground_truth
     from app.domain.evaluation.table import evaluate_map
     from app.domain.formats.map_io import app_map_as_served, map_to_json, save_json
     from app.domain.mapping.slam import optimize_session
     from app.domain.navigation.skeleton import build_skeleton
-    from app.domain.upload.session import load_session
     from app.render.map_plot import render_map_png
 
     params = _params(args.param)
@@ -398,8 +397,8 @@ def _demo(args: argparse.Namespace) -> int:
     for name, truth_file in tqdm(
         DEMO_SESSIONS, desc="samples", unit=" session", disable=None, file=sys.stderr
     ):
-        session = load_session(sessions_dir / f"{name}.json")
-        ground_truth = load_ground_truth(truth_dir / truth_file) if truth_file else None
+        session = load_session_file(sessions_dir / f"{name}.json")
+        ground_truth = load_ground_truth_file(truth_dir / truth_file) if truth_file else None
         result = optimize_session(session, params)
         save_json(map_to_json(result), args.out / f"{name}.map.json")
         app_map = app_map_as_served(result, path_graph=build_skeleton(result))

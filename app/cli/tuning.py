@@ -16,7 +16,13 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from app.cli.common import add_param_option, slam_params
+from app.cli.common import (
+    add_param_option,
+    load_ground_truth_file,
+    load_session_file,
+    read_input_file,
+    slam_params,
+)
 from app.domain.errors import ParameterError
 
 if TYPE_CHECKING:  # the mapping core is imported by the handlers, when they run
@@ -25,6 +31,8 @@ if TYPE_CHECKING:  # the mapping core is imported by the handlers, when they run
     from app.domain.evaluation.simulate import SimulatedSession
     from app.domain.evaluation.tuning import SearchSpace
 
+#: The largest ``--space`` file read, bytes (a search space is a few lines of JSON).
+MAX_SPACE_BYTES = 2**20
 #: ``--noise`` may set these fields of ``SimulationConfig`` (its noise levels; written out so
 #: that the parser does not import the simulator: ``tests/cli/test_tuning_cli.py`` checks them).
 NOISE_FIELDS = (
@@ -108,16 +116,14 @@ def sweep_command(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from app.cli.common import CommandError
-    from app.domain.evaluation.ground_truth import load_ground_truth
     from app.domain.evaluation.sweep_plan import SweepPlan
     from app.domain.evaluation.tuning import SearchSpace, TuningTarget, sweep_result
     from app.domain.formats.map_io import save_json
-    from app.domain.upload.session import load_session
     from workers.sweep_pool import run_sweep
 
     base_params = slam_params(args.param)
-    ground_truth = load_ground_truth(args.gt) if args.gt else None
-    session = load_session(args.session)
+    ground_truth = load_ground_truth_file(args.gt) if args.gt else None
+    session = load_session_file(args.session)
     space = SearchSpace.paper_grid() if args.space is None else _space(args.space)
     if args.trials is not None:
         plan = SweepPlan(
@@ -226,11 +232,11 @@ def _space(text: str) -> SearchSpace:
     source = (
         text
         if text.lstrip().startswith(("{", "[")) or not Path(text).exists()
-        else (Path(text).read_text())
+        else read_input_file(Path(text), max_bytes=MAX_SPACE_BYTES)
     )
     try:
         document = json.loads(source)
-    except json.JSONDecodeError as err:
+    except (ValueError, RecursionError) as err:  # not UTF-8, not JSON, too many digits
         raise ParameterError(f"--space is not valid JSON: {err}") from err
     if not isinstance(document, dict):
         raise ParameterError("--space must be a JSON object of parameters")
@@ -309,9 +315,8 @@ def _simulate_from_session(path: Path, noise: dict[str, Any], seed: int) -> Simu
     """The paper's simulation: the optimized map of a real session is the truth."""
     from app.domain.evaluation.simulate import SimulationConfig, simulate_along_trajectory
     from app.domain.mapping.slam import optimize_session
-    from app.domain.upload.session import load_session
 
-    session = load_session(path)
+    session = load_session_file(path)
     result = optimize_session(session, slam_params([]))
     used = result.residuals.tag_detection_index
     dt_s = float(

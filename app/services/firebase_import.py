@@ -30,19 +30,28 @@ from __future__ import annotations
 
 import enum
 import hashlib
+import itertools
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy.exc import DBAPIError
 
 from app.domain.errors import SessionFormatError
-from app.domain.formats.firebase_export import ExportFileRefused, FirebaseMap, read_export_file
+from app.domain.formats.firebase_export import (
+    ExportFileRefused,
+    FirebaseMap,
+    export_file_chunks,
+    read_export_file,
+)
 from app.domain.json_values import GZIP_MAGIC
 from app.domain.upload.fields import text_fault
 from app.services.uploads import parse_upload
 from app.storage import images, sessions
 from app.storage.db import Database, database_fault, first_line
 from app.storage.sessions import (
+    GZIP_LEVEL,
     MAX_IDEMPOTENCY_KEY_LENGTH,
     MAX_MAP_NAME_LENGTH,
     IdempotencyConflict,
@@ -53,6 +62,8 @@ from app.storage.sessions import (
 OWNER_PREFIX = "firebase:"
 #: Length of the ``uploaded_by`` column.
 MAX_OWNER_LENGTH = 64
+#: The most a gzip recording is inflated at a time, bytes.
+INFLATE_CHUNK_BYTES = 2**20
 
 
 class ImportStatus(enum.StrEnum):
@@ -103,27 +114,34 @@ def import_recording(
     the export, no FIFO, no file beyond ``max_session_bytes``, checked before it is read), it is
     inflated no further than ``max_session_bytes`` and parsed with the door rules of an upload
     (:func:`app.services.uploads.parse_upload`: at most ``max_poses`` poses, text by the one
-    rule, ids the database holds), and its name must be text too. A value the database refuses
-    all the same refuses the recording, not the import; only a fault of the database itself
-    (unreachable, full: ``app.storage.db.database_fault``) is raised."""
+    rule, ids the database holds), and its name must be text too. It is read, inflated and
+    parsed a chunk at a time (:data:`~app.domain.formats.firebase_export.CHUNK_BYTES`), never
+    held whole: what is kept is the gzip of it that is stored (:class:`_KeptUpload`). A value
+    the database refuses all the same refuses the recording, not the import; only a fault of the
+    database itself (unreachable, full: ``app.storage.db.database_fault``) is raised."""
 
     def refused(reason: str) -> ImportOutcome:
         return ImportOutcome(key=entry.key, status=ImportStatus.REFUSED, reason=reason)
 
     if entry.problem is not None or entry.raw_path is None:
         return refused(entry.problem or "no session file")
+    name = entry.raw_path.name
+    kept = _KeptUpload()
     try:
-        raw = read_export_file(entry.export_folder, entry.raw_path, max_bytes=max_session_bytes)
-        plain = _gunzipped(raw, entry.raw_path.name, max_bytes=max_session_bytes)
+        chunks = export_file_chunks(
+            entry.export_folder, entry.raw_path, max_bytes=max_session_bytes
+        )
+        plain = kept.of(_gunzipped(chunks, name, max_bytes=max_session_bytes))
+        parsed = parse_upload(plain, max_poses=max_poses, source=name)
+        for _ in plain:  # (the parser reads to the end: nothing is left)
+            pass
     except ExportFileRefused as err:
         return refused(str(err))
-    try:
-        parsed = parse_upload([plain], max_poses=max_poses, source=entry.raw_path.name)
     except SessionFormatError as err:
         return refused(f"not a session the server takes: {err}")
     if (reason := text_fault(entry.name)) is not None:
         return refused(f"its name (maps/<uid>/<mapId>/name) {reason}")
-    upload = StoredUpload.of(plain)
+    upload = kept.stored()
     picture_bytes, picture = _picture(entry)
     try:
         with db.transaction() as db_session:
@@ -162,26 +180,73 @@ def import_recording(
     )
 
 
-def _gunzipped(raw: bytes, name: str, *, max_bytes: int) -> bytes:
-    """``raw``, inflated if it is gzip (every member), no further than ``max_bytes``;
-    ExportFileRefused if it is corrupt or inflates further."""
-    if raw[:2] != GZIP_MAGIC:
-        return raw
-    pieces, size, rest = [], 0, raw
+def _gunzipped(chunks: Iterator[bytes], name: str, *, max_bytes: int) -> Iterator[bytes]:
+    """``chunks``, inflated as they come if they are gzip (every member), at most
+    :data:`INFLATE_CHUNK_BYTES` at a time and no further than ``max_bytes`` + 1 in all (the one
+    byte more tells it inflates further); ExportFileRefused if it is corrupt or inflates
+    further."""
+    first = b""
+    while len(first) < len(GZIP_MAGIC) and (chunk := next(chunks, None)) is not None:
+        first += chunk
+    if first[:2] != GZIP_MAGIC:
+        if first:
+            yield first
+        yield from chunks
+        return
+    inflater, started, size = _gzip_member(), False, 0
     try:
-        while rest:
-            inflater = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
-            piece = inflater.decompress(rest, max_bytes + 1 - size)
-            pieces.append(piece)
-            size += len(piece)
-            if size > max_bytes or inflater.unconsumed_tail:
-                raise ExportFileRefused(f"{name} inflates to more than {max_bytes} bytes")
-            if not inflater.eof:
-                raise ExportFileRefused(f"{name} is not valid gzip: cut short")
-            rest = inflater.unused_data
+        for chunk in itertools.chain([first], chunks):
+            data = chunk
+            while True:
+                most = min(INFLATE_CHUNK_BYTES, max_bytes + 1 - size)  # one byte more tells
+                piece = inflater.decompress(data, most)
+                started = started or bool(data)
+                size += len(piece)
+                if size > max_bytes:
+                    raise ExportFileRefused(f"{name} inflates to more than {max_bytes} bytes")
+                if piece:
+                    yield piece
+                if inflater.eof:  # the next member, if any, starts in the unused data
+                    data, inflater, started = inflater.unused_data, _gzip_member(), False
+                    if not data:
+                        break
+                    continue
+                data = inflater.unconsumed_tail
+                if not data and len(piece) < most:  # (else output may be pending)
+                    break
     except zlib.error as err:
         raise ExportFileRefused(f"{name} is not valid gzip: {err}") from None
-    return b"".join(pieces)
+    if started:
+        raise ExportFileRefused(f"{name} is not valid gzip: cut short")
+
+
+def _gzip_member() -> Any:
+    return zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
+
+
+class _KeptUpload:
+    """The upload's bytes as they pass to the parser: their SHA-256 and size, and their gzip (what
+    is stored), made a chunk at a time so that the plain bytes are never held whole."""
+
+    def __init__(self) -> None:
+        self._digest = hashlib.sha256()
+        self._size = 0
+        self._deflater = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, 16 + zlib.MAX_WBITS)
+        self._gzip = bytearray()
+
+    def of(self, chunks: Iterator[bytes]) -> Iterator[bytes]:
+        """``chunks``, kept as they pass."""
+        for chunk in chunks:
+            self._digest.update(chunk)
+            self._size += len(chunk)
+            self._gzip += self._deflater.compress(chunk)
+            yield chunk
+
+    def stored(self) -> StoredUpload:
+        self._gzip += self._deflater.flush()
+        return StoredUpload(
+            json_gzip=self._gzip, sha256=self._digest.hexdigest(), size_bytes=self._size
+        )
 
 
 def _picture(entry: FirebaseMap) -> tuple[bytes | None, str]:

@@ -287,8 +287,9 @@ def with_map_row(archive: Path, out: Path, **values: Any) -> Path:
     [
         ({"id": 2**63}, "id: 9223372036854775808 is beyond the column's 32-bit integers"),
         ({"display_name": "\ud800"}, "display_name holds a lone surrogate (U+D800)"),
+        ({"id": 2}, "line 2 (id 2): id 2: an earlier row of tables/map.jsonl has it too"),
     ],
-    ids=["id-2^63", "surrogate"],
+    ids=["id-2^63", "surrogate", "id-twice"],
 )
 def test_an_archive_no_database_holds_is_refused_by_the_check_and_the_import(
     values: dict[str, Any],
@@ -298,14 +299,15 @@ def test_an_archive_no_database_holds_is_refused_by_the_check_and_the_import(
     run_main: RunMain,
     tmp_path: Path,
 ) -> None:
-    """Issue 28, finding 4: a 46-line traceback on SQLite, and `import --check` said valid."""
+    """Issue 28, finding 4: a 46-line traceback on SQLite, and `import --check` said valid
+    (issue 40, finding 3: a map id twice, which the database's key refused)."""
     archive = tmp_path / "backup.zip"
     assert run_main(source_url, "export", archive)[0] == 0
     hostile = with_map_row(archive, tmp_path / "hostile.zip", **values)
     target = sqlite_url("target")
     for args in (["import", hostile, "--check"], ["import", hostile]):
         status, out, err = run_main(target, *args)
-        assert_one_line_error(status, err, "tables/map.jsonl line 1", words)
+        assert_one_line_error(status, err, "tables/map.jsonl line ", words)
         assert out == ""
     assert uploads_of(target) == {}
 

@@ -225,6 +225,16 @@ BAD_RECORDINGS: dict[str, tuple[Callable[[Path, Path], None], str]] = {
         ),
         "deep.json is nested too deeply to be a session",
     ),
+    "aaron/huge-number": (  # first in the order: the recordings after it are imported
+        lambda export, _outside: add_recording(
+            export,
+            "aaron",
+            "huge-number",
+            session_bytes("onetag")[:-1] + b', "extra": ' + b"7" * 5000 + b"}",
+        ),
+        "huge-number.json is not valid JSON: Exceeds the limit (4300 digits) for integer string "
+        "conversion: value has 5000 digits",
+    ),
     "mia/not-json": (
         lambda export, _outside: add_recording(export, "mia", "not-json", b"\xff\xfe{"),
         "not-json.json is not UTF-8 text",
@@ -308,6 +318,47 @@ def test_a_database_export_that_is_no_file_of_the_export_is_skipped_and_a_deep_o
     assert_one_line_error(status, err, "deep.json is nested too deeply to be a database export")
 
 
+def test_a_recording_failing_in_a_way_no_rule_names_is_refused_and_the_import_goes_on(
+    database_url: str, tmp_path: Path, run_main: RunMain, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 40, finding 1: a ValueError inside one recording's parsing ended the import with a
+    traceback, and the recordings after it were never imported."""
+    from app.services import firebase_import
+
+    real_parse = firebase_import.parse_upload
+
+    def failing_for_alice_lab(chunks: Any, **kwargs: Any) -> Any:
+        if kwargs["source"] == "Lab 1700000000.json":
+            raise ValueError("a fault of no rule")
+        return real_parse(chunks, **kwargs)
+
+    monkeypatch.setattr(firebase_import, "parse_upload", failing_for_alice_lab)
+    status, out, err = run_main(database_url, "import-firebase", make_export(tmp_path / "export"))
+    assert status == 1
+    assert "Traceback" not in out + err
+    assert (
+        "refused: alice/Lab 1700000000: cannot be read (ValueError: a fault of no rule)"
+        in out.splitlines()
+    )
+    assert "3 taken, 0 already there, 2 refused" in out  # and dave's missing file
+    assert sorted(entry["owner"] for entry in stored(database_url).values()) == [
+        "firebase:alice", "firebase:bob", "firebase:carol"
+    ]  # fmt: skip
+
+
+def test_a_database_export_with_a_number_python_does_not_read_is_one_line_error(
+    database_url: str, tmp_path: Path, run_main: RunMain
+) -> None:
+    export = make_export(tmp_path / "export")
+    (export / "big.json").write_bytes(b'{"maps": {"zoe": {"x": {"n": ' + b"9" * 5000 + b"}}}}")
+    status, out, err = run_main(database_url, "import-firebase", export)
+    assert_one_line_error(
+        status, err, "big.json is not valid JSON: Exceeds the limit (4300 digits)"
+    )
+    assert out == ""
+    assert stored(database_url) == {}
+
+
 def test_a_value_the_database_refuses_refuses_its_recording_not_the_import(
     database_url: str, tmp_path: Path, run_main: RunMain, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -328,6 +379,91 @@ def test_a_value_the_database_refuses_refuses_its_recording_not_the_import(
     assert status == 1
     assert "refused: bob/Desk: the database refused it: value too long" in out
     assert "3 taken, 0 already there, 2 refused" in out
+
+
+class NoDatabase:
+    """A database that must not be used: a recording refused before it writes anything."""
+
+    def __getattr__(self, name: str) -> Any:
+        raise AssertionError(f"the database was used ({name})")
+
+
+def test_a_gzip_bomb_is_inflated_no_further_than_the_limit_and_nothing_is_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 40, finding 5: the inflating of a gzip recording had no bound a test held it to.
+    64 MiB of zeros (64 KiB of gzip, read in one chunk) against a limit of 1 MiB: inflated a
+    MiB at most at a time, 1 MiB + 1 byte in all, refused, and no database touched."""
+    from app.domain.formats.firebase_export import read_firebase_export
+    from app.services import firebase_import
+
+    export = make_export(tmp_path / "export")
+    add_recording(export, "heidi", "gzip-bomb", gzip.compress(b" " * (64 * 2**20)))
+    entry = next(m for m in read_firebase_export(export).maps if m.key == "heidi/gzip-bomb")
+    pieces: list[int] = []
+    real_member = firebase_import._gzip_member
+
+    class CountedMember:
+        def __init__(self) -> None:
+            self._inflater = real_member()
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self._inflater, name)
+
+        def decompress(self, data: bytes, max_length: int = 0) -> bytes:
+            piece: bytes = self._inflater.decompress(data, max_length)
+            pieces.append(len(piece))
+            return piece
+
+    monkeypatch.setattr(firebase_import, "_gzip_member", CountedMember)
+    outcome = firebase_import.import_recording(
+        NoDatabase(),  # type: ignore[arg-type]
+        entry,
+        max_attempts=3,
+        max_session_bytes=2**20,
+        max_poses=1000,
+    )
+    assert outcome.status == firebase_import.ImportStatus.REFUSED
+    assert outcome.reason == "gzip-bomb.json inflates to more than 1048576 bytes"
+    assert sum(pieces) == 2**20 + 1
+    assert max(pieces) <= firebase_import.INFLATE_CHUNK_BYTES
+
+
+def test_a_recording_is_read_inflated_and_parsed_a_chunk_at_a_time(
+    database_url: str, tmp_path: Path, run_main: RunMain, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 40, finding 4: a recording of 250 MiB was held whole, and again as text (666 MB of
+    memory). Now no piece of it larger than a chunk reaches the parser, plain or gzip, and what
+    is stored is the recording's JSON byte for byte."""
+    from app.services import firebase_import
+
+    def padded(filler: bytes) -> bytes:  # 3 MiB
+        strings = b",".join([b'"' + filler * 1000 + b'"'] * 3000)
+        session = session_with(map_id=f"ivy {filler.decode()}")
+        return session[:-1] + b', "padding": [' + strings + b"]}"
+
+    export = make_export(tmp_path / "export")
+    add_recording(export, "ivy", "plain", padded(b"x"))
+    add_recording(export, "ivy", "zipped", gzip.compress(padded(b"y")))
+    largest: list[int] = []
+    real_parse = firebase_import.parse_upload
+
+    def parse_watched(chunks: Any, **kwargs: Any) -> Any:
+        def watched() -> Any:
+            for chunk in chunks:
+                largest.append(len(chunk))
+                yield chunk
+
+        return real_parse(watched(), **kwargs)
+
+    monkeypatch.setattr(firebase_import, "parse_upload", parse_watched)
+    _, out, _ = run_main(database_url, "import-firebase", export)
+    assert "taken: ivy/plain → session" in out
+    assert "taken: ivy/zipped → session" in out
+    assert max(largest) == 2**20
+    db = stored(database_url)
+    assert db["ivy x"]["raw"] == padded(b"x")
+    assert db["ivy y"]["raw"] == padded(b"y")  # inflated, as the app's JSON
 
 
 def test_a_folder_that_is_no_export_is_one_line_error(

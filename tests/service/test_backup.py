@@ -12,12 +12,14 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import math
 import shutil
 import struct
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -753,6 +755,102 @@ VALUE_CASES: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], 
 }
 
 
+def twice(
+    table: str, change: Callable[[dict[str, Any]], None] = lambda _row: None
+) -> Callable[[Path, Path], Path]:
+    """An archive whose ``tables/<table>.jsonl`` has its first row again at its end (with
+    ``change`` made to the copy), the manifest's count of the table one larger."""
+
+    def again(name: str, data: bytes) -> bytes:
+        if name != f"tables/{table}.jsonl":
+            return data
+        copy = json.loads(data.splitlines()[0])
+        change(copy)
+        return data + json.dumps(copy).encode() + b"\n"
+
+    return lambda a, out: rewrite(
+        a,
+        out / "x.zip",
+        member=again,
+        manifest=lambda d: d["counts"].update({table: d["counts"][table] + 1}),
+    )
+
+
+#: Archives that a database refuses, or stores altered, for a constraint of its own or a number
+#: JSON has not, that `import --check` called valid (issue 40, finding 3).
+CONSTRAINT_CASES: dict[str, tuple[Callable[[Path, Path], Path], type[BaseException], str]] = {
+    "a corridor edit's id twice": (
+        twice("corridor_edit"),
+        ArchiveInvalid,
+        "tables/corridor_edit.jsonl line 2 (id 1): id 1: an earlier row of "
+        "tables/corridor_edit.jsonl has it too",
+    ),
+    "a tag twice in one map version": (
+        twice("map_tag"),
+        ArchiveInvalid,
+        "map_tag.jsonl line 15: map_version_id 1, tag_id 306: an earlier row of "
+        "tables/map_tag.jsonl has them too",
+    ),
+    "a map's version number twice": (
+        twice("map_version", lambda r: r.update(id=99, job_id=None)),
+        ArchiveInvalid,
+        "(id 99): map_id 1, number 1: an earlier row of tables/map_version.jsonl has them too",
+    ),
+    "NaN in a JSON column": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=jsonl_edit("map_version", lambda r: r["params"].update(huber_k=math.nan)),
+        ),
+        ArchiveInvalid,
+        "tables/map_version.jsonl line 1: holds NaN, which is no JSON number",
+    ),
+    "Infinity in a float column": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=jsonl_edit("sweep_trial", lambda r: set_in(r, shift=-math.inf)),
+        ),
+        ArchiveInvalid,
+        "tables/sweep_trial.jsonl line 1: holds -Infinity, which is no JSON number",
+    ),
+    "1e999 in a float column": (
+        lambda a, out: rewrite(
+            a,
+            out / "x.zip",
+            member=lambda n, d: (
+                d.replace(b'"duration_s":', b'"duration_s":1e999,"x":', 1)
+                if n == "tables/sweep_trial.jsonl"
+                else d
+            ),
+        ),
+        ArchiveInvalid,
+        "tables/sweep_trial.jsonl line 1: holds 1e999, a number beyond a float's range",
+    ),
+    "a job state no job has": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("job", lambda r: set_in(r, state="paused"))
+        ),
+        ArchiveInvalid,
+        "tables/job.jsonl line 1 (id 1): state 'paused' is not one of ['canceled', 'failed'",
+    ),
+    "a job's progress beyond 1": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("job", lambda r: set_in(r, progress=1.5))
+        ),
+        ArchiveInvalid,
+        "tables/job.jsonl line 1 (id 1): progress 1.5 is not from 0.0 to 1.0",
+    ),
+    "an API key's role no key has": (
+        lambda a, out: rewrite(
+            a, out / "x.zip", member=jsonl_edit("api_key", lambda r: set_in(r, role="root"))
+        ),
+        ArchiveInvalid,
+        "tables/api_key.jsonl line 1 (id 1): role 'root' is not one of ['admin', 'device']",
+    ),
+}
+
+
 def _write(path: Path, data: bytes) -> Path:
     path.write_bytes(data)
     return path
@@ -797,6 +895,43 @@ def test_every_value_no_database_holds_is_refused_naming_its_row(
     assert set(row_counts(db).values()) == {0}
     assert next_upload_map_id(db) == 1
     db.dispose()
+
+
+@pytest.mark.parametrize("case", CONSTRAINT_CASES)
+def test_the_check_and_the_import_refuse_what_a_database_would_alike(
+    case: str, source: Source, database_url: str, tmp_path: Path
+) -> None:
+    """Issue 40, finding 3: a corridor edit's id twice or NaN in a JSON column passed
+    `import --check`, and the import then failed on the database's constraint (or, on SQLite,
+    stored NaN as it came). One validator now refuses each, with and without a database."""
+    make, error, message = CONSTRAINT_CASES[case]
+    hostile = make(source.archive_with_keys, tmp_path)
+    with pytest.raises(error) as checked:
+        backup.check_archive(hostile)
+    assert message in str(checked.value)
+    db = Database(database_url)
+    with pytest.raises(error) as imported:
+        backup.import_archive(db, hostile, include_keys=True)
+    assert str(imported.value) == str(checked.value)
+    assert set(row_counts(db).values()) == {0}
+    assert next_upload_map_id(db) == 1
+    db.dispose()
+
+
+def test_every_check_constraint_of_an_exported_table_is_checked_without_a_database() -> None:
+    from sqlalchemy import CheckConstraint
+
+    from app.storage.backup.restore import ALLOWED_RANGES, ALLOWED_VALUES
+
+    constrained = {
+        (spec.name, column.name)
+        for spec in backup.TABLES
+        for constraint in spec.table.constraints
+        if isinstance(constraint, CheckConstraint)
+        for column in spec.table.columns
+        if column.name in str(constraint.sqltext)
+    }
+    assert constrained == set(ALLOWED_VALUES) | set(ALLOWED_RANGES)
 
 
 CHECKED = {**BROKEN, **VALUE_CASES}
@@ -879,12 +1014,29 @@ def test_a_member_inflating_beyond_the_limit_is_refused_before_it_is_read(
     db.dispose()
 
 
+def inflated_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The sizes of the pieces of uploads the import inflates from now on (one per read)."""
+    from app.storage.backup import restore
+
+    pieces: list[int] = []
+
+    class CountedGzipFile(gzip.GzipFile):
+        def read(self, size: int | None = -1) -> bytes:
+            data = super().read(size)
+            pieces.append(len(data))
+            return data
+
+    monkeypatch.setattr(restore, "gzip", SimpleNamespace(GzipFile=CountedGzipFile))
+    return pieces
+
+
 def test_an_upload_is_inflated_no_further_than_its_session_says(
-    source: Source, database_url: str, tmp_path: Path
+    source: Source, database_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A gzip bomb as an upload, its session claiming the size it inflates to (within the limit,
     and the checksums right): refused for that size, before a byte of it is inflated; with a
-    small claim, refused after inflating one byte more than the claim."""
+    small claim, refused after inflating one byte more than the claim, and no further (issue 40,
+    finding 5: only the message was checked, and an upload inflated whole passed)."""
     bomb = gzip.compress(bytes(4 * 2**20))
 
     def claims(size: int) -> Callable[[str, bytes], bytes]:
@@ -899,12 +1051,26 @@ def test_an_upload_is_inflated_no_further_than_its_session_says(
 
     db = Database(database_url)
     big = rewrite(source.archive, tmp_path / "big.zip", member=claims(4 * 2**20))
-    with pytest.raises(ArchiveInvalid, match="raw_size_bytes 4194304 is not from 0 to the 1048576"):
-        backup.import_archive(db, big, max_member_bytes=2**20)
     small = rewrite(source.archive, tmp_path / "small.zip", member=claims(1000))
-    with pytest.raises(ArchiveInvalid, match="the upload does not match its session"):
-        backup.import_archive(db, small, max_member_bytes=2**20)
+    for check in (
+        lambda archive: backup.check_archive(archive, max_member_bytes=2**20),
+        lambda archive: backup.import_archive(db, archive, max_member_bytes=2**20),
+    ):
+        pieces = inflated_bytes(monkeypatch)
+        with pytest.raises(ArchiveInvalid) as raised:
+            check(big)
+        assert "uploads/1.json.gz" not in str(raised.value)
+        assert "(id 1): raw_size_bytes 4194304 is not from 0 to the 1048576" in str(raised.value)
+        assert pieces == []  # not a byte inflated
+        with pytest.raises(ArchiveInvalid) as raised:
+            check(small)
+        assert str(raised.value).endswith(
+            "tables/session_upload.jsonl line 1 (session_id 1): the upload does not match its "
+            "session (sha256 or size differs)"
+        )
+        assert sum(pieces) == 1001  # the claim and one byte more
     assert set(row_counts(db).values()) == {0}
+    assert next_upload_map_id(db) == 1
     db.dispose()
 
 

@@ -10,13 +10,16 @@ from pathlib import Path
 
 import pytest
 
+from app.domain.formats import firebase_export
 from app.domain.formats.firebase_export import (
     ExportFileRefused,
     FirebaseExportError,
+    export_file_chunks,
     export_file_problem,
     read_export_file,
     read_firebase_export,
 )
+from tests.read_counting import ReadCounting
 
 SESSIONS = Path(__file__).parents[2] / "data" / "sessions"
 JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 16 + b"\xff\xd9"
@@ -216,3 +219,50 @@ def test_a_database_export_nested_too_deeply_is_refused_in_one_line(tmp_path):
     (tmp_path / "db.json").write_bytes(b"[" * 200_000 + b"]" * 200_000)
     with pytest.raises(FirebaseExportError, match=r"db\.json is nested too deeply"):
         read_firebase_export(tmp_path)
+
+
+def _sparse(path: Path, size: int) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as sparse:
+        sparse.truncate(size)  # no disk used
+    return path
+
+
+def test_a_file_larger_than_asked_is_refused_before_a_byte_of_it_is_read(tmp_path, monkeypatch):
+    """Issue 40, finding 5: the size check was caught only by its message's wording (without it
+    the read's bound refused the file too, after reading ``max_bytes`` + 1 of it)."""
+    large = _sparse(tmp_path / "rawMapData" / "u" / "large.json", 8 * 2**20)
+    reads = ReadCounting()
+    monkeypatch.setattr(firebase_export, "os", reads)
+    for read in (
+        lambda: read_export_file(tmp_path, large, max_bytes=2**20),
+        lambda: list(export_file_chunks(tmp_path, large, max_bytes=2**20)),
+    ):
+        with pytest.raises(ExportFileRefused) as refused:
+            read()
+        assert str(refused.value) == "large.json (8388608 bytes) is larger than 1048576 bytes"
+    assert reads.opened == 2
+    assert reads.bytes_read == 0
+
+
+def test_a_file_growing_past_its_checked_size_is_read_no_further_than_asked(tmp_path, monkeypatch):
+    """Issue 40, finding 5: the read of an export's file had no bound of its own (only the size
+    checked before covered it): a file that grows after the check, as its size says it is 0
+    bytes here, is read to ``max_bytes`` + 1 and no further, in one piece or in chunks."""
+    grown = tmp_path / "rawMapData" / "u" / "grown.json"
+    grown.parent.mkdir(parents=True)
+    grown.write_bytes(b" " * (3 * 2**20))
+    reads = ReadCounting(fstat_size=0)
+    monkeypatch.setattr(firebase_export, "os", reads)
+    for read in (
+        lambda: read_export_file(tmp_path, grown, max_bytes=2**20),
+        lambda: list(export_file_chunks(tmp_path, grown, max_bytes=2**20, chunk_bytes=2**16)),
+    ):
+        reads.bytes_read = 0
+        with pytest.raises(ExportFileRefused) as refused:
+            read()
+        assert str(refused.value) == "grown.json is larger than 1048576 bytes"
+        assert reads.bytes_read == 2**20 + 1
+    chunks = list(export_file_chunks(tmp_path, grown, max_bytes=4 * 2**20, chunk_bytes=2**16))
+    assert {len(chunk) for chunk in chunks} == {2**16}
+    assert b"".join(chunks) == grown.read_bytes()

@@ -27,6 +27,7 @@ read bounded). A recording whose file is not is kept with its ``problem``; a dat
 is not is skipped with a note.
 
     data = read_export_file(export_folder, entry.raw_path, max_bytes=2**28)  # or ExportFileRefused
+    for chunk in export_file_chunks(export_folder, entry.raw_path, max_bytes=2**28): ...
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ RAW_FOLDER = "rawMapData"
 LOG_SUFFIX = " serialization error.json"
 #: Largest Realtime Database export read, bytes.
 MAX_DATABASE_EXPORT_BYTES = 512 * 2**20
+#: Bytes read at a time from a file of the export (:func:`export_file_chunks`).
+CHUNK_BYTES = 2**20
 
 
 class FirebaseExportError(Exception):
@@ -79,10 +82,22 @@ def export_file_problem(folder: Path, path: Path) -> str | None:
 def read_export_file(folder: Path, path: Path, *, max_bytes: int) -> bytes:
     """The bytes of ``path``, a file of the export folder ``folder``, if
     :func:`export_file_problem` finds none and it holds at most ``max_bytes``; else
-    ExportFileRefused with the reason. The file is opened without following a last link and
-    without blocking (a FIFO answers at once), its size is checked before it is read, it is read
-    no further than ``max_bytes`` + 1, and the file opened must be the one inside the folder (on
-    Linux, by the descriptor's own path)."""
+    ExportFileRefused with the reason (see :func:`export_file_chunks`)."""
+    return b"".join(
+        export_file_chunks(folder, path, max_bytes=max_bytes, chunk_bytes=max_bytes + 1)
+    )
+
+
+def export_file_chunks(
+    folder: Path, path: Path, *, max_bytes: int, chunk_bytes: int = CHUNK_BYTES
+) -> Iterator[bytes]:
+    """The bytes of ``path``, a file of the export folder ``folder``, in chunks of at most
+    ``chunk_bytes``, if :func:`export_file_problem` finds none and it holds at most
+    ``max_bytes``; else ExportFileRefused with the reason, raised before the first chunk (or, for
+    a file that grows while it is read, once it has grown past ``max_bytes``). The file is opened
+    without following a last link and without blocking (a FIFO answers at once), its size is
+    checked before it is read, it is read no further than ``max_bytes`` + 1, and the file opened
+    must be the one inside the folder (on Linux, by the descriptor's own path)."""
     problem = export_file_problem(folder, path)
     if problem is not None:
         raise ExportFileRefused(f"{path.name} {problem}")
@@ -91,7 +106,7 @@ def read_export_file(folder: Path, path: Path, *, max_bytes: int) -> bytes:
         descriptor = os.open(real, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except OSError as err:
         raise ExportFileRefused(f"cannot open {path.name}: {err.strerror or err}") from None
-    with os.fdopen(descriptor, "rb") as file:
+    with os.fdopen(descriptor, "rb", buffering=0) as file:
         opened = Path(f"/proc/self/fd/{descriptor}")
         if opened.is_symlink() and not opened.resolve().is_relative_to(folder.resolve()):
             raise ExportFileRefused(f"{path.name} is a link leading out of the export folder")
@@ -102,13 +117,18 @@ def read_export_file(folder: Path, path: Path, *, max_bytes: int) -> bytes:
             raise ExportFileRefused(
                 f"{path.name} ({status.st_size} bytes) is larger than {max_bytes} bytes"
             )
-        try:
-            data = file.read(max_bytes + 1)
-        except OSError as err:
-            raise ExportFileRefused(f"cannot read {path.name}: {err.strerror or err}") from None
-    if len(data) > max_bytes:  # it grew since
-        raise ExportFileRefused(f"{path.name} is larger than {max_bytes} bytes")
-    return data
+        left = max_bytes + 1  # one byte more tells a file that grew since
+        while left > 0:
+            try:
+                chunk = file.read(min(chunk_bytes, left))
+            except OSError as err:
+                raise ExportFileRefused(f"cannot read {path.name}: {err.strerror or err}") from None
+            if not chunk:
+                return
+            left -= len(chunk)
+            if left == 0:  # it grew since
+                raise ExportFileRefused(f"{path.name} is larger than {max_bytes} bytes")
+            yield chunk
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -255,8 +275,9 @@ def _database_exports(directory: Path, notes: list[str]) -> tuple[list[Path], di
             continue
         try:
             document = json.loads(encoded)
-        except (UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise FirebaseExportError(f"{path.name} is not valid JSON: {err}") from err
+        except ValueError as err:  # not UTF-8, not JSON, an integer of too many digits
+            reason = str(err).partition(";")[0]
+            raise FirebaseExportError(f"{path.name} is not valid JSON: {reason}") from err
         except RecursionError:
             raise FirebaseExportError(
                 f"{path.name} is nested too deeply to be a database export"

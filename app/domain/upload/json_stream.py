@@ -116,6 +116,10 @@ class JsonStream:
                 if cut and self._fill(2 * (len(self._text) - self._pos) + 1):
                     continue
                 raise self.syntax_error(err.msg, err.pos) from None
+            except ValueError as err:  # an integer of more digits than Python converts
+                raise SessionFormatError(
+                    "", f"{self.source} is not valid JSON: {str(err).partition(';')[0]}"
+                ) from None
             except RecursionError:
                 raise SessionFormatError(
                     "", f"{self.source} is nested too deeply to be a session"

@@ -182,6 +182,10 @@ def decode_json_bytes(raw: bytes, *, source: str = "upload") -> Any:
         raise SessionFormatError(
             "", f"{source} is not valid JSON: {err.msg} at line {err.lineno} column {err.colno}"
         ) from err
+    except ValueError as err:  # an integer of more digits than Python converts
+        raise SessionFormatError(
+            "", f"{source} is not valid JSON: {str(err).partition(';')[0]}"
+        ) from err
 
 
 # --------------------------------------------------------------------------- parsing

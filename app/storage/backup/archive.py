@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import os
 import re
+import stat
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import IO, Any, TypeGuard
+from typing import IO, Any, BinaryIO, TypeGuard
 
 from alembic.script import ScriptDirectory
 from sqlalchemy import (
@@ -361,23 +364,32 @@ class ArchiveReader:
     def __init__(self, path: Path, *, max_member_bytes: int = MAX_MEMBER_BYTES) -> None:
         self.path = path
         self.max_member_bytes = max_member_bytes
+        self._file = open_regular_file(path)
         try:
-            self._zip = zipfile.ZipFile(path)
+            self._zip = zipfile.ZipFile(self._file)
         except zipfile.BadZipFile as err:
+            self._file.close()
             raise ArchiveInvalid(
                 f"{path}: not a backup archive (not a zip file, or truncated): {err}"
             ) from err
+        except BaseException:
+            self._file.close()
+            raise
         try:
             self.manifest = self._read_manifest()
         except BaseException:
-            self._zip.close()
+            self.close()
             raise
 
     def __enter__(self) -> ArchiveReader:
         return self
 
     def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
         self._zip.close()
+        self._file.close()
 
     def _read_manifest(self) -> Manifest:
         try:
@@ -439,10 +451,13 @@ class ArchiveReader:
                     raise ArchiveInvalid(
                         f"{self.path}: {where}: longer than a row may be ({MAX_ROW_BYTES} bytes)"
                     )
-                try:
-                    row = json.loads(line)  # UTF-8 bytes (a bad byte is a ValueError too)
+                try:  # UTF-8 bytes (a bad byte is a ValueError too)
+                    row = json.loads(line, parse_constant=_no_constant, parse_float=_finite)
+                except NotAJsonNumber as err:
+                    raise ArchiveInvalid(f"{self.path}: {where}: {err}") from None
                 except (ValueError, RecursionError) as err:
-                    raise ArchiveInvalid(f"{self.path}: {where}: not JSON: {err}") from err
+                    reason = str(err).partition(";")[0]
+                    raise ArchiveInvalid(f"{self.path}: {where}: not JSON: {reason}") from err
                 if not isinstance(row, dict):
                     raise ArchiveInvalid(f"{self.path}: {where}: not a JSON object")
                 yield where, row
@@ -493,6 +508,27 @@ class ArchiveReader:
             raise ArchiveInvalid(f"{self.path}: {name} is corrupt: {err}") from err
 
 
+def open_regular_file(path: Path) -> BinaryIO:
+    """``path`` opened for reading if it is a regular file; ArchiveInvalid at once for a FIFO, a
+    device or a folder (which would hang, or be read without end: ``/dev/zero``), OSError if it
+    is missing or cannot be opened. Checked before it is opened, and again on the descriptor,
+    opened without blocking, so that a FIFO put in its place meanwhile cannot hang it."""
+    refused = ArchiveInvalid(
+        f"{path}: not a regular file (a FIFO, a device or a folder), not a backup archive"
+    )
+    if not stat.S_ISREG(os.stat(path).st_mode):
+        raise refused
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+            raise refused
+        os.set_blocking(descriptor, True)
+        return os.fdopen(descriptor, "rb")
+    except BaseException:
+        os.close(descriptor)
+        raise
+
+
 def check_schema_revision(archive_revision: str, database_revision: str | None) -> None:
     """Raise ArchiveIncompatible unless the archive was exported at the database's revision,
     saying which side to migrate."""
@@ -521,6 +557,25 @@ def _known_revisions() -> list[str]:
     """The migrations' revisions, oldest first."""
     script = ScriptDirectory.from_config(alembic_config("sqlite://"))
     return [revision.revision for revision in script.walk_revisions()][::-1]
+
+
+class NotAJsonNumber(ValueError):
+    """Raised while a row is decoded for a number JSON does not have (``NaN``, ``Infinity``, a
+    literal beyond a float's range) that Python's decoder would take: PostgreSQL refuses it in a
+    JSON column, SQLite stores NaN as NULL."""
+
+
+def _no_constant(name: str) -> float:
+    raise NotAJsonNumber(f"holds {name}, which is no JSON number (no database holds it as one)")
+
+
+def _finite(literal: str) -> float:
+    value = float(literal)
+    if not math.isfinite(value):
+        raise NotAJsonNumber(
+            f"holds {literal[:40]}, a number beyond a float's range (no database holds it)"
+        )
+    return value
 
 
 def is_int(value: Any) -> TypeGuard[int]:

@@ -6,9 +6,16 @@ is refused naming its row (``tables/map.jsonl line 3 (id 3): display_name holds 
 with a driver's traceback: the column's type, an integer within the column's range (ids are
 32-bit), text by the rule of every stored text (:func:`app.domain.upload.fields.text_fault`,
 in JSON columns too) and within the column's length, a datetime that UTC can hold, references
-to rows in the archive, and each upload, which must inflate to its session's size and SHA-256,
-a size no larger than the server takes (``INVISIBLE_MAP_MAX_SESSION_BYTES``), checked before it
-is inflated.
+to rows in the archive, no key or unique set of columns given twice (a primary key, a
+``UNIQUE`` constraint), what the tables' ``CHECK`` constraints allow, numbers JSON has (no NaN or
+Infinity: ``ArchiveReader.rows``), and each upload, which must inflate to its session's size and
+SHA-256, a size no larger than the server takes (``INVISIBLE_MAP_MAX_SESSION_BYTES``), checked
+before it is inflated.
+
+These checks are the one validator of an archive: ``import`` and ``import --check`` both run them
+(:class:`_ImportRun`, with and without a database), so that the check refuses what the import
+refuses, on SQLite and PostgreSQL alike; what is left to the database is only what depends on its
+data (a restore into a database that is not empty, a merge's clashes).
 """
 
 from __future__ import annotations
@@ -31,8 +38,10 @@ from sqlalchemy import (
     Float,
     Integer,
     LargeBinary,
+    PrimaryKeyConstraint,
     SmallInteger,
     String,
+    UniqueConstraint,
     insert,
     select,
     text,
@@ -67,9 +76,19 @@ from app.storage.derived import add_derived_documents
 from app.storage.orm import (
     ApiKey,
     JobState,
+    Role,
     SessionRow,
     UTCDateTime,
 )
+
+#: What the tables' ``CHECK`` constraints (``app.storage.orm``) allow, by (table, column): the
+#: values a column may hold, or the range (inclusive) of a number. A test checks that every
+#: ``CHECK`` constraint of an exported table is here.
+ALLOWED_VALUES: dict[tuple[str, str], frozenset[str]] = {
+    ("api_key", "role"): frozenset(role.value for role in Role),
+    ("job", "state"): frozenset(state.value for state in JobState),
+}
+ALLOWED_RANGES: dict[tuple[str, str], tuple[float, float]] = {("job", "progress"): (0.0, 1.0)}
 
 # --------------------------------------------------------------------------- import
 
@@ -221,6 +240,9 @@ class _ImportRun:
         #: archive session id → (SHA-256, size) of its upload's JSON
         self.uploads: dict[int, tuple[str, int]] = {}
         self.queued_job_ids: list[int] = []
+        #: (table, unique columns) → the values taken (the archive's ids; references mapped)
+        self.taken: dict[tuple[str, tuple[str, ...]], set[tuple[Any, ...]]] = {}
+        self.unique_sets: dict[str, list[tuple[str, ...]]] = {}
 
     def run(self) -> None:
         for spec in TABLES:
@@ -232,6 +254,7 @@ class _ImportRun:
                 read += 1
                 values = self._values(spec, raw, where)
                 if values is not None:
+                    self._check_constraints(spec, values, raw, where)
                     self._write(spec, values, batch)
                 if spec.name in PROGRESS_TABLES:
                     self.done += 1
@@ -296,6 +319,44 @@ class _ImportRun:
             else:
                 values[reference] = None
         return self._adjusted(spec.name, values, raw, where)
+
+    def _check_constraints(
+        self, spec: TableSpec, values: Mapping[str, Any], raw: Mapping[str, Any], where: str
+    ) -> None:
+        """ArchiveInvalid for a row that a table's ``CHECK`` constraint refuses, or whose key or
+        unique columns an earlier row of the archive holds (the database's constraints, checked
+        the same way with or without a database)."""
+        key = raw.get(spec.key)
+        where = f"{self.archive.path}: {where}" + (f" ({spec.key} {key})" if is_int(key) else "")
+        for (table, column), allowed in ALLOWED_VALUES.items():
+            if table == spec.name and column in values and values[column] not in allowed:
+                raise ArchiveInvalid(
+                    f"{where}: {column} {values[column]!r} is not one of {sorted(allowed)}"
+                )
+        for (table, column), (low, high) in ALLOWED_RANGES.items():
+            number = values.get(column) if table == spec.name else None
+            if number is not None and not low <= number <= high:
+                raise ArchiveInvalid(f"{where}: {column} {number!r} is not from {low} to {high}")
+        if spec.name not in self.unique_sets:
+            self.unique_sets[spec.name] = _unique_column_sets(spec)
+        for columns in self.unique_sets[spec.name]:
+            if spec.allocates_ids and columns == ("id",):
+                taken: tuple[Any, ...] = (raw["id"],)  # the archive's id (a merge gives a new one)
+            else:
+                taken = tuple(values.get(name) for name in columns)
+            if any(value is None for value in taken):
+                continue  # NULLs never clash
+            seen = self.taken.setdefault((spec.name, columns), set())
+            if taken in seen:
+                shown = ", ".join(
+                    f"{name} {value!r}" for name, value in zip(columns, taken, strict=True)
+                )
+                raise ArchiveInvalid(
+                    f"{where}: {shown}: an earlier row of {spec.member} has "
+                    f"{'it' if len(columns) == 1 else 'them'} too (the table holds "
+                    f"{'it' if len(columns) == 1 else 'them'} once)"
+                )
+            seen.add(taken)
 
     def _mapped(self, table: str, archive_id: int, where: str) -> int:
         try:
@@ -431,6 +492,19 @@ class _ImportRun:
             self.db_session.execute(insert(spec.table), batch)
             self.written[spec.name] += len(batch)
             batch.clear()
+
+
+def _unique_column_sets(spec: TableSpec) -> list[tuple[str, ...]]:
+    """The sets of the table's exported columns that the database holds once (its primary key,
+    its ``UNIQUE`` constraints), each as a tuple of column names."""
+    exported = {column.name for column in spec.columns()}
+    found = []
+    for constraint in spec.table.constraints:
+        if isinstance(constraint, (PrimaryKeyConstraint, UniqueConstraint)):
+            names = tuple(column.name for column in constraint.columns)
+            if names and set(names) <= exported:
+                found.append(names)
+    return found
 
 
 def _decoded(column: Column[Any], value: Any, where: str) -> Any:
