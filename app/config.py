@@ -28,6 +28,7 @@ that directory agrees; it signs the admin dashboard's login cookies],
 ``INVISIBLE_MAP_KEY_CACHE_S`` [5: how long an API process trusts a key it checked; see
 ``key_cache_s``], ``INVISIBLE_MAP_MAP_CACHE_S`` [2: the same for a map's current version; see
 ``map_cache_s``], ``INVISIBLE_MAP_VERSION_CACHE_BYTES`` [256 MiB: documents kept per process],
+``INVISIBLE_MAP_MAX_CORRIDOR_EDITS`` [5,000 corridor edits per map; see ``max_corridor_edits``],
 ``INVISIBLE_MAP_LOG_FORMAT`` [text; or json: one JSON object per log line].
 """
 
@@ -142,6 +143,11 @@ class Settings(BaseSettings):
     #: The most bytes of documents made from map versions (app-map, GeoJSON, map documents)
     #: one API process keeps.
     version_cache_bytes: int = Field(default=256 * 2**20, ge=0)
+    #: The most corridor edits one map may hold (a POST past it: 409 too_many_corridor_edits).
+    #: 5,000: several per node of the largest graphs we build (~1,000 nodes), and what a new
+    #: version, a deleted edit or another process applies again once in under 1 s of CPU
+    #: (10,000: ~1.7 s; docs/navigation.md "Corridor edits", bench/corridor_edits.py --scale).
+    max_corridor_edits: int = Field(default=5_000, ge=1, le=100_000)
     session_secret: str | None = Field(
         default=None,
         description="signs the admin dashboard's cookies; unset: a random secret in data_dir",

@@ -18,6 +18,15 @@
    distance to the nearest node of the other (same floor), p50 / p95 / max over the nodes whose
    corridor the other version has (nearest ≤ 3 m). ``NODE_TOLERANCE_M`` (1.5 m) must cover what
    a rebuild moves a node by, and stay under a corridor width apart.
+
+4. **At scale** (``--scale``, alone: ``.venv/bin/python -m bench.corridor_edits --scale``, ~2
+   min): the real floor_2_straight map built by the worker (SQLite, the API in process), with
+   100, 1,000, 5,000 and 10,000 edits stored (quiets, moves, points of interest), CPU time of a
+   POST of one more edit, the first route after it, a GET of the list (its first page, and its
+   size), median of 5; and the first route after a delete, when every edit is applied again (what
+   a new version, a restart and another API process pay once), median of 3. Before issue 39
+   (each POST applied every edit twice and the list came whole) it measured
+   :data:`BEFORE_SCALE`.
 """
 
 from __future__ import annotations
@@ -257,5 +266,166 @@ def main() -> None:
     print(render_markdown_table(rows, justify="left"))
 
 
+# --------------------------------------------------------------------------- 4. at scale
+
+#: Table 4 before issue 39 (commit before it, same machine, CPU ms; the delete column did not
+#: exist): edits on the map, add one edit, first route after it, the list (whole), its KB.
+BEFORE_SCALE = (
+    ("100", "42.1", "33.3", "19.9", "29"),
+    ("1,000", "228.0", "141.7", "102.3", "272"),
+    ("10,000", "7474.9", "4485.0", "1390.2", "2,723"),
+)
+#: How many edits a map has already in table 4.
+SCALE_COUNTS = (100, 1_000, 5_000, 10_000)
+#: Rounds of (add one edit, first route after it, list page) per count in table 4.
+SCALE_ROUNDS = 5
+
+
+def scale_edits(pg: PathGraph, count: int, start: int) -> list[dict[str, object]]:
+    """``count`` edits of the kinds an operator makes (quiets, moves by 0 m, points of interest),
+    spread over the graph's nodes, numbered from ``start``: each one applies."""
+    nodes = sorted(pg.graph.nodes)
+    documents: list[dict[str, object]] = []
+    for k in range(start, start + count):
+        p = [float(v) for v in pg.graph.nodes[nodes[(k * 7919) % len(nodes)]]["position_m"]]
+        match k % 3:
+            case 0:
+                documents.append({"op": "quiet", "at": p})
+            case 1:
+                documents.append({"op": "move_node", "from": p, "to": p})
+            case _:
+                documents.append({"op": "add_poi", "name": f"Bench {k}", "at": p})
+    return documents
+
+
+def at_scale() -> list[list[str]]:
+    """Table 4: on the real floor_2_straight map (built by the worker, SQLite), with 100, 1,000
+    and 10,000 edits already stored: CPU time of a POST of one more edit, of the first route
+    after it, and of a GET of the edits' list (its first page), through the API in process."""
+    import tempfile
+
+    from app.config import Settings
+    from app.services.navigation import version_path_graph
+    from app.storage import maps as map_storage
+    from app.storage.db import Database
+    from app.storage.migrate import upgrade_to_head
+    from app.storage.orm import CorridorEditRow, MapRow, utc_now
+    from tests.service.api_support import ADMIN, running_api
+    from tests.service.test_api_navigation import build, floor_2_with_pois
+
+    rows = [
+        [
+            "edits on the map",
+            "add one edit ms",
+            "first route after it ms",
+            "list page ms",
+            "list page KB",
+            "first route after a delete ms",
+        ]
+    ]
+    with tempfile.TemporaryDirectory() as folder:
+        url = f"sqlite:///{folder}/bench.sqlite3"
+        database = Database(url)
+        upgrade_to_head(database)
+        database.dispose()
+        # room for the edits (a setting the code before the cap does not have)
+        settings = (
+            {"max_corridor_edits": max(SCALE_COUNTS) + 1_000}
+            if "max_corridor_edits" in Settings.model_fields
+            else {}
+        )
+        with running_api(url, **settings) as api:
+            map_id = api.uploaded(floor_2_with_pois())["map_id"]
+            build(api)
+            with api.db.read() as db_session:
+                version = map_storage.get_map(db_session, map_id).current
+                assert version is not None
+                pg = version_path_graph(api.app.state.version_cache, db_session, version)
+            stored = 0
+            for count in SCALE_COUNTS:
+                with api.db.transaction() as db_session:  # the edits, stored straight
+                    for document in scale_edits(pg, count - stored, stored):
+                        db_session.add(
+                            CorridorEditRow(
+                                map_id=map_id,
+                                edit=document,
+                                created_by="env-admin",
+                                created_by_name=None,
+                                created_at=utc_now(),
+                            )
+                        )
+                    row = db_session.get(MapRow, map_id)
+                    assert row is not None
+                    row.corridor_edits_revision += 1
+                stored = count
+                listing = api.client.get(f"/v1/maps/{map_id}/corridor-edits", headers=ADMIN)
+                assert listing.status_code == 200, listing.text  # the edits applied once
+                times: dict[str, list[float]] = {"add": [], "route": [], "list": []}
+                page_bytes = 0
+                for k in range(SCALE_ROUNDS):
+                    at = [float(v) for v in pg.graph.nodes[sorted(pg.graph.nodes)[k]]["position_m"]]
+                    edit = {"op": "add_poi", "name": f"New {count} {k}", "at": at}
+                    for name, call in (
+                        (
+                            "add",
+                            lambda edit=edit: api.client.post(
+                                f"/v1/maps/{map_id}/corridor-edits", json=edit, headers=ADMIN
+                            ),
+                        ),
+                        (
+                            "route",
+                            lambda: api.client.post(
+                                f"/v1/maps/{map_id}/routes",
+                                json={"from": {"tag": 300}, "to": {"tag": 324}},
+                                headers=ADMIN,
+                            ),
+                        ),
+                        (
+                            "list",
+                            lambda: api.client.get(
+                                f"/v1/maps/{map_id}/corridor-edits", headers=ADMIN
+                            ),
+                        ),
+                    ):
+                        begin = time.process_time()
+                        response = call()
+                        times[name].append((time.process_time() - begin) * 1000)
+                        assert response.status_code in (200, 201), response.text
+                        if name == "list":
+                            page_bytes = len(response.content)
+                    stored += 1
+                # a delete: every edit applied again (what a new version and another process pay)
+                after_delete_ms = []
+                for item in listing.json()["data"][:3]:
+                    assert api.client.delete(
+                        f"/v1/maps/{map_id}/corridor-edits/{item['id']}", headers=ADMIN
+                    ).is_success
+                    stored -= 1
+                    begin = time.process_time()
+                    response = api.client.post(
+                        f"/v1/maps/{map_id}/routes",
+                        json={"from": {"tag": 300}, "to": {"tag": 324}},
+                        headers=ADMIN,
+                    )
+                    after_delete_ms.append((time.process_time() - begin) * 1000)
+                    assert response.status_code == 200, response.text
+                rows.append(
+                    [
+                        f"{count:,}",
+                        *(f"{statistics.median(times[n]):.1f}" for n in ("add", "route", "list")),
+                        f"{page_bytes / 1000:,.0f}",
+                        f"{statistics.median(after_delete_ms):.0f}",
+                    ]
+                )
+    return rows
+
+
 if __name__ == "__main__":
-    main()
+    if "--scale" in sys.argv[1:]:
+        print("4. At scale, before issue 39 (CPU ms)\n")
+        header = ["edits on the map", "add one edit ms", "first route after it ms", "list ms"]
+        print(render_markdown_table([[*header, "list KB"], *map(list, BEFORE_SCALE)]) + "\n")
+        print("4. At scale, now (CPU ms, median of 5)\n")
+        print(render_markdown_table(at_scale(), justify="left"))
+    else:
+        main()

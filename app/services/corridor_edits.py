@@ -14,7 +14,14 @@ a 409; a map without a path graph the 409 ``no_path_graph``. Nothing is stored t
 row is locked and its edit revision raised before the edits are read (``app.storage.
 corridor_edits``), so two operators' edits are checked one after the other and neither is lost.
 An ``expected_revision`` (the ``If-Match`` of the API) refuses, 409 ``edits_changed``, when the
-edits changed since the caller read them.
+edits changed since the caller read them. A map holds at most ``max_edits`` edits
+(``INVISIBLE_MAP_MAX_CORRIDOR_EDITS``): one more is the 409 ``too_many_corridor_edits``, counted
+under the map's lock, so operators adding at once never pass it.
+
+A new edit is applied to the edited graph of the edits before it, which this process keeps
+(``app.services.navigation``), not to all of them again: what it costs does not grow with how
+many came before. The graph with it is kept when the transaction commits (never before: a
+revision rolled back is used again), so the next route in this process is served from it.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import gzip
 from dataclasses import dataclass
 from typing import Any
 
+from sqlalchemy import event
 from sqlalchemy.orm import Session
 
 from app.domain.formats.derived_documents import DERIVED_GZIP_LEVEL, app_map_of
@@ -31,18 +39,28 @@ from app.domain.navigation.corridor_edits import (
     EditConflict,
     EditInvalid,
     EditOutcome,
-    apply_new_edit,
+    apply_new_edit_to,
     edit_from_json,
     with_edited_pois,
 )
 from app.services.errors import Conflict, InvalidInput, NotFound
 from app.services.maps import app_map_gzip, chosen_version
-from app.services.navigation import EditedVersion, edited_of, edited_version
+from app.services.navigation import (
+    EDITED_PATH_GRAPH,
+    EditedVersion,
+    edited_of,
+    edited_version,
+    keep_edited,
+)
 from app.services.version_cache import VersionCache
 from app.storage import corridor_edits, keys, maps
 from app.storage.corridor_edits import StoredEdit
 from app.storage.keys import ENVIRONMENT_ADMIN, Principal
 from app.storage.maps import MapInfo, VersionInfo
+
+#: The most corridor edits a map may hold unless ``INVISIBLE_MAP_MAX_CORRIDOR_EDITS`` says
+#: (``app.config.Settings.max_corridor_edits``, where the choice is explained).
+DEFAULT_MAX_EDITS = 5_000
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -77,7 +95,7 @@ def edits_report(
     """The map's edits and their outcomes on version ``number`` (the current one if None);
     404 for no such version, 409 while the map has no version or the version no path graph."""
     version = chosen_version(db_session, info, number)
-    edited = edited_version(cache, db_session, version)  # the revision read now
+    edited = edited_version(cache, db_session, version, info.corridor_edits_revision)
     return EditsReport.of(info, version, edited)
 
 
@@ -89,11 +107,13 @@ def add_edit(
     *,
     principal: Principal,
     expected_revision: int | None = None,
+    max_edits: int = DEFAULT_MAX_EDITS,
 ) -> tuple[StoredEdit, EditsReport]:
     """Check ``document`` against the map's current version with its edits, and store it as the
-    newest edit; the edit and the report after it (see the module docstring for the refusals).
-    Raises MapNotFound. A refusal leaves the map's revision raised in the transaction: the
-    caller rolls it back (an error raised through the request's transaction does)."""
+    newest edit; the edit and the report after it (see the module docstring for the refusals;
+    409 ``too_many_corridor_edits`` when the map has ``max_edits`` already). Raises
+    MapNotFound. A refusal leaves the map's revision raised in the transaction: the caller
+    rolls it back (an error raised through the request's transaction does)."""
     try:
         edit = edit_from_json(document)
     except EditInvalid as err:
@@ -102,11 +122,22 @@ def add_edit(
     _check_expected(map_id, expected_revision, revision - 1)
     info = maps.get_map(db_session, map_id)
     version = chosen_version(db_session, info, None)
-    _, edits = corridor_edits.list_edits(db_session, map_id)
-    # Not through the per-process cache: this transaction's revision is not committed yet.
-    before = edited_of(cache, db_session, version, revision, edits)
+    # The edits as committed (revision − 1): kept by this process, else read (under the lock).
+    before: EditedVersion | None = cache.peek((EDITED_PATH_GRAPH, version.id, revision - 1))
+    if before is None:
+        _, edits = corridor_edits.list_edits(db_session, map_id)
+        before = edited_of(cache, db_session, version, revision - 1, edits)
+        keep_edited(cache, before)  # committed: what revision − 1 is, here and elsewhere
+    if len(before.edits) >= max_edits:
+        raise Conflict(
+            "too_many_corridor_edits",
+            f"map {map_id} has {len(before.edits):,} corridor edits, the most a map may have "
+            f"(INVISIBLE_MAP_MAX_CORRIDOR_EDITS = {max_edits:,}): delete edits it no longer "
+            "needs, or rebuild the map's corridors, before adding more",
+            field=None,
+        )
     try:
-        apply_new_edit(before.path_graph, edit)
+        edited = apply_new_edit_to(before.edited, edit)
     except (EditInvalid, EditConflict) as err:
         raise _refusal(err) from err
     stored = corridor_edits.add_edit(
@@ -116,8 +147,25 @@ def add_edit(
         created_by=principal.subject,
         created_by_name=_key_name(db_session, principal),
     )
-    after = edited_of(cache, db_session, version, revision, [*edits, stored])
+    after = before.extended(revision, [stored], edited)
+    _keep_at_commit(db_session, cache, after)
     return stored, EditsReport.of(info, version, after)
+
+
+def _keep_at_commit(db_session: Session, cache: VersionCache, value: EditedVersion) -> None:
+    """Keep ``value`` in ``cache`` when ``db_session``'s transaction commits; never if it rolls
+    back (its revision would be used again, by other edits)."""
+    state = {"rolled_back": False}
+
+    def rolled_back(_session: Session) -> None:
+        state["rolled_back"] = True
+
+    def committed(_session: Session) -> None:
+        if not state["rolled_back"]:
+            keep_edited(cache, value)
+
+    event.listen(db_session, "after_soft_rollback", rolled_back, once=True)
+    event.listen(db_session, "after_commit", committed, once=True)
 
 
 def delete_edit(

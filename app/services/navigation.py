@@ -16,11 +16,17 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from sqlalchemy.orm import Session
 
-from app.domain.navigation.corridor_edits import EditedGraph, apply_edits
+from app.domain.navigation.corridor_edits import (
+    CorridorEdit,
+    EditedGraph,
+    apply_edits,
+    apply_more_edits,
+)
 from app.domain.navigation.instructions import DEFAULT_STYLE, GuidanceStyle, plan_guided_route
 from app.domain.navigation.path_graph import PathGraph, path_graph_from_json, path_graph_to_geojson
 from app.domain.navigation.routing import (
@@ -75,21 +81,76 @@ class EditedVersion:
     """A version's path graph with its map's corridor edits as of ``revision`` applied:
     ``edits`` (oldest first), what became of each (``edited.outcomes``), and ``digest``, the
     SHA-256 of the edits (empty without edits), which the ETags of documents made from the
-    edited graph name."""
+    edited graph name. :meth:`extended` adds edits made since at their own cost."""
 
     version_id: int
     revision: int
     edits: tuple[StoredEdit, ...]
     edited: EditedGraph
     digest: str
+    #: The SHA-256 of the edits' JSON list so far, without its closing "]" (to extend it).
+    hashed: Any = field(default=None, repr=False, compare=False)
 
     @property
     def path_graph(self) -> PathGraph:
         return self.edited.path_graph
 
+    def extended(
+        self, revision: int, more: Sequence[StoredEdit], edited: EditedGraph | None = None
+    ) -> EditedVersion:
+        """This with the edits ``more`` (made after its own) applied, as of ``revision``;
+        ``edited``: what :func:`apply_more_edits` makes of them, when the caller has it."""
+        if edited is None:
+            edited = apply_more_edits(self.edited, [stored.edit for stored in more])
+        edits = (*self.edits, *more)
+        hashed = _hashed(self.hashed, self.edits, more)
+        return EditedVersion(
+            version_id=self.version_id,
+            revision=revision,
+            edits=edits,
+            edited=edited,
+            digest=_digest(hashed, edits),
+            hashed=hashed,
+        )
+
 
 #: An edited path graph's key in the VersionCache (with the version's id and the revision).
 EDITED_PATH_GRAPH = "edited_path_graph"
+#: The newest edited path graph this process made of a version (with the version's id): the
+#: edits added since are applied to it alone.
+NEWEST_EDITED_PATH_GRAPH = "newest_edited_path_graph"
+
+
+def _hashed(hashed: Any, before: Sequence[StoredEdit], more: Sequence[StoredEdit]) -> Any:
+    """``hashed`` (the SHA-256 of ``before``'s JSON list, open) continued with ``more``."""
+    if hashed is None or not before:
+        hasher, items, first = hashlib.sha256(b"["), [*before, *more], True
+    else:
+        hasher, items, first = hashed.copy(), list(more), False
+    for stored in items:
+        if not first:
+            hasher.update(b", ")
+        first = False
+        hasher.update(json.dumps(stored.edit.to_json(), sort_keys=True).encode())
+    return hasher
+
+
+def _digest(hashed: Any, edits: Sequence[StoredEdit]) -> str:
+    """The SHA-256 of ``json.dumps([edit, …], sort_keys=True)`` ("" without edits)."""
+    if not edits:
+        return ""
+    hasher = hashed.copy()
+    hasher.update(b"]")
+    return str(hasher.hexdigest())
+
+
+def keep_edited(cache: VersionCache, value: EditedVersion) -> None:
+    """Keep ``value`` (committed edits) for its version and revision, and as the version's
+    newest."""
+    cache.put((EDITED_PATH_GRAPH, value.version_id, value.revision), value)
+    newest: EditedVersion | None = cache.peek((NEWEST_EDITED_PATH_GRAPH, value.version_id))
+    if newest is None or newest.revision <= value.revision:
+        cache.put((NEWEST_EDITED_PATH_GRAPH, value.version_id), value)
 
 
 def edited_version(
@@ -109,7 +170,7 @@ def edited_version(
         if again is not None:
             return again
     value = edited_of(cache, db_session, version, revision or 0, edits)
-    cache.put((EDITED_PATH_GRAPH, version.id, value.revision), value)
+    keep_edited(cache, value)
     return value
 
 
@@ -121,22 +182,29 @@ def edited_of(
     edits: Sequence[StoredEdit],
 ) -> EditedVersion:
     """``version``'s path graph with ``edits`` applied, not kept: :func:`edited_version` keeps
-    what is committed; a transaction that changes the edits uses this one."""
+    what is committed; a transaction that changes the edits uses this one. When this process
+    has made the graph of the first of ``edits`` already (the newest it made of the version,
+    and only edits added since), only the others are applied."""
+    newest: EditedVersion | None = cache.peek((NEWEST_EDITED_PATH_GRAPH, version.id))
+    if (
+        newest is not None
+        and len(newest.edits) <= len(edits)
+        and all(a.id == b.id for a, b in zip(newest.edits, edits, strict=False))
+    ):
+        return newest.extended(revision, edits[len(newest.edits) :])
     base = version_path_graph(cache, db_session, version)
-    digest = (
-        hashlib.sha256(
-            json.dumps([stored.edit.to_json() for stored in edits], sort_keys=True).encode()
-        ).hexdigest()
-        if edits
-        else ""
-    )
-    return EditedVersion(
+    unedited = EditedVersion(
         version_id=version.id,
-        revision=revision,
-        edits=tuple(edits),
-        edited=apply_edits(base, [stored.edit for stored in edits]),
-        digest=digest,
+        revision=0,
+        edits=(),
+        edited=EditedGraph(path_graph=base, outcomes=()),
+        digest="",
     )
+    return unedited.extended(revision, edits, apply_edits(base, _edits_of(edits)))
+
+
+def _edits_of(edits: Sequence[StoredEdit]) -> list[CorridorEdit]:
+    return [stored.edit for stored in edits]
 
 
 def kept_path_graph(cache: VersionCache, version: VersionInfo, revision: int) -> PathGraph | None:

@@ -17,6 +17,10 @@ from typing import Any
 import pytest
 
 from app.domain.formats.app_model import check_app_map
+from app.domain.navigation.corridor_edits import edit_from_json
+from app.services import navigation
+from app.services.version_cache import VersionCache
+from app.storage import corridor_edits as corridor_storage
 from app.storage.orm import CorridorEditRow
 from tests.conftest import fresh_database_url
 from tests.service.api_support import ADMIN, SESSIONS_DIR, Api, running_api
@@ -46,7 +50,7 @@ def nav(built: tuple[Api, int]) -> Iterator[tuple[Api, int]]:
     """The built map, its edits deleted after the test."""
     yield built
     api, map_id = built
-    for item in edits(api, map_id)["data"]:
+    for item in edits(api, map_id, limit=1000)["data"]:
         api.client.delete(f"/v1/maps/{map_id}/corridor-edits/{item['id']}", headers=ADMIN)
 
 
@@ -271,6 +275,180 @@ def test_two_operators_lose_no_edit(nav):
     assert bad.status_code == 422
     assert bad.json()["field"] == "If-Match"
     assert edits(api, map_id)["count"] == len(places) - 1
+
+
+# --------------------------------------------------------------------------- at scale
+
+
+def test_the_list_comes_a_page_at_a_time(nav):
+    """``limit`` edits a page, ``next_cursor`` to the next, null on the last; the pages together
+    are the edits in order, each once, also when an edit is deleted between two pages."""
+    api, map_id = nav
+    nodes, _, _ = graph(api, map_id)
+    points = list(nodes.values())[:5]
+    ids = [post(api, map_id, {"op": "quiet", "at": p}).json()["id"] for p in points]
+
+    first = edits(api, map_id, limit=2)
+    assert [item["id"] for item in first["data"]] == ids[:2]
+    assert first["count"] == 5 == first["applied_count"]
+    assert first["next_cursor"]
+    deleted = api.client.delete(f"/v1/maps/{map_id}/corridor-edits/{ids[2]}", headers=ADMIN)
+    assert deleted.status_code == 204
+    seen = [item["id"] for item in first["data"]]
+    cursor = first["next_cursor"]
+    while cursor is not None:
+        page = edits(api, map_id, limit=2, cursor=cursor)
+        assert page["count"] == 4
+        seen += [item["id"] for item in page["data"]]
+        cursor = page["next_cursor"]
+    assert seen == [ids[0], ids[1], ids[3], ids[4]]
+    whole = edits(api, map_id)  # the default page holds them all
+    assert [item["id"] for item in whole["data"]] == seen
+    assert whole["next_cursor"] is None
+
+
+@pytest.mark.parametrize(
+    ("params", "field", "code"),
+    [
+        ({"limit": 0}, "limit", "validation_error"),
+        ({"limit": 1001}, "limit", "validation_error"),
+        ({"limit": "many"}, "limit", "validation_error"),
+        ({"cursor": "nonsense"}, "cursor", "invalid_cursor"),
+        ({"cursor": "YWZ0ZXI6MQ=="}, "cursor", "invalid_cursor"),  # padded: not ours
+        ({"cursor": "YWZ0ZXI6-1"}, "cursor", "invalid_cursor"),
+        ({"cursor": "x" * 65}, "cursor", "validation_error"),
+    ],
+)
+def test_a_bad_page_is_a_422_naming_the_parameter(nav, params, field, code):
+    api, map_id = nav
+    response = api.client.get(f"/v1/maps/{map_id}/corridor-edits", headers=ADMIN, params=params)
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == field
+    assert response.json()["code"] == code
+
+
+def test_a_map_holds_at_most_the_cap_also_when_operators_add_at_once(nav, monkeypatch):
+    api, map_id = nav
+    monkeypatch.setattr(api.app.state.settings, "max_corridor_edits", 4)
+    nodes, _, _ = graph(api, map_id)
+    points = list(nodes.values())
+    for point in points[:2]:
+        assert post(api, map_id, {"op": "quiet", "at": point}).status_code == 201
+    answers: list[Any] = []
+    start = threading.Barrier(4)
+
+    def operator(point: list[float]) -> None:
+        start.wait()
+        answers.append(post(api, map_id, {"op": "quiet", "at": point}))
+
+    threads = [threading.Thread(target=operator, args=(p,)) for p in points[2:6]]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(a.status_code for a in answers) == [201, 201, 409, 409]
+    refused = next(a for a in answers if a.status_code == 409).json()
+    assert refused["code"] == "too_many_corridor_edits"
+    assert "INVISIBLE_MAP_MAX_CORRIDOR_EDITS = 4" in refused["detail"]
+    assert edits(api, map_id)["count"] == 4
+    assert api.count(CorridorEditRow) == 4
+    # deleting one makes room for one
+    first = edits(api, map_id)["data"][0]["id"]
+    api.client.delete(f"/v1/maps/{map_id}/corridor-edits/{first}", headers=ADMIN)
+    assert post(api, map_id, {"op": "quiet", "at": points[7]}).status_code == 201
+
+
+def test_a_new_edit_costs_the_same_however_many_came_before(nav, monkeypatch):
+    """Once this process has the edited graph, adding an edit and the route after it neither
+    read the map's edits again nor apply them again: only the new one is applied."""
+    api, map_id = nav
+    nodes, _, _ = graph(api, map_id)
+    points = list(nodes.values())
+    for point in points[:3]:
+        assert post(api, map_id, {"op": "quiet", "at": point}).status_code == 201
+    route(api, map_id, {"tag": 300}, {"tag": 324})  # the process has the edited graph
+    calls: list[str] = []
+
+    def counted(name: str, function: Any) -> Any:
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            calls.append(name)
+            return function(*args, **kwargs)
+
+        return wrapper
+
+    monkeypatch.setattr(
+        corridor_storage, "list_edits", counted("list_edits", corridor_storage.list_edits)
+    )
+    monkeypatch.setattr(navigation, "list_edits", counted("list_edits", navigation.list_edits))
+    monkeypatch.setattr(navigation, "apply_edits", counted("apply_edits", navigation.apply_edits))
+    added = post(api, map_id, {"op": "add_poi", "name": "Copier", "at": points[4]})
+    assert added.status_code == 201, added.text
+    assert added.json()["applied"] is True
+    assert route(api, map_id, {"tag": 300}, {"poi": "Copier"})["steps"]
+    assert edits(api, map_id)["count"] == 4
+    assert calls == []
+
+
+def test_an_edit_another_process_added_is_applied_alone(nav, monkeypatch):
+    """A process that has the edited graph of an earlier revision reads the list and applies
+    only the edits added since (by another process), not all of them."""
+    api, map_id = nav
+    nodes, _, _ = graph(api, map_id)
+    points = list(nodes.values())
+    assert post(api, map_id, {"op": "quiet", "at": points[0]}).status_code == 201
+    route(api, map_id, {"tag": 300}, {"tag": 324})
+    with api.db.transaction() as db_session:  # another process's POST
+        corridor_storage.lock_edits(db_session, map_id)
+        corridor_storage.add_edit(
+            db_session,
+            map_id,
+            edit_from_json({"op": "add_poi", "name": "Elsewhere", "at": points[2]}),
+            created_by="env-admin",
+            created_by_name=None,
+        )
+    applied: list[int] = []
+    apply_all = navigation.apply_edits
+
+    def counted(pg: Any, edits_: Any) -> Any:
+        applied.append(len(edits_))
+        return apply_all(pg, edits_)
+
+    monkeypatch.setattr(navigation, "apply_edits", counted)
+    report = edits(api, map_id)
+    assert report["count"] == 2 == report["applied_count"]
+    assert route(api, map_id, {"tag": 300}, {"poi": "Elsewhere"})["steps"]
+    assert applied == []
+
+
+def test_an_edit_added_to_the_kept_graph_serves_what_all_the_edits_make(nav):
+    """The graph a POST extends is the graph the edits make from scratch (another process, a
+    restart): the same GeoJSON, node ids included, the same outcomes, the same app-map ETag."""
+    api, map_id = nav
+    nodes, links, _ = graph(api, map_id)
+    ends = [n for n in nodes if sum(n in link for link in links) == 1]
+    middle = list(nodes)[len(nodes) // 2]
+    documents = [
+        {"op": "quiet", "at": nodes[middle]},
+        {"op": "add_poi", "name": "Printer", "at": shifted(nodes[ends[0]], 0.3)},
+        {"op": "move_node", "from": nodes[middle], "to": shifted(nodes[middle], 0.4)},
+        {"op": "add_edge", "from": nodes[ends[0]], "to": nodes[ends[-1]], "kind": "door"},
+        {"op": "rename_poi", "name": "Printer", "new_name": "Printer 2"},
+    ]
+    for document in documents:
+        assert post(api, map_id, document).status_code == 201
+    kept = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN)
+    kept_map = api.client.get(f"/v1/maps/{map_id}/app-map", headers=ADMIN)
+    kept_list = edits(api, map_id)
+
+    api.app.state.version_cache = VersionCache()  # as a process that made none of it
+    fresh = api.client.get(f"/v1/maps/{map_id}/geojson", headers=ADMIN)
+    assert fresh.json() == kept.json()
+    assert fresh.headers["ETag"] == kept.headers["ETag"]
+    assert (
+        api.client.get(f"/v1/maps/{map_id}/app-map", headers=ADMIN).headers["ETag"]
+        == (kept_map.headers["ETag"])
+    )
+    assert edits(api, map_id) == kept_list
 
 
 # --------------------------------------------------------------------------- new versions

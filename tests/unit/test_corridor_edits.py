@@ -19,9 +19,12 @@ from app.domain.navigation.corridor_edits import (
     OPS,
     CorridorEdit,
     EditConflict,
+    EditedGraph,
     EditInvalid,
     apply_edits,
+    apply_more_edits,
     apply_new_edit,
+    apply_new_edit_to,
     edit_from_json,
     quiet_nodes,
 )
@@ -556,3 +559,132 @@ def test_the_apps_map_of_an_edited_real_map_conforms(data_dir):
         edited, edit({"op": "remove_edge", "from": at(ends[0]), "to": at(ends[-1])})
     )
     assert check_app_map(map_to_app_format(result, path_graph=removed)).ok
+
+
+# --------------------------------------------------------------------------- one at a time
+
+
+def a_line_with_a_middle_node() -> PathGraph:
+    """Floor 1: 0 (x 0) – 5 (x 10) – 1 (x 20) – 2 (x 20, z −20); node 5, the largest id, is a
+    plain node in the middle of a corridor. Tags 1 at node 0 and 2 at node 2."""
+    G: nx.Graph = nx.Graph()
+    _node(G, 0, 0, 0, 0, 0)
+    _node(G, 5, 10, 0, 0, 0)
+    _node(G, 1, 20, 0, 0, 0)
+    _node(G, 2, 20, 0, -20, 0)
+    _edge(G, 0, 5)
+    _edge(G, 5, 1)
+    _edge(G, 1, 2)
+    anchor = Anchor
+    return PathGraph(
+        graph=G,
+        floor_levels_m=(0.0,),
+        tags={
+            1: anchor(name="tag 1", node=0, position_m=(0, 1, 0), floor=0),
+            2: anchor(name="tag 2", node=2, position_m=(20, 1, -20), floor=0),
+        },
+        pois=(),
+    )
+
+
+#: Edits whose node ids depend on the order of what came before: a shortcut, the corridor
+#: 0–5–1 removed (node 5, the largest id, goes with it), a point of interest splitting an edge
+#: (a new node: its id is not max + 1 any more), one that does not apply, a move far out (the
+#: map's extent is the unedited graph's: a point near the moved node but 20 m past the
+#: unedited map is refused), renames and a quiet.
+ONE_AT_A_TIME = [
+    {"op": "add_edge", "from": [0, 0, 0], "to": [20, 0, -20], "kind": "walk"},
+    {"op": "remove_edge", "from": [0, 0, 0], "to": [20, 0, 0]},
+    {"op": "add_poi", "name": "Desk", "at": [10, 0, -13]},
+    {"op": "quiet", "at": [10, 0, 0]},  # node 5 is gone: not applied
+    {"op": "move_node", "from": [20, 0, 0], "to": [38, 0, 0]},
+    {"op": "add_poi", "name": "Far", "at": [55, 0, 0]},  # 35 m past x 20: not applied
+    {"op": "rename_poi", "name": "Desk", "new_name": "Desk 2"},
+    {"op": "add_poi", "name": "Desk", "at": [20, 0, -10]},
+    {"op": "quiet", "at": [20, 0, -20]},
+    {"op": "remove_poi", "name": "Desk"},
+]
+
+
+def same_graph(a: PathGraph, b: PathGraph) -> None:
+    assert list(a.graph.nodes(data=True)) == list(b.graph.nodes(data=True))
+    assert sorted(
+        (min(u, v), max(u, v), sorted(d.items())) for u, v, d in a.graph.edges(data=True)
+    ) == sorted((min(u, v), max(u, v), sorted(d.items())) for u, v, d in b.graph.edges(data=True))
+    assert a.pois == b.pois
+    assert a.tags == b.tags
+    assert quiet_nodes(a) == quiet_nodes(b)
+
+
+def test_edits_applied_one_at_a_time_make_what_all_at_once_make():
+    """What a POST does (the new edit applied to the kept edited graph) is what re-applying
+    every edit does (another process, a restart): the same node ids, the same outcomes."""
+    pg = a_line_with_a_middle_node()
+    edits = [edit(document) for document in ONE_AT_A_TIME]
+    whole = apply_edits(pg, edits)
+    assert [o.applied for o in whole.outcomes] == [
+        True, True, True, False, True, False, True, True, True, True
+    ]  # fmt: skip
+    assert 5 not in whole.path_graph.graph
+    assert max(whole.path_graph.graph) == 7  # ids 6 and 7: the two edges split
+    one_by_one = EditedGraph(path_graph=pg, outcomes=())
+    strict = EditedGraph(path_graph=pg, outcomes=())
+    for k, one in enumerate(edits):
+        one_by_one = apply_more_edits(one_by_one, [one])
+        if whole.outcomes[k].applied:
+            strict = apply_new_edit_to(strict, one)
+        else:
+            with pytest.raises(EditInvalid) as refused:
+                apply_new_edit_to(strict, one)
+            assert refused.value.reason == whole.outcomes[k].reason
+            strict = apply_more_edits(strict, [one])
+    for made in (one_by_one, strict):
+        same_graph(made.path_graph, whole.path_graph)
+        assert made.outcomes == whole.outcomes
+    halves = apply_more_edits(apply_edits(pg, edits[:4]), edits[4:])
+    same_graph(halves.path_graph, whole.path_graph)
+    assert pg.graph.number_of_nodes() == 4  # never changed
+    assert [p.name for p in whole.path_graph.pois] == ["Desk 2"]
+
+
+def test_a_new_edit_is_checked_against_the_unedited_maps_extent():
+    """A point past the map by more than the margin is refused also after an edit moved a node
+    out there: else it would be stored, and reported not applied at the next re-application."""
+    pg = a_line_with_a_middle_node()
+    moved = apply_new_edit_to(
+        EditedGraph(path_graph=pg, outcomes=()),
+        edit({"op": "move_node", "from": [20, 0, -20], "to": [38, 0, -20]}),
+    )
+    far = edit({"op": "add_poi", "name": "Far", "at": [55, 0, -20]})
+    with pytest.raises(EditInvalid, match="outside the map"):
+        apply_new_edit_to(moved, far)
+    assert (
+        not apply_edits(
+            pg, [edit({"op": "move_node", "from": [20, 0, -20], "to": [38, 0, -20]}), far]
+        )
+        .outcomes[1]
+        .applied
+    )
+
+
+def test_many_points_of_interest_each_name_once():
+    """Names of points of interest stay unique through adds, renames and removals (kept as a
+    count per name, not a search of them all)."""
+    pg = a_line_with_a_middle_node()
+    documents: list[dict[str, Any]] = [
+        {"op": "add_poi", "name": f"Room {k}", "at": [float(k % 20), 0, 0]} for k in range(300)
+    ]
+    documents += [
+        {"op": "add_poi", "name": "Room 7", "at": [1, 0, 0]},  # taken
+        {"op": "rename_poi", "name": "Room 8", "new_name": "Room 9"},  # taken
+        {"op": "remove_poi", "name": "Room 9"},
+        {"op": "rename_poi", "name": "Room 8", "new_name": "Room 9"},  # free now
+        {"op": "add_poi", "name": "Room 8", "at": [1, 0, 0]},  # free now
+        {"op": "remove_poi", "name": "Room 400"},  # none
+    ]
+    outcomes = apply_edits(pg, [edit(d) for d in documents]).outcomes
+    assert all(o.applied for o in outcomes[:300])
+    assert [o.applied for o in outcomes[300:]] == [False, False, True, True, True, False]
+    assert outcomes[300].field == "name"
+    assert outcomes[301].field == "new_name"
+    assert outcomes[305].field == "name"

@@ -4,13 +4,16 @@ the app-map, which serve the current version's graph with the edits applied from
 request on (no rebuild).
 
 ``GET`` lists the edits with what became of each on the current version (``?version=N``: on
-that one) and an ETag of the edits' revision; ``POST`` adds one (201, ``Location``), ``DELETE``
-removes one (undo). ``POST`` and ``DELETE`` take ``If-Match`` with that ETag: 409
-``edits_changed`` when another operator changed the edits meanwhile.
+that one) and an ETag of the edits' revision, a page at a time (``?limit=``, ``?cursor=`` from
+``next_cursor``); ``POST`` adds one (201, ``Location``; a map holds at most
+``INVISIBLE_MAP_MAX_CORRIDOR_EDITS``), ``DELETE`` removes one (undo). ``POST`` and ``DELETE``
+take ``If-Match`` with that ETag: 409 ``edits_changed`` when another operator changed the edits
+meanwhile.
 """
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Header, Query, Request, Response
@@ -20,11 +23,22 @@ from app.api.schemas.corridor_edits import (
     CorridorEditCreated,
     CorridorEditPublic,
     CorridorEditsPublic,
+    cursor_after_id,
+    edits_cursor,
 )
 from app.services import corridor_edits
 from app.services.errors import InvalidInput, NotFound
 from app.storage import maps
-from app.web.deps import AdminPrincipal, ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.web.deps import (
+    AdminPrincipal,
+    EditId,
+    MapId,
+    ReadDbSessionDep,
+    VersionQuery,
+    WriteDbSessionDep,
+    valid_id,
+    valid_version,
+)
 from app.web.errors import error_responses
 from app.web.route_class import SessionEndingRoute
 
@@ -39,6 +53,34 @@ IfMatch = Annotated[
     ),
 ]
 
+#: Edits per page of the list, by default and at most.
+DEFAULT_LIMIT = 100
+MAX_LIMIT = 1_000
+#: The longest cursor accepted, characters (one of ours is at most 35).
+MAX_CURSOR_LENGTH = 64
+
+Limit = Annotated[
+    int,
+    Query(
+        ge=1,
+        le=MAX_LIMIT,
+        description=f"edits per page, 1 to {MAX_LIMIT} (a number outside: 422 naming limit)",
+        openapi_examples={"a page of 100": {"value": DEFAULT_LIMIT}},
+    ),
+]
+Cursor = Annotated[
+    str | None,
+    Query(
+        max_length=MAX_CURSOR_LENGTH,
+        description="the next_cursor of the page before; left out: the first page. Opaque: a "
+        "cursor this API did not give is a 422 invalid_cursor naming cursor",
+        openapi_examples={
+            "the first page": {"value": None},
+            "the page after edit 100": {"value": edits_cursor(100)},
+        },
+    ),
+]
+
 NO_PATH_GRAPH = (
     "no_path_graph",
     "version 1 of map 5 has no path graph (it was built before path graphs existed): rebuild "
@@ -50,19 +92,28 @@ def _etag(revision: int) -> str:
     return f'"edits-{revision}"'
 
 
+#: An ``If-Match`` the edits' ETag can be: ``"edits-N"`` (or weak, or unquoted), N in ASCII
+#: digits. At most 18 of them: a revision is a 32-bit counter, and ``int()`` must never meet
+#: thousands of digits (past 4,300 it raises) nor digits of other scripts (it reads "١٢" as 12).
+_ETAG = re.compile(r'(?:W/)?"?edits-([0-9]{1,18})"?', re.ASCII)
+#: How much of a refused header its error echoes, characters.
+_ECHOED = 40
+
+
 def _expected(if_match: str | None) -> int | None:
-    """The revision an ``If-Match`` names; None without one (or ``*``)."""
+    """The revision an ``If-Match`` names; None without one (or ``*``). A header that is no ETag
+    of the edits is a 422 ``invalid_if_match`` naming the header, never a 500."""
     if if_match is None or if_match.strip() == "*":
         return None
-    text = if_match.strip().removeprefix("W/").strip('"')
-    number = text.removeprefix("edits-")
-    if not number.isdigit() or not text.startswith("edits-"):
+    match = _ETAG.fullmatch(if_match.strip())
+    if match is None:
+        shown = if_match if len(if_match) <= _ECHOED else if_match[:_ECHOED] + "…"
         raise InvalidInput(
             "invalid_if_match",
-            f'If-Match must be the ETag of the edits ("edits-4"), got {if_match!r}',
+            f'If-Match must be the ETag of the edits ("edits-4"), got {shown!r}',
             field="If-Match",
         )
-    return int(number)
+    return int(match.group(1))
 
 
 @router.get(
@@ -71,25 +122,48 @@ def _expected(if_match: str | None) -> int | None:
     description="The map's corridor edits, oldest first (the order they apply in), each with who "
     "made it and when, and whether it applies to the current version (or `?version=N`): an edit "
     "whose place the version no longer has is kept and reported as not applied, with the reason. "
+    f"A page at a time: `limit` edits (default {DEFAULT_LIMIT}, at most {MAX_LIMIT}), then "
+    "`?cursor=` the answer's `next_cursor` for the next page, until `next_cursor` is null; "
+    "`count` and `applied_count` are of all the map's edits. A page goes on after the last edit "
+    "of the page before, also when edits are added or deleted meanwhile (the ETag tells). "
     "The ETag is the edits' revision, for `If-Match` on POST and DELETE. Admin keys only.",
-    responses=error_responses(401, 403, 404, 409, 422, examples={409: NO_PATH_GRAPH}),
+    responses=error_responses(
+        401,
+        403,
+        404,
+        409,
+        422,
+        examples={
+            409: NO_PATH_GRAPH,
+            422: ("invalid_cursor", "cursor: 'abc' is no cursor of this list: use next_cursor"),
+        },
+    ),
 )
 def list_corridor_edits(
-    map_id: int,
+    map_id: MapId,
     request: Request,
     response: Response,
     _admin: AdminPrincipal,
     db_session: ReadDbSessionDep,
-    version: Annotated[
-        int | None,
-        Query(ge=1, le=2**31, description="a version number; the current one if left out"),
-    ] = None,
+    version: VersionQuery = None,
+    limit: Limit = DEFAULT_LIMIT,
+    cursor: Cursor = None,
 ) -> CorridorEditsPublic:
+    after_id = None if cursor is None else cursor_after_id(cursor)
+    if cursor is not None and after_id is None:
+        shown = cursor if len(cursor) <= _ECHOED else cursor[:_ECHOED] + "…"
+        raise InvalidInput(
+            "invalid_cursor",
+            f"cursor: {shown!r} is no cursor of this list: use next_cursor",
+            field="cursor",
+        )
     info = maps.get_map(db_session, valid_id(map_id, "map"))
+    if version is not None:
+        valid_version(info.id, version)
     report = corridor_edits.edits_report(request.app.state.version_cache, db_session, info, version)
     response.headers["ETag"] = _etag(report.revision)
     response.headers["Cache-Control"] = "no-store"
-    return CorridorEditsPublic.from_domain(report)
+    return CorridorEditsPublic.from_domain(report, after_id=after_id, limit=limit)
 
 
 @router.post(
@@ -103,9 +177,10 @@ def list_corridor_edits(
     "malformed edit, an unknown op, a point far outside the map or on no floor, a self-loop, a "
     "place with no node near it is a 422 naming the field; a duplicate edge, a removal that "
     "would cut a tag or point of interest off from the rest of the map, a name taken a 409; a "
-    "map without a path graph the 409 no_path_graph. Kept per map and applied to every version "
-    "(rebuilds, new walks), found again by position. Routes and downloads use it from the next "
-    "request on. Admin keys only.",
+    "map that holds INVISIBLE_MAP_MAX_CORRIDOR_EDITS edits already (5,000 by default) the 409 "
+    "too_many_corridor_edits; a map without a path graph the 409 no_path_graph. Kept per map "
+    "and applied to every version (rebuilds, new walks), found again by position. Routes and "
+    "downloads use it from the next request on. Admin keys only.",
     responses=error_responses(
         401,
         403,
@@ -123,7 +198,7 @@ def list_corridor_edits(
     ),
 )
 def add_corridor_edit(
-    map_id: int,
+    map_id: MapId,
     request: Request,
     response: Response,
     admin: AdminPrincipal,
@@ -138,6 +213,7 @@ def add_corridor_edit(
         edit,
         principal=admin,
         expected_revision=_expected(if_match),
+        max_edits=request.app.state.settings.max_corridor_edits,
     )
     response.headers["Location"] = f"/v1/maps/{map_id}/corridor-edits/{stored.id}"
     response.headers["ETag"] = _etag(report.revision)
@@ -154,8 +230,8 @@ def add_corridor_edit(
     responses=error_responses(401, 403, 404, 409, 422, examples={409: NO_PATH_GRAPH}),
 )
 def get_corridor_edit(
-    map_id: int,
-    edit_id: int,
+    map_id: MapId,
+    edit_id: EditId,
     request: Request,
     _admin: AdminPrincipal,
     db_session: ReadDbSessionDep,
@@ -177,8 +253,8 @@ def get_corridor_edit(
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def delete_corridor_edit(
-    map_id: int,
-    edit_id: int,
+    map_id: MapId,
+    edit_id: EditId,
     _admin: AdminPrincipal,
     db_session: WriteDbSessionDep,
     if_match: IfMatch = None,

@@ -7,6 +7,9 @@ each operation.
 
 from __future__ import annotations
 
+import base64
+import re
+from bisect import bisect_right
 from datetime import datetime
 from typing import Any
 
@@ -100,8 +103,10 @@ class CorridorEditPublic(BaseModel):
 
 
 class CorridorEditsPublic(BaseModel):
-    """A map's corridor edits, oldest first (the order they apply in), each with what became of
-    it on version ``map_version``; ``revision`` grows with every edit added or deleted."""
+    """A page of a map's corridor edits, oldest first (the order they apply in), each with what
+    became of it on version ``map_version``; ``count`` and ``applied_count`` are of all the
+    map's edits; ``next_cursor`` asks for the next page (null on the last); ``revision`` grows
+    with every edit added or deleted."""
 
     model_config = examples(
         {
@@ -111,29 +116,64 @@ class CorridorEditsPublic(BaseModel):
             "map_id": 5,
             "map_version": 3,
             "revision": 4,
+            "next_cursor": None,
         }
     )
 
     data: list[CorridorEditPublic]
-    count: int
-    applied_count: int
+    count: int = Field(description="the map's edits, on every page")
+    applied_count: int = Field(description="of those, the edits that apply to map_version")
     map_id: int
     map_version: int
     revision: int
+    next_cursor: str | None = Field(description="?cursor= of the next page; null on the last page")
 
     @classmethod
-    def from_domain(cls, report: EditsReport) -> CorridorEditsPublic:
+    def from_domain(
+        cls, report: EditsReport, *, after_id: int | None = None, limit: int | None = None
+    ) -> CorridorEditsPublic:
+        """The edits of ``report`` after the edit ``after_id`` (from the first when None), at
+        most ``limit`` (all when None)."""
+        start = 0 if after_id is None else bisect_right(report.edits, after_id, key=_edit_id)
+        end = len(report.edits) if limit is None else min(len(report.edits), start + limit)
         return cls(
             data=[
-                CorridorEditPublic.from_domain(stored, outcome)
-                for stored, outcome in zip(report.edits, report.outcomes, strict=True)
+                CorridorEditPublic.from_domain(report.edits[k], report.outcomes[k])
+                for k in range(start, end)
             ],
             count=len(report.edits),
             applied_count=report.applied_count,
             map_id=report.map_id,
             map_version=report.version.number,
             revision=report.revision,
+            next_cursor=edits_cursor(report.edits[end - 1].id) if end < len(report.edits) else None,
         )
+
+
+def _edit_id(stored: StoredEdit) -> int:
+    return stored.id
+
+
+#: What a cursor of the edits' list says, before its base64: the id of the last edit seen.
+_CURSOR = re.compile(r"after:([0-9]{1,20})", re.ASCII)
+
+
+def edits_cursor(after_id: int) -> str:
+    """The opaque cursor of the page after the edit ``after_id`` (URL-safe base64)."""
+    return base64.urlsafe_b64encode(f"after:{after_id}".encode()).decode().rstrip("=")
+
+
+def cursor_after_id(cursor: str) -> int | None:
+    """The edit id a cursor of :func:`edits_cursor` names, None if it is not one."""
+    try:
+        padded = cursor + "=" * (-len(cursor) % 4)
+        text = base64.b64decode(padded, altchars=b"-_", validate=True).decode("ascii")
+    except ValueError:  # not base64 (binascii.Error), not ASCII (UnicodeDecodeError)
+        return None
+    match = _CURSOR.fullmatch(text)
+    if match is None or edits_cursor(int(match.group(1))) != cursor:  # one spelling per page
+        return None
+    return int(match.group(1))
 
 
 class CorridorEditCreated(CorridorEditPublic):

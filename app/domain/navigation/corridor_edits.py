@@ -4,7 +4,8 @@ the map's frame and applied to every version of the map.
     edit = edit_from_json({"op": "quiet", "at": [12.0, 0.1, -3.5]})    # EditInvalid naming a field
     edited = apply_edits(pg, [edit, …])          # never raises: each edit applied or reported
     edited.path_graph, edited.outcomes[0].applied, edited.outcomes[0].reason
-    pg_after = apply_new_edit(edited.path_graph, edit)   # a new edit: applies exactly, or raises
+    after = apply_new_edit_to(edited, edit)      # a new edit: applies exactly, or raises
+    later = apply_more_edits(edited, [edit, …])  # edits added since: as apply_edits would
 
 **Operations** (the names and fields are a contract of the API; points ``[x, y, z]`` in the map
 frame, m, y up):
@@ -44,11 +45,14 @@ whole or not at all; one that finds no anchor or would break a check is kept out
 with its reason (:class:`EditOutcome`), never dropped silently. :func:`apply_new_edit` is the
 strict form for a new edit: it raises :class:`EditInvalid` (a bad request, naming the field) or
 :class:`EditConflict` (the graph's state forbids it), so that nothing is stored that does not apply
-to the current version. A door is a walk edge with ``door`` True (routing walks through it); a
-quiet node has ``quiet`` True and is in the graph attribute ``quiet_nodes``, which
-:mod:`app.domain.navigation.instructions` honours. Nodes an edit adds get new ids above the
-largest, kind ``node`` and no ``pose_index``; a node where three or more corridors meet after an
-edit becomes a ``junction``.
+to the current version. :func:`apply_new_edit_to` (strict) and :func:`apply_more_edits` continue
+an :class:`EditedGraph` (with the unedited graph's extent and the next new node's id), so an edit
+costs the same with 10 or 10,000 before it, and what they make is what :func:`apply_edits` makes
+of all the edits from scratch (the same node ids, the same outcomes). A door is a walk edge with
+``door`` True (routing walks through it); a quiet node has ``quiet`` True and is in the graph
+attribute ``quiet_nodes``, which :mod:`app.domain.navigation.instructions` honours. Nodes an edit
+adds get new ids above the largest, kind ``node`` and no ``pose_index``; a node where three or
+more corridors meet after an edit becomes a ``junction``.
 """
 
 from __future__ import annotations
@@ -181,10 +185,15 @@ class EditOutcome:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EditedGraph:
-    """A path graph with edits applied: the edited graph and one outcome per edit, in order."""
+    """A path graph with edits applied: the edited graph and one outcome per edit, in order;
+    ``extent`` (the unedited graph's: min x, max x, min z, max z, m) and ``next_id`` (the id
+    the next node an edit adds gets) let more edits continue it exactly as :func:`apply_edits`
+    would (None: those of ``path_graph`` itself, a graph no edit touched)."""
 
     path_graph: PathGraph
     outcomes: tuple[EditOutcome, ...]
+    extent: tuple[float, float, float, float] | None = None
+    next_id: int | None = None
 
     @property
     def applied_count(self) -> int:
@@ -258,10 +267,17 @@ def apply_edits(pg: PathGraph, edits: Sequence[CorridorEdit]) -> EditedGraph:
     """``pg`` with ``edits`` applied in order (``pg`` is not changed): each edit whole or not at
     all; an edit that finds no anchor, or would break a check, is left out and its outcome says
     why. Without edits, ``pg`` itself."""
+    return apply_more_edits(EditedGraph(path_graph=pg, outcomes=()), edits)
+
+
+def apply_more_edits(edited: EditedGraph, edits: Sequence[CorridorEdit]) -> EditedGraph:
+    """``edited`` with ``edits`` (made after its own) applied in order, as :func:`apply_edits`
+    applies them (``edited`` is not changed): ``apply_more_edits(apply_edits(pg, a), b)`` is
+    ``apply_edits(pg, [*a, *b])``, at the cost of ``b`` alone."""
     if not edits:
-        return EditedGraph(path_graph=pg, outcomes=())
-    work = _Work.of(pg)
-    outcomes = []
+        return edited
+    work = _Work.of(edited.path_graph, extent=edited.extent, next_id=edited.next_id)
+    outcomes = list(edited.outcomes)
     for edit in edits:
         try:
             work.apply(edit, new=False)
@@ -269,16 +285,24 @@ def apply_edits(pg: PathGraph, edits: Sequence[CorridorEdit]) -> EditedGraph:
             outcomes.append(EditOutcome(applied=False, reason=err.reason, field=err.field or None))
         else:
             outcomes.append(EditOutcome(applied=True))
-    return EditedGraph(path_graph=work.path_graph(), outcomes=tuple(outcomes))
+    return work.edited(tuple(outcomes))
 
 
 def apply_new_edit(pg: PathGraph, edit: CorridorEdit) -> PathGraph:
     """``pg`` with a new ``edit`` applied (``pg`` is not changed); EditInvalid or EditConflict
     if it cannot apply exactly (stricter than :func:`apply_edits`: a node quiet already, or a
-    point of interest named already, is a conflict here)."""
-    work = _Work.of(pg)
+    point of interest named already, is a conflict here). :func:`apply_new_edit_to` continues
+    an edited graph."""
+    return apply_new_edit_to(EditedGraph(path_graph=pg, outcomes=()), edit).path_graph
+
+
+def apply_new_edit_to(edited: EditedGraph, edit: CorridorEdit) -> EditedGraph:
+    """``edited`` with a new ``edit`` applied, its outcome ``applied`` (``edited`` is not
+    changed); EditInvalid or EditConflict as :func:`apply_new_edit`. What it makes is what
+    :func:`apply_edits` makes of the edits before and this one, at the cost of this one."""
+    work = _Work.of(edited.path_graph, extent=edited.extent, next_id=edited.next_id)
     work.apply(edit, new=True)
-    return work.path_graph()
+    return work.edited((*edited.outcomes, EditOutcome(applied=True)))
 
 
 def quiet_nodes(pg: PathGraph) -> frozenset[int]:
@@ -295,6 +319,7 @@ class _Work:
     floor_levels_m: tuple[float, ...]
     tags: dict[int, Anchor]
     pois: list[Anchor]
+    poi_names: dict[str, int]  # how many points of interest have each name
     extent: tuple[float, float, float, float]  # min x, max x, min z, max z, m
     next_id: int
     # the nodes as arrays, for finding the nearest (a removed node's floor is −1)
@@ -304,25 +329,38 @@ class _Work:
     row_of: dict[int, int]
 
     @classmethod
-    def of(cls, pg: PathGraph) -> _Work:
+    def of(
+        cls,
+        pg: PathGraph,
+        *,
+        extent: tuple[float, float, float, float] | None = None,
+        next_id: int | None = None,
+    ) -> _Work:
+        """A copy of ``pg`` to edit; ``extent`` and ``next_id`` those of an edited graph being
+        continued (None: ``pg``'s own)."""
         G = pg.graph.copy()
-        xs, zs = [], []
-        for _, d in G.nodes(data=True):
-            xs.append(d["position_m"][0])
-            zs.append(d["position_m"][2])
-        for anchor in (*pg.tags.values(), *pg.pois):
-            xs.append(anchor.position_m[0])
-            zs.append(anchor.position_m[2])
-        extent = (min(xs), max(xs), min(zs), max(zs)) if xs else (0.0, 0.0, 0.0, 0.0)
+        if extent is None:
+            xs, zs = [], []
+            for _, d in G.nodes(data=True):
+                xs.append(d["position_m"][0])
+                zs.append(d["position_m"][2])
+            for anchor in (*pg.tags.values(), *pg.pois):
+                xs.append(anchor.position_m[0])
+                zs.append(anchor.position_m[2])
+            extent = (min(xs), max(xs), min(zs), max(zs)) if xs else (0.0, 0.0, 0.0, 0.0)
         node_ids = [int(n) for n in G.nodes]
         positions = [G.nodes[n]["position_m"] for n in node_ids]
+        poi_names: dict[str, int] = {}
+        for poi in pg.pois:
+            poi_names[poi.name] = poi_names.get(poi.name, 0) + 1
         return cls(
             G=G,
             floor_levels_m=tuple(pg.floor_levels_m),
             tags=dict(pg.tags),
             pois=list(pg.pois),
+            poi_names=poi_names,
             extent=extent,
-            next_id=max(node_ids, default=-1) + 1,
+            next_id=max(node_ids, default=-1) + 1 if next_id is None else next_id,
             node_ids=node_ids,
             node_xz=np.array([(p[0], p[2]) for p in positions], dtype=np.float64).reshape(-1, 2),
             node_floor=np.array([G.nodes[n]["floor"] for n in node_ids], dtype=np.int64),
@@ -355,6 +393,15 @@ class _Work:
             floor_levels_m=self.floor_levels_m,
             tags=dict(self.tags),
             pois=tuple(self.pois),
+        )
+
+    def edited(self, outcomes: tuple[EditOutcome, ...]) -> EditedGraph:
+        """The graph as edited, with ``outcomes``, to be continued by more edits."""
+        return EditedGraph(
+            path_graph=self.path_graph(),
+            outcomes=outcomes,
+            extent=self.extent,
+            next_id=self.next_id,
         )
 
     # ------------------------------------------------------------------ the operations
@@ -454,10 +501,9 @@ class _Work:
                 f"removing the edge {u}–{v} would cut {cut} off from the rest of the map "
                 "(the app cannot route to a place it cannot reach)",
             )
-        for a, b in run:  # interior nodes of a run left with no edge go with it
-            for node in (a, b):
-                if node not in (u, v) and self.G.degree(node) == 0 and not self._anchors(node):
-                    self._remove_node(node)
+        for node in dict.fromkeys(a for a, _ in run[1:]):  # interior nodes left with no edge go
+            if self.G.degree(node) == 0 and not self._anchors(node):
+                self._remove_node(node)
         for node in (u, v):
             self._update_kind(node)
 
@@ -480,10 +526,11 @@ class _Work:
 
     def _add_poi(self, name: str, at_m: Point3) -> None:
         floor = self._floor(at_m, "at")
-        if any(p.name == name for p in self.pois):
+        if self.poi_names.get(name, 0):
             raise EditConflict("name", f"a point of interest named {name!r} exists already")
         node = self._attach(at_m, floor)
         self.pois.append(Anchor(name=name, node=node, position_m=at_m, floor=floor))
+        self._named(name, +1)
 
     def _rename_poi(self, name: str, new_name: str, at_m: Point3 | None, *, new: bool) -> None:
         k = self._poi(name, at_m)
@@ -491,12 +538,22 @@ class _Work:
             if new:
                 raise EditInvalid("new_name", f"the point of interest is named {name!r} already")
             return
-        if any(p.name == new_name for i, p in enumerate(self.pois) if i != k):
+        if self.poi_names.get(new_name, 0):  # not the one renamed: its name is another
             raise EditConflict("new_name", f"a point of interest named {new_name!r} exists already")
         self.pois[k] = replace(self.pois[k], name=new_name)
+        self._named(name, -1)
+        self._named(new_name, +1)
 
     def _remove_poi(self, name: str, at_m: Point3 | None) -> None:
         del self.pois[self._poi(name, at_m)]
+        self._named(name, -1)
+
+    def _named(self, name: str, change: int) -> None:
+        count = self.poi_names.get(name, 0) + change
+        if count:
+            self.poi_names[name] = count
+        else:
+            self.poi_names.pop(name, None)
 
     # ------------------------------------------------------------------ finding places
 
@@ -690,9 +747,9 @@ class _Work:
     def _poi(self, name: str, at_m: Point3 | None) -> int:
         """The index of the point of interest named ``name`` (the nearest to ``at_m`` when given,
         within POI_TOLERANCE_M); EditInvalid naming ``name`` or ``at``."""
-        found = [k for k, p in enumerate(self.pois) if p.name == name]
-        if not found:
+        if not self.poi_names.get(name, 0):
             raise EditInvalid("name", f"no point of interest named {name!r}")
+        found = [k for k, p in enumerate(self.pois) if p.name == name]
         if at_m is None:
             if len({self.pois[k].node for k in found}) > 1:
                 raise EditInvalid(
