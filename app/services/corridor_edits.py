@@ -13,7 +13,7 @@ field; a duplicate edge, a removal that would cut a tag or point of interest off
 a 409; a map without a path graph the 409 ``no_path_graph``. Nothing is stored then. The map's
 row is locked and its edit revision raised before the edits are read (``app.storage.
 corridor_edits``), so two operators' edits are checked one after the other and neither is lost.
-An ``expected_revision`` (the ``If-Match`` of the API) refuses, 409 ``edits_changed``, when the
+An ``expected_revision`` (the ``If-Match`` of the API) refuses, 412 ``edits_changed``, when the
 edits changed since the caller read them. A map holds at most ``max_edits`` edits
 (``INVISIBLE_MAP_MAX_CORRIDOR_EDITS``): one more is the 409 ``too_many_corridor_edits``, counted
 under the map's lock, so operators adding at once never pass it.
@@ -43,7 +43,7 @@ from app.domain.navigation.corridor_edits import (
     edit_from_json,
     with_edited_pois,
 )
-from app.services.errors import Conflict, InvalidInput, NotFound
+from app.services.errors import Conflict, InvalidInput, NotFound, PreconditionFailed
 from app.services.maps import app_map_gzip, chosen_version
 from app.services.navigation import (
     EDITED_PATH_GRAPH,
@@ -232,7 +232,7 @@ def _key_name(db_session: Session, principal: Principal) -> str | None:
 
 def _check_expected(map_id: int, expected: int | None, current: int) -> None:
     if expected is not None and expected != current:
-        raise Conflict(
+        raise PreconditionFailed(
             "edits_changed",
             f"the corridor edits of map {map_id} changed since revision {expected} (now "
             f"{current}): read them again and retry",

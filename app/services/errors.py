@@ -5,6 +5,7 @@
     ├── Forbidden             403 the caller may not do this
     ├── NotFound              404 the thing named does not exist (for this caller)
     ├── Conflict              409 not possible in the resource's present state
+    ├── PreconditionFailed    412 an If-Match that no longer matches
     ├── InvalidInput          422 a value is wrong; ``field`` names it
     └── Unavailable           503 a dependency is down; nothing was changed
 
@@ -70,6 +71,13 @@ class Conflict(ServiceError):
     """Not possible in the resource's present state (no version yet, a finished job …)."""
 
     status_code = 409
+
+
+class PreconditionFailed(ServiceError):
+    """A conditional request (``If-Match``) whose condition no longer holds: the resource
+    changed since the caller read it. Nothing was changed."""
+
+    status_code = 412
 
 
 class InvalidInput(ServiceError):

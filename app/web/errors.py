@@ -322,6 +322,9 @@ _EXAMPLES: dict[int, tuple[str, str, str, str | None]] = {
     404: ("Not found", "not_found", "map 42 not found", None),
     409: ("Conflict with the resource's state", "invalid_transition",
           "job 31 is succeeded: cannot cancel it", None),
+    412: ("The resource changed since it was read (If-Match)", "edits_changed",
+          "the corridor edits of map 8 changed since revision 4 (now 5): read them again and "
+          "retry", None),
     413: ("Body too large", "payload_too_large",
           "the body is larger than the limit of 33554432 bytes", None),
     415: ("Unsupported media type or encoding", "unsupported_media_type",

@@ -269,10 +269,10 @@ def test_two_operators_lose_no_edit(nav):
         == 204
     )
     stale = post(api, map_id, {"op": "quiet", "at": places[0]}, **{"If-Match": seen})
-    assert stale.status_code == 409
+    assert stale.status_code == 412
     assert stale.json()["code"] == "edits_changed"
     bad = post(api, map_id, {"op": "quiet", "at": places[0]}, **{"If-Match": "yesterday"})
-    assert bad.status_code == 422
+    assert bad.status_code == 400
     assert bad.json()["field"] == "If-Match"
     assert edits(api, map_id)["count"] == len(places) - 1
 

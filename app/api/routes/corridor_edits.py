@@ -7,8 +7,8 @@ request on (no rebuild).
 that one) and an ETag of the edits' revision, a page at a time (``?limit=``, ``?cursor=`` from
 ``next_cursor``); ``POST`` adds one (201, ``Location``; a map holds at most
 ``INVISIBLE_MAP_MAX_CORRIDOR_EDITS``), ``DELETE`` removes one (undo). ``POST`` and ``DELETE``
-take ``If-Match`` with that ETag: 409 ``edits_changed`` when another operator changed the edits
-meanwhile.
+take ``If-Match`` with that ETag: 412 ``edits_changed`` when another operator changed the edits
+meanwhile, 400 ``invalid_if_match`` when the header is no ETag of the edits.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from app.api.schemas.corridor_edits import (
     edits_cursor,
 )
 from app.services import corridor_edits
-from app.services.errors import InvalidInput, NotFound
+from app.services.errors import BadRequest, InvalidInput, NotFound
 from app.storage import maps
 from app.web.deps import (
     AdminPrincipal,
@@ -48,8 +48,8 @@ IfMatch = Annotated[
     str | None,
     Header(
         alias="If-Match",
-        description='the ETag of the edits you read ("edits-4"): 409 edits_changed if they '
-        "changed since",
+        description='the ETag of the edits you read ("edits-4"): 412 edits_changed if they '
+        "changed since; 400 invalid_if_match if it is no ETag of the edits",
     ),
 ]
 
@@ -98,17 +98,22 @@ def _etag(revision: int) -> str:
 _ETAG = re.compile(r'(?:W/)?"?edits-([0-9]{1,18})"?', re.ASCII)
 #: How much of a refused header its error echoes, characters.
 _ECHOED = 40
+#: The documented example of a refused If-Match.
+IF_MATCH_REFUSED = (
+    "invalid_if_match",
+    "If-Match must be the ETag of the edits (\"edits-4\"), got '12'",
+)
 
 
 def _expected(if_match: str | None) -> int | None:
     """The revision an ``If-Match`` names; None without one (or ``*``). A header that is no ETag
-    of the edits is a 422 ``invalid_if_match`` naming the header, never a 500."""
+    of the edits is a 400 ``invalid_if_match`` naming the header, never a 500."""
     if if_match is None or if_match.strip() == "*":
         return None
     match = _ETAG.fullmatch(if_match.strip())
     if match is None:
         shown = if_match if len(if_match) <= _ECHOED else if_match[:_ECHOED] + "…"
-        raise InvalidInput(
+        raise BadRequest(
             "invalid_if_match",
             f'If-Match must be the ETag of the edits ("edits-4"), got {shown!r}',
             field="If-Match",
@@ -182,12 +187,15 @@ def list_corridor_edits(
     "and applied to every version (rebuilds, new walks), found again by position. Routes and "
     "downloads use it from the next request on. Admin keys only.",
     responses=error_responses(
+        400,
         401,
         403,
         404,
         409,
+        412,
         422,
         examples={
+            400: IF_MATCH_REFUSED,
             409: (
                 "edit_conflict",
                 "to: removing the edge 12–13 would cut tag 305 off from the rest of the map (the "
@@ -250,7 +258,7 @@ def get_corridor_edit(
     summary="Delete a corridor edit",
     description="Remove an edit (undo). The edits after it stay and apply without it from the "
     "next request on; one that needed it is then reported as not applied. Admin keys only.",
-    responses=error_responses(401, 403, 404, 409, 422),
+    responses=error_responses(400, 401, 403, 404, 409, 412, 422, examples={400: IF_MATCH_REFUSED}),
 )
 def delete_corridor_edit(
     map_id: MapId,
