@@ -80,9 +80,11 @@ def test_a_rebuild_overtaken_by_an_add_stores_no_version(db: Database) -> None:
             db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="rebuild requested"
         )
 
+    changed: dict[str, Any] = {}
+
     def add_and_build_then_store(ctx: JobContext) -> None:
         with db.transaction() as db_session:
-            add_session_to_map(db_session, map_id, added, max_attempts=3)
+            changed["build"] = add_session_to_map(db_session, map_id, added, max_attempts=3)
         run_all(db)  # another worker builds the map of both walks: version 2
         assert map_now(db, map_id).current.number == 2  # type: ignore[union-attr]
         store(ctx)
@@ -101,9 +103,16 @@ def test_a_rebuild_overtaken_by_an_add_stores_no_version(db: Database) -> None:
     assert info.pending_job_id is None
     overtaken = get_job(db, rebuild.job_id)
     assert overtaken.state == JobState.CANCELED
-    assert overtaken.error is not None
-    assert "changed while it was built" in overtaken.error
-    assert "superseded" in overtaken.log_tail
+    add = changed["build"]
+    assert add.generation == rebuild.generation + 1
+    assert get_job(db, add.job_id).state == JobState.SUCCEEDED
+    reason = (
+        f"map {map_id} changed while it was built (generation {rebuild.generation} → "
+        f"{add.generation}); its version is not stored: job {add.job_id} (succeeded) builds the "
+        "map's current sessions"
+    )
+    assert overtaken.error == reason
+    assert overtaken.log_tail.splitlines()[-1].endswith(f"superseded: {reason}")
 
 
 def test_a_running_build_is_stopped_by_a_change_and_the_new_set_built(db: Database) -> None:
@@ -226,4 +235,108 @@ def test_a_superseded_build_with_no_build_of_the_new_generation_queues_one(db: D
     assert info.current is not None
     assert info.current.number == 2
     assert info.up_to_date
+    assert info.current.params["huber_k"] == 2.0
+
+
+# --------------------------------------------------------------------------- each check alone
+# store() checks the map's generation twice: before the bulk data is written (a read, then the
+# same under the map's lock) and in the transaction that stores the version (under the lock).
+# The tests below each reach one check with the other passing, so that either check taken out
+# fails a test (the mutation audit of issue 40: only both taken out was caught).
+
+
+def counting_bulk_writes(monkeypatch: pytest.MonkeyPatch, before: Any = None) -> list[int]:
+    """Count store()'s bulk writes; ``before()`` runs just before each (the real one follows)."""
+    writes: list[int] = []
+    real = maps.write_version_bulk
+
+    def write_version_bulk(*args: Any, **kwargs: Any) -> Any:
+        writes.append(1)
+        if before is not None:
+            before()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(maps, "write_version_bulk", write_version_bulk)
+    return writes
+
+
+def bump(db: Database, map_id: int) -> int:
+    """What a change of the map does to it (add a session, a rebuild): a new generation."""
+    with db.transaction() as db_session:
+        maps.lock_maps(db_session, [map_id])
+        return maps.bump_generation(db_session, map_id)
+
+
+def test_a_change_during_the_bulk_write_is_caught_by_the_locked_check(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The generation moves after the first check passed, while the bulk data is written: only
+    the check in the storing transaction can see it. Without it the build stored version 2 of
+    an older generation."""
+    map_id = built_map(db)
+    with db.transaction() as db_session:
+        rebuild = request_build(db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="x")
+    generations: list[int] = []
+    writes = counting_bulk_writes(monkeypatch, before=lambda: generations.append(bump(db, map_id)))
+
+    assert worker(db).run_once()
+
+    assert writes == [1]  # the first check passed: the bulk data was written
+    assert generations == [rebuild.generation + 1]
+    overtaken = get_job(db, rebuild.job_id)
+    assert overtaken.state == JobState.CANCELED
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert (info.current.number, info.version_count) == (1, 1)
+    assert overtaken.error == (
+        f"map {map_id} changed while it was built (generation {rebuild.generation} → "
+        f"{rebuild.generation + 1}); its version is not stored: job "
+        f"{build_jobs(db, map_id)[-1].id} (queued now) builds the map's current sessions"
+    )
+
+
+def test_a_change_before_the_store_writes_no_bulk_data(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The generation moved before store() began: the first check supersedes the build before
+    any bulk data is written (the second check would also refuse the version, so what tells the
+    first is at work is that nothing was written)."""
+    map_id = built_map(db)
+    with db.transaction() as db_session:
+        rebuild = request_build(db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="x")
+    writes = counting_bulk_writes(monkeypatch)
+
+    def bump_then_store(ctx: JobContext) -> None:
+        bump(db, map_id)
+        store(ctx)
+
+    stages = (*BUILD_MAP_STAGES[:-1], Stage(name="store", weight=0.05, run=bump_then_store))
+    assert worker(db, stages).run_once()
+
+    assert writes == []
+    overtaken = get_job(db, rebuild.job_id)
+    assert overtaken.state == JobState.CANCELED
+    assert overtaken.error is not None
+    assert overtaken.error.startswith(
+        f"map {map_id} changed while it was built (generation {rebuild.generation} → "
+        f"{rebuild.generation + 1}); its version is not stored"
+    )
+    assert map_now(db, map_id).version_count == 1
+
+
+def test_an_unchanged_map_stores_its_version(db: Database, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The other side of both checks: a build of the current generation writes its bulk data
+    once and stores its version (a check that refused every build fails here)."""
+    map_id = built_map(db)
+    with db.transaction() as db_session:
+        rebuild = request_build(db_session, map_id, {"huber_k": 2.0}, max_attempts=3, change="x")
+    writes = counting_bulk_writes(monkeypatch)
+
+    assert worker(db).run_once()
+
+    assert writes == [1]
+    assert get_job(db, rebuild.job_id).state == JobState.SUCCEEDED
+    info = map_now(db, map_id)
+    assert info.current is not None
+    assert (info.current.number, info.version_count) == (2, 2)
     assert info.current.params["huber_k"] == 2.0

@@ -24,6 +24,7 @@ from app.domain.evaluation.simulate import SimulationConfig
 from app.domain.evaluation.simulate_building import (
     MIXED_WALKS,
     SimulatedBuilding,
+    WalkStyle,
     simulate_building_sessions,
 )
 from app.domain.evaluation.table import evaluate_joint
@@ -311,6 +312,58 @@ def test_simulated_joint_error_falls_as_walks_are_added():
     assert errors[0] > errors[1] > errors[2]
 
 
+# ------------------------------------------------------------------ each walk its own noise
+
+
+@cache
+def clean_and_noisy() -> tuple[tuple[Session, ...], JointMap]:
+    """Two short walks of one building (500 poses each, tags 11–13 seen by both): one as
+    configured, one with every noise σ 3× larger; their joint map."""
+    sim = simulate_building_sessions(
+        SimulationConfig(num_poses=500, seed=0),
+        count=2,
+        styles=(WalkStyle(), WalkStyle(noise_scale=3.0)),
+    )
+    sessions = tuple(parse_session(s.upload) for s in sim.sessions)
+    return sessions, optimize_sessions(sessions, names=["clean", "noisy"])
+
+
+#: The walks' noise estimates alone (``noise.COMPONENTS`` order: odometry linear, angular, tag
+#: position, orientation), as measured on this building (gtsam 4.3.0).
+CLEAN_NOISE_SCALES = [0.42560, 0.77789, 0.45281, 0.031650]
+NOISY_NOISE_SCALES = [1.64352, 1.11438, 3.92413, 0.087889]
+
+
+def test_each_walk_is_weighed_by_its_own_noise():
+    """Issue 25's rule, fast (the real-data test is @slow): each walk's variances in the
+    building map are its own noise estimate, from its own residuals alone, so the noisy walk
+    weighs less than the clean one where they share tags; neither is down-weighted, because its
+    own noise explains its disagreement with the other."""
+    sessions, joint = clean_and_noisy()
+    clean, noisy = joint.part("clean"), joint.part("noisy")
+    assert sorted(set(clean.tag_ids) & set(noisy.tag_ids)) == [11, 12, 13]
+    np.testing.assert_allclose(clean.noise_scales, CLEAN_NOISE_SCALES, rtol=1e-4)
+    np.testing.assert_allclose(noisy.noise_scales, NOISY_NOISE_SCALES, rtol=1e-4)
+    assert np.all(noisy.noise_scales > clean.noise_scales)  # every σ larger: a smaller weight
+    for part, session in zip((clean, noisy), sessions, strict=True):
+        # its own estimate: the same as in a map of that walk alone
+        (alone,) = optimize_sessions([session], names=[part.dataset]).parts
+        assert alone.noise is not None
+        assert part.noise is not None
+        np.testing.assert_allclose(part.noise.scales, alone.noise.scales, rtol=1e-9)
+        assert part.fit is not None
+        np.testing.assert_array_equal(part.noise_scales, part.fit.noise_scales)
+        assert part.disagreement_factor == 1.0
+    assert clean.weighting == (
+        "weighed by its own noise: its cost grew by 1.8 on joining, for 1.0 degrees of freedom "
+        "gained, which that noise explains"
+    )
+    assert noisy.weighting == (
+        "weighed by its own noise: its cost grew by 5.3 on joining, for 14.2 degrees of freedom "
+        "gained, which that noise explains"
+    )
+
+
 # --------------------------------------------------------------------------- walks that differ
 
 
@@ -358,6 +411,37 @@ def test_walks_that_differ_make_one_map_whichever_comes_first():
             )
 
 
+#: Why each walk of the mixed building weighs what it does (measured; gtsam 4.3.0).
+MIXED_WEIGHTING = {
+    "as configured": (
+        "weighed by its own noise: its cost grew by 24.1 on joining, for 54.6 degrees of freedom "
+        "gained, which that noise explains"
+    ),
+    "3× noisier": (
+        "weighed by its own noise: its cost grew by 61.2 on joining, for 81.0 degrees of freedom "
+        "gained, which that noise explains; its odometry scale against the other walks' (1.0120) "
+        "was tested and not used: the map's cost rose by 1.6, which a drift explains as well"
+    ),
+    "odometry +2%": (
+        "weighed by its own noise: its cost grew by 22.1 on joining, for 45.2 degrees of freedom "
+        "gained, which that noise explains; its odometry lengths ×0.9840 (they ran 1.6% long "
+        "against the other walks'; the map's cost fell by 66.6)"
+    ),
+    "oblique to the tags": (
+        "weighed by its own noise: its cost grew by 27.5 on joining, for 53.2 degrees of freedom "
+        "gained, which that noise explains"
+    ),
+}
+#: Their noise estimates (``noise.COMPONENTS`` order), each from the walk alone: the 3× noisier
+#: walk's odometry and tag position variances the largest.
+MIXED_NOISE_SCALES = [
+    [0.382009, 0.332796, 0.442888, 0.0162109],
+    [7.20805, 0.577895, 3.54407, 0.0740272],
+    [0.474817, 0.412661, 0.372108, 0.0162474],
+    [0.563211, 0.462994, 0.476186, 0.0296446],
+]
+
+
 def test_no_walk_of_the_mixed_building_is_worse_in_the_building_map():
     """Every walk's own tags, against the truth: no worse than alone (before issue 25 the walk as
     configured got 8% worse); the walk whose odometry runs 2% long is found and rescaled; the
@@ -369,8 +453,14 @@ def test_no_walk_of_the_mixed_building_is_worse_in_the_building_map():
         alone = part.alone.tag_poses()
         mine = {t: pose for t, pose in joint.map.tag_poses().items() if t in alone}
         assert tag_rmse_m(mine, truth) < tag_rmse_m(alone, truth), part.dataset
-        assert part.weighting
+        # weighed by its own noise (estimated alone), none down-weighted
         assert part.noise is not None
+        np.testing.assert_array_equal(part.noise_scales, part.noise.scales)
+        assert part.disagreement_factor == 1.0
+    assert {part.dataset: part.weighting for part in joint.parts} == MIXED_WEIGHTING
+    np.testing.assert_allclose(
+        [part.noise_scales for part in joint.parts], MIXED_NOISE_SCALES, rtol=1e-4
+    )
     long_walk = joint.part("odometry +2%")
     assert long_walk.alignment.odometry_scale == pytest.approx(1 / 1.02, abs=0.005)
     assert joint.part("as configured").alignment.odometry_scale == 1.0
@@ -380,21 +470,23 @@ def test_no_walk_of_the_mixed_building_is_worse_in_the_building_map():
 def test_five_walks_of_one_floor_are_each_better_than_alone():
     """Issue 25's target for five walks of one floor (at least 4 of 5 better than alone), with
     known truth, as only three real walks of floor 2 ship: the mixed building and a fifth walk
-    as configured (bench/multi_session.py table 3b: 5 of 5 on seeds 0–2)."""
+    as configured (bench/multi_session.py table 3b: 5 of 5 on seeds 0–2). This building makes
+    5 of 5, and the test holds it to that."""
     building = simulate_building_sessions(
         SimulationConfig(num_poses=1200, seed=0), count=5, styles=MIXED_WALKS
     )
     sessions = [parse_session(s.upload) for s in building.sessions]
     joint = optimize_sessions(sessions, names=[f"walk {k}" for k in range(5)])
-    better = 0
+    not_better = []
     for part in joint.parts:
         assert part.alone is not None
         alone = part.alone.tag_poses()
         mine = {t: pose for t, pose in joint.map.tag_poses().items() if t in alone}
-        better += tag_rmse_m(mine, building.world_T_tag_true) < tag_rmse_m(
+        if tag_rmse_m(mine, building.world_T_tag_true) >= tag_rmse_m(
             alone, building.world_T_tag_true
-        )
-    assert better >= 4
+        ):
+            not_better.append(part.dataset)
+    assert not_better == []  # 5 of 5 (measured: 0.047–0.039 m joint against 0.076–0.35 m alone)
 
 
 def test_a_new_version_started_from_the_last_is_the_map_a_cold_build_makes():
