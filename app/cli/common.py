@@ -149,9 +149,10 @@ def slam_params(pairs: Sequence[str]) -> SlamParams:
     for pair in pairs:
         name, sep, value = pair.partition("=")
         if not sep or not name.strip():
-            raise ParameterError(f"--param expects NAME=VALUE, got {pair!r}")
+            shown = pair if len(pair) <= 60 else pair[:59] + "…"  # one readable line
+            raise ParameterError(f"--param expects NAME=VALUE, got {shown!r}")
         overrides[name.strip()] = value.strip()
-    return SlamParams().with_overrides(overrides)
+    return SlamParams().with_checked_overrides(overrides)  # each within its range, as the API's
 
 
 def read_input_file(path: Path, *, max_bytes: int | None = None) -> bytes:

@@ -252,30 +252,20 @@ def merge_maps(
     )
 
 
-#: The most Levenberg–Marquardt iterations a rebuild may ask for (the default is 100; each one
-#: costs a linear solve of the whole graph).
-MAX_ITERATIONS = 10_000
-
-
 def checked_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
-    """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), or a 422
-    naming the first bad parameter."""
+    """The overrides as the worker will read them (values coerced, e.g. "1e-3" → 0.001), each
+    within its range (``params.PARAM_RANGES``: a Huber threshold of 1e308 or a billion
+    iterations is no setting), or a 422 naming the first bad parameter and its range."""
     defaults = SlamParams()
     for name, value in overrides.items():
         try:
-            defaults.with_overrides({name: value})
+            defaults.with_checked_overrides({name: value})
         except ParameterError as err:
             raise InvalidInput("invalid_parameter", str(err), field=f"params.{name}") from err
     try:
-        params = defaults.with_overrides(overrides).to_dict()
+        params = defaults.with_checked_overrides(overrides).to_dict()
     except ParameterError as err:
         raise InvalidInput("invalid_parameter", str(err), field="params") from err
-    if params["max_iterations"] > MAX_ITERATIONS:
-        raise InvalidInput(
-            "invalid_parameter",
-            f"max_iterations must be at most {MAX_ITERATIONS}, got {params['max_iterations']:.3g}",
-            field="params.max_iterations",
-        )
     return {name: params[name] for name in overrides}
 
 

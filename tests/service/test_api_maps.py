@@ -360,15 +360,16 @@ def test_rebuild_with_bad_parameters_is_422_and_queues_nothing(
     assert api.count(Job) == jobs_before
 
 
-def test_rebuild_of_a_bad_json_body_is_422(api: Api, built: dict[str, Any]) -> None:
+def test_rebuild_of_a_bad_json_body_is_400(api: Api, built: dict[str, Any]) -> None:
     response = api.client.post(
         built["map_url"] + "/rebuild",
         headers={**ADMIN, "Content-Type": "application/json"},
         content=b"{not json",
     )
 
-    assert response.status_code == 422
-    assert response.json()["code"] == "validation_error"
+    assert response.status_code == 400
+    assert response.json()["code"] == "invalid_json"
+    assert response.json()["field"] == "body"
 
 
 # --------------------------------------------------------------------------- list, delete

@@ -11,7 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.domain.errors import InvisibleMapError, ParameterError
-from app.domain.mapping.params import DEFAULT_TAG_SIZE_M, SlamParams
+from app.domain.evaluation.tuning import PAPER_GRID_RANGE
+from app.domain.mapping.params import (
+    DEFAULT_TAG_SIZE_M,
+    PARAM_RANGES,
+    TAG_SIZE_RANGE,
+    ParamRange,
+    SlamParams,
+)
 
 VARIANCES = (
     "tag_position_var_m2",
@@ -313,3 +320,110 @@ def test_round_trip_property(tag_position, odom_angular, view_deg, iterations, m
     # Through strings too, as --param passes them.
     as_text = {k: str(v) for k, v in params.to_dict().items() if k != "tag_sizes_m"}
     assert SlamParams().with_overrides(as_text) == dataclasses.replace(params, tag_sizes_m={})
+
+
+# --------------------------------------------------------------------------- ranges (issue 40)
+
+#: Values from outside that no setting means, and a word of the range the error must name.
+OUT_OF_RANGE = [
+    ("huber_k", "1e308", "0.1 to 100"),
+    ("huber_k", 1e308, "0.1 to 100"),
+    ("huber_k", "0.01", "0 (off) or 0.1 to 100 σ"),
+    ("huber_k", "-1", "0 (off) or 0.1 to 100 σ"),
+    ("huber_k", "NaN", "0 (off) or 0.1 to 100 σ"),
+    ("tag_position_var_m2", "1e308", "1e-12 to 1e+06 m²"),
+    ("tag_position_var_m2", "0", "1e-12 to 1e+06 m²"),
+    ("tag_position_var_m2", "1e-300", "1e-12 to 1e+06 m²"),
+    ("odom_linear_var_m2_per_s", "-1e-3", "1e-12 to 1e+06 m²/s"),
+    ("odom_angular_var_rad2_per_s", "nan", "1e-12 to 1e+06 rad²/s"),
+    ("tag_orientation_var_rad2", "1e7", "1e-12 to 1e+06 rad²"),
+    ("gravity_var_rad2", "inf", "1e-12 to 1e+06 rad²"),
+    ("tag_depth_var_ratio", "1e308", "1 to 1e+06"),
+    ("noise_prior_dof", "1e308", "0 to 1e+06"),
+    ("max_reprojection_px", "1e308", "0.1 to 10000 px"),
+    ("max_view_angle_deg", "0.5", "1 to 90 degrees"),
+    ("max_distance_m", "1e308", "0.01 to 1000 m"),
+    ("keyframe_interval_s", "1e308", "0 to 3600 s"),
+    ("tag_size_m", "1e308", "0.001 to 10 m"),
+    ("max_iterations", "10001", "1 to 10000"),
+    ("max_iterations", "1" + "0" * 400, "1 to 10000"),
+    ("max_iterations", 1e308, "1 to 10000"),
+    ("converged_step_m", "1e3", "1e-12 to 1 m"),
+    ("converged_step_rad", "0", "1e-12 to 1 rad"),
+    ("relative_error_tol", "2", "1e-16 to 1"),
+    ("tag_sizes_m", "300:1e308", "0.001 to 10 m"),
+    ("tag_sizes_m", {"-1": 0.15}, "0 to 2147483647"),
+    ("tag_sizes_m", {str(2**31): 0.15}, "0 to 2147483647"),
+]
+
+
+@pytest.mark.parametrize(("name", "value", "range_text"), OUT_OF_RANGE)
+def test_a_value_from_outside_must_lie_in_its_range(name, value, range_text):
+    with pytest.raises(ParameterError) as info:
+        SlamParams().with_checked_overrides({name: value})
+    message = str(info.value)
+    assert name in message
+    assert range_text in message
+    assert len(message) < 200  # one readable line, even for 400 digits
+    assert "\n" not in message
+
+
+def test_a_range_check_leaves_the_solvers_own_checks_alone():
+    # A map stored with a value out of range is still read (from_dict does not check ranges),
+    # and the domain's code and tests may use any value the solver takes.
+    params = SlamParams.from_dict({"huber_k": 1e308, "max_iterations": 10**6})
+    assert params.huber_k == 1e308
+    with pytest.raises(ParameterError, match=r"huber_k must be 0 \(off\) or 0\.1 to 100"):
+        params.check_ranges()
+
+
+def test_every_number_has_a_range_and_the_defaults_lie_in_theirs():
+    defaults = SlamParams()
+    numbers = {
+        f.name
+        for f in dataclasses.fields(SlamParams)
+        if isinstance(getattr(defaults, f.name), (int, float))
+        and not isinstance(getattr(defaults, f.name), bool)
+    }
+    assert numbers == set(PARAM_RANGES)
+    assert defaults.check_ranges() is defaults
+    assert DEFAULT_TAG_SIZE_M in TAG_SIZE_RANGE
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        # every value a sweep tries: the paper's grid (1e-10 … 10) and ours (1e-8 … 1)
+        *((name, bound) for name in VARIANCES for bound in (1e-10, 10.0, *PAPER_GRID_RANGE)),
+        ("huber_k", 0),  # off
+        ("huber_k", "0.0"),
+        ("huber_k", 1.345),
+        ("huber_k", 2.0),
+        ("max_reprojection_px", 1000),  # docs/tuning.md
+        ("max_distance_m", 0.01),
+        ("keyframe_interval_s", 0),  # every pose
+        ("noise_prior_dof", 0.0),
+        ("max_iterations", 10_000),
+        ("max_iterations", 1),
+        ("max_view_angle_deg", 90),
+        ("relative_error_tol", 1e-3),
+        ("tag_sizes_m", "300:0.15,301:0.2"),
+        ("tag_sizes_m", ""),
+    ],
+)
+def test_values_in_use_lie_in_their_ranges(name, value):
+    SlamParams().with_checked_overrides({name: value})
+
+
+def test_a_range_reads_as_its_error_says_it():
+    assert str(ParamRange(0.1, 100.0, "σ", off=0.0)) == "0 (off) or 0.1 to 100 σ"
+    assert str(ParamRange(1, 10_000)) == "1 to 10000"
+    assert 0.0 in ParamRange(0.1, 100.0, off=0.0)
+    assert 0.05 not in ParamRange(0.1, 100.0, off=0.0)
+    assert math.nan not in ParamRange(0.0, 1.0)
+
+
+def test_a_value_that_cannot_be_read_is_shown_briefly():
+    with pytest.raises(ParameterError) as info:
+        SlamParams().with_checked_overrides({"max_iterations": "9" * 5000})
+    assert len(str(info.value)) < 300

@@ -38,6 +38,7 @@ from app.services.navigation import current_path_graph, edited_version, planned_
 from app.storage import maps
 from app.storage.maps import MapInfo
 from app.web.deps import ReadDbSessionDep, WriteDbSessionDep, valid_id
+from app.web.errors import error_response
 
 router = admin_router()
 
@@ -117,6 +118,7 @@ def add_edit(
             valid_id(map_id, "map"),
             document,
             principal=user.principal,
+            max_edits=request.app.state.settings.max_corridor_edits,
         )
     except ServiceError as err:
         db_session.rollback()  # the map's edit revision was raised: nothing is kept
@@ -172,10 +174,9 @@ def editor_route(
 
 
 def _error(err: ServiceError) -> JSONResponse:
-    return JSONResponse(
-        {"detail": err.detail, "code": err.code, "field": err.field},
-        status_code=err.status_code,
-    )
+    """``err`` as the API answers it (``app.web.errors.error_response``): its long numbers shown
+    compactly (an edit at 1e308 is not echoed as 309 digits) and its text cut to a bound."""
+    return error_response(err.status_code, err.code, err.detail, field=err.field)
 
 
 def _floors(pg: PathGraph) -> list[dict[str, Any]]:

@@ -51,13 +51,22 @@ from app.services.uploads import stored_session
 from app.services.version_cache import VersionCache
 from app.storage import maps, queue
 from app.storage.maps import MapInfo, VersionInfo
-from app.web.deps import DbDep, ReadDbSessionDep, SettingsDep, valid_id
+from app.web.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, valid_id, valid_version
 
 router = admin_router()
 
+#: ``?version=N``: any number is taken; one that can be no version's (:data:`MAX_ID`) names
+#: nothing and gets the page of a version the map does not have (:func:`asked_version`), as on
+#: ``/v1``: it never reaches the database, where PostgreSQL's 32-bit column refuses it.
 VersionNumber = Annotated[
-    int | None, Query(ge=1, le=2**31, description="a version number; the current one if left out")
+    int | None, Query(description="a version number; the current one if left out")
 ]
+
+
+def asked_version(map_id: int, number: int | None) -> int | None:
+    """``number`` (None: the current version) if it can be a version's, else the 404 of a
+    version map ``map_id`` does not have."""
+    return None if number is None else valid_version(map_id, number)
 
 
 @router.get("/maps")
@@ -179,6 +188,7 @@ def map_page(
 ) -> Response:
     """The map page (with the rebuild or rename form's error and values after a refusal)."""
     info = maps.get_map(db_session, valid_id(map_id, "map"))
+    number = asked_version(info.id, number)
     version = chosen_version(db_session, info, number) if info.current or number else None
     jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=10)
     refusal = rebuild_error or rename_error
@@ -405,7 +415,7 @@ def download_app_map(
     version: VersionNumber = None,
 ) -> Response:
     info = maps.get_map(db_session, valid_id(map_id, "map"))
-    chosen = chosen_version(db_session, info, version)
+    chosen = chosen_version(db_session, info, asked_version(info.id, version))
     return Response(
         content=gzip.decompress(
             app_map_with_edits_gzip(
@@ -428,7 +438,7 @@ def download_geojson(
     version: VersionNumber = None,
 ) -> Response:
     info = maps.get_map(db_session, valid_id(map_id, "map"))
-    chosen = chosen_version(db_session, info, version)
+    chosen = chosen_version(db_session, info, asked_version(info.id, version))
     return Response(
         content=geojson_bytes(
             request.app.state.version_cache, db_session, chosen, info.corridor_edits_revision
@@ -449,11 +459,12 @@ def map_live(
     db_session: ReadDbSessionDep,
     map_id: int,
     version: VersionNumber = None,
-    current: Annotated[int, Query(ge=0, le=2**31, description="the page's current version")] = 0,
+    current: Annotated[int, Query(ge=0, le=MAX_ID, description="the page's current version")] = 0,
 ) -> Response:
     """The map page's live part: versions (with a notice when one newer than the page's
     ``current`` is ready) and jobs."""
     info = maps.get_map(db_session, valid_id(map_id, "map"))
+    version = asked_version(info.id, version)
     jobs, _ = queue.list_jobs(db_session, map_id=info.id, limit=10)
     return render(
         request,

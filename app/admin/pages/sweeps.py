@@ -47,7 +47,7 @@ from app.storage import maps, queue, sweeps
 from app.storage.maps import MapInfo, MapNotFound
 from app.storage.queue import JobInfo, JobNotFound
 from app.storage.sweeps import SweepInfo
-from app.web.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, valid_id
+from app.web.deps import MAX_ID, DbDep, ReadDbSessionDep, SettingsDep, is_id, valid_id
 
 router = admin_router()
 
@@ -266,9 +266,10 @@ def _plan_error(err: ServiceError, submitted: StartForm) -> ServiceError:
 
 
 def _map_choices(db_session: Session, chosen: int | None) -> list[MapInfo]:
-    """The maps offered in the lists: the newest, and the chosen one if it is older."""
+    """The maps offered in the lists: the newest, and the chosen one if it is older (a refused
+    form's number that can be no map's id is none: it never reaches the database)."""
     infos, _ = maps.list_maps(db_session, limit=MAP_CHOICES)
-    if chosen is not None and all(info.id != chosen for info in infos):
+    if chosen is not None and is_id(chosen) and all(info.id != chosen for info in infos):
         with contextlib.suppress(MapNotFound):  # a refused form's map may be gone
             infos.append(maps.get_map(db_session, chosen))
     return infos

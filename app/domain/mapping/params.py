@@ -1,7 +1,9 @@
 """SLAM hyperparameters and detection-rejection thresholds, each with its unit in its name.
 
     SlamParams()                                        # the documented defaults
-    SlamParams().with_overrides({"tag_position_var_m2": "1e-4"})   # from ``--param NAME=VALUE``
+    SlamParams().with_overrides({"tag_position_var_m2": "1e-4"})   # any value the solver takes
+    SlamParams().with_checked_overrides({"huber_k": "2"})  # from outside (``--param``, the API):
+                                                        # each value within PARAM_RANGES too
 
 The paper's four hyperparameters are the four variances below (tag position, tag orientation,
 odometry linear, odometry angular) plus the gravity variance. Odometry variances are *rates*: the
@@ -13,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,6 +41,62 @@ NOISE_VARIANCE_FIELDS = (
     "odom_angular_var_rad2_per_s",
     "gravity_var_rad2",
 )
+
+
+@dataclass(frozen=True, slots=True)
+class ParamRange:
+    """The values a parameter may be given from outside: ``low`` to ``high`` (inclusive), and
+    ``off`` as well when there is one (``huber_k = 0`` turns the Huber loss off).
+
+        ParamRange(0.1, 100.0, "σ", off=0.0)    # str: "0 (off) or 0.1 to 100 σ"
+    """
+
+    low: float
+    high: float
+    unit: str = ""
+    off: float | None = None
+
+    def __contains__(self, value: float) -> bool:
+        return (self.off is not None and value == self.off) or self.low <= value <= self.high
+
+    def __str__(self) -> str:
+        span = f"{self.low:g} to {self.high:g}" + (f" {self.unit}" if self.unit else "")
+        return span if self.off is None else f"{self.off:g} (off) or {span}"
+
+
+#: A noise variance: 1e-12 (σ of 1 µm or 1 µrad) to 1e6 (σ of 1 km or 1000 rad: no information);
+#: the paper's grid spans 1e-10 to 10, our sweeps' 1e-8 to 1 (``evaluation.tuning``).
+VARIANCE_RANGE = (1e-12, 1e6)
+#: The largest tag id a size may be given for (the 32-bit column tag ids are stored in).
+MAX_TAG_ID = 2**31 - 1
+
+#: What each number may be set to from outside (the API's rebuild and sweeps, the dashboard's
+#: rebuild form, ``--param``): wide enough for every setting that means something (every value
+#: the sweeps try, the docs and tests use), narrow enough that none makes the solver run away
+#: (a Huber threshold of 1e308, a billion iterations). :meth:`SlamParams.with_checked_overrides`
+#: checks them; the constructor only checks what the solver needs (finite, positive), so a map
+#: stored with another value is still read.
+PARAM_RANGES: dict[str, ParamRange] = {
+    "tag_position_var_m2": ParamRange(*VARIANCE_RANGE, "m²"),
+    "tag_depth_var_ratio": ParamRange(1.0, 1e6),
+    "tag_orientation_var_rad2": ParamRange(*VARIANCE_RANGE, "rad²"),
+    "odom_linear_var_m2_per_s": ParamRange(*VARIANCE_RANGE, "m²/s"),
+    "odom_angular_var_rad2_per_s": ParamRange(*VARIANCE_RANGE, "rad²/s"),
+    "gravity_var_rad2": ParamRange(*VARIANCE_RANGE, "rad²"),
+    "huber_k": ParamRange(0.1, 100.0, "σ", off=0.0),
+    "noise_prior_dof": ParamRange(0.0, 1e6, "pseudo-rows"),
+    "max_reprojection_px": ParamRange(0.1, 1e4, "px"),
+    "max_view_angle_deg": ParamRange(1.0, 90.0, "degrees"),
+    "max_distance_m": ParamRange(0.01, 1e3, "m"),
+    "keyframe_interval_s": ParamRange(0.0, 3600.0, "s"),
+    "tag_size_m": ParamRange(1e-3, 10.0, "m"),
+    "max_iterations": ParamRange(1, 10_000),
+    "converged_step_m": ParamRange(1e-12, 1.0, "m"),
+    "converged_step_rad": ParamRange(1e-12, 1.0, "rad"),
+    "relative_error_tol": ParamRange(1e-16, 1.0),
+}
+#: Each size of ``tag_sizes_m``: the same as ``tag_size_m``'s.
+TAG_SIZE_RANGE = PARAM_RANGES["tag_size_m"]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -167,6 +225,40 @@ class SlamParams:
             if not 0 < size_m < math.inf:
                 raise ParameterError(f"tag_sizes_m[{tag_id}] must be finite and > 0, got {size_m}")
 
+    def with_checked_overrides(self, overrides: Mapping[str, Any]) -> SlamParams:
+        """:meth:`with_overrides` for values from outside (the API, the dashboard, ``--param``):
+        each given value must also lie in its :data:`PARAM_RANGES`. ParameterError naming the
+        first parameter at fault and its range."""
+        for name, raw in overrides.items():
+            try:
+                changed = self.with_overrides({name: raw})
+            except ParameterError as err:
+                if name not in PARAM_RANGES:
+                    raise
+                raise ParameterError(f"{err} (it takes {PARAM_RANGES[name]})") from err
+            changed.check_ranges([name])
+        return self.with_overrides(overrides)
+
+    def check_ranges(self, names: Iterable[str] | None = None) -> SlamParams:
+        """``self`` if each of ``names`` (every field when None) lies in its
+        :data:`PARAM_RANGES`, else ParameterError naming the first that does not and its range."""
+        checked = [f.name for f in dataclasses.fields(self)] if names is None else names
+        for name in checked:
+            value = getattr(self, name)
+            if name == "tag_sizes_m":
+                for tag_id, size_m in value.items():
+                    if not 0 <= tag_id <= MAX_TAG_ID:
+                        raise ParameterError(
+                            f"tag_sizes_m: a tag id is 0 to {MAX_TAG_ID}, got {_shown(tag_id)}"
+                        )
+                    if size_m not in TAG_SIZE_RANGE:
+                        raise ParameterError(
+                            f"tag_sizes_m[{tag_id}] must be {TAG_SIZE_RANGE}, got {_shown(size_m)}"
+                        )
+            elif name in PARAM_RANGES and value not in PARAM_RANGES[name]:
+                raise ParameterError(f"{name} must be {PARAM_RANGES[name]}, got {_shown(value)}")
+        return self
+
     def with_default_variances(self) -> SlamParams:
         """A copy with every noise variance (:data:`NOISE_VARIANCE_FIELDS`) at its default."""
         defaults = SlamParams()
@@ -234,4 +326,24 @@ def _coerce(name: str, type_name: str, raw: Any) -> Any:
         pairs = [p for p in str(raw).split(",") if p.strip()]
         return {int(k): float(v) for k, v in (p.split(":") for p in pairs)}
     except (TypeError, ValueError) as err:
-        raise ParameterError(f"parameter {name}: cannot use {raw!r} ({err})") from err
+        reason = _brief(str(err).partition(";")[0])
+        raise ParameterError(
+            f"parameter {name}: cannot use {_brief(repr(raw))} ({reason})"
+        ) from err
+
+
+#: The most characters of a refused value an error shows.
+_SHOWN_CHARS = 60
+
+
+def _brief(text: str) -> str:
+    """``text`` cut to :data:`_SHOWN_CHARS` (a refused value can be 5,000 digits)."""
+    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 1] + "…"
+
+
+def _shown(value: float) -> str:
+    """A parameter's value in an error: ``%g`` (an integer of 400 digits as its digit count)."""
+    try:
+        return f"{value:g}"
+    except OverflowError:
+        return f"a number of {len(str(abs(int(value))))} digits"
