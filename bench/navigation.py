@@ -217,24 +217,6 @@ def walk_skeleton(walk: SimulatedWalk, params: SkeletonParams) -> PathGraph:
     )
 
 
-def building_skeleton(walks: list[SimulatedWalk], params: SkeletonParams) -> PathGraph:
-    """``simulate.fused_skeleton`` with ``params``: the building map of ``walks``."""
-    starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
-    seen: dict[int, np.ndarray] = {}
-    for w in walks:
-        ids, positions = w.seen_tags()
-        seen.update(zip(ids, positions, strict=True))
-    tag_ids = sorted(seen)
-    return build_skeleton_from_arrays(
-        np.concatenate([w.positions_m for w in walks]),
-        walk_starts=starts,
-        tag_ids=tag_ids,
-        tag_positions_m=np.array([seen[t] for t in tag_ids]).reshape(-1, 3),
-        tag_normals=walks[0].tag_normals(tag_ids),
-        params=params,
-    )
-
-
 def sampled_pairs(ids: list[int], count: int, seed: int) -> list[tuple[int, int]]:
     """``count`` ordered pairs of ``ids`` drawn with ``seed`` (all of them if fewer)."""
     pairs = list(itertools.permutations(ids, 2))
@@ -263,7 +245,7 @@ def nook_scores(
         ids = sorted({t for w in part for t in w.seen_tags()[0]})
         maps.append(
             score_tag_routes(
-                building_skeleton(part, params),
+                fused_skeleton(part, params),
                 corridor_graph(part),
                 sampled_pairs(ids, BUILDING_MAP_PAIRS, seed),
                 plan=plan_guided_route,

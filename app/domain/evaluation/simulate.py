@@ -64,7 +64,12 @@ from app.domain.frames import (
 )
 from app.domain.navigation.instructions import walked_distances_m
 from app.domain.navigation.path_graph import PathGraph
-from app.domain.navigation.skeleton import attach_anchor, build_skeleton_from_arrays
+from app.domain.navigation.skeleton import (
+    DEFAULT_SKELETON_PARAMS,
+    SkeletonParams,
+    attach_anchor,
+    build_skeleton_from_arrays,
+)
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -2019,10 +2024,12 @@ def walks_of_one_building(
     ]
 
 
-def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
+def fused_skeleton(
+    walks: Sequence[SimulatedWalk], params: SkeletonParams = DEFAULT_SKELETON_PARAMS
+) -> PathGraph:
     """The corridor skeleton a building map of ``walks`` (one building, its frame, their true
     positions) gets: fused from all of them, with the tags any of them saw (a map holds no
-    other)."""
+    other); ``params`` to try other skeleton settings."""
     starts = np.cumsum([0, *(len(w.positions_m) for w in walks[:-1])]).tolist()
     seen: dict[int, FloatArray] = {}
     for w in walks:
@@ -2035,6 +2042,7 @@ def fused_skeleton(walks: Sequence[SimulatedWalk]) -> PathGraph:
         tag_ids=tag_ids,
         tag_positions_m=np.array([seen[t] for t in tag_ids]).reshape(-1, 3),
         tag_normals=walks[0].tag_normals(tag_ids),
+        params=params,
     )
 
 
