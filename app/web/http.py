@@ -54,25 +54,30 @@ def if_none_match_hits(if_none_match: str | None, etag: str) -> bool:
     return False
 
 
+def weighted_items(header: str) -> Iterator[tuple[str, float]]:
+    """The items of a list header with q-values (``Accept``, ``Accept-Encoding``: RFC 9110
+    §12.4.2), each as (item, q): q 1 when not given, 0 when not a number."""
+    for item in header.split(","):
+        value, *parameters = (part.strip() for part in item.split(";"))
+        quality = 1.0
+        for parameter in parameters:
+            name, _, text = parameter.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    quality = float(text)
+                except ValueError:
+                    quality = 0.0
+        yield value, quality
+
+
 def accepts_gzip(accept_encoding: str | None) -> bool:
     """Whether ``Accept-Encoding`` allows gzip (listed, or ``*``, with a q-value above 0)."""
     if not accept_encoding:
         return False
-    for item in accept_encoding.split(","):
-        coding, *parameters = (part.strip() for part in item.split(";"))
-        if coding.lower() not in {"gzip", "x-gzip", "*"}:
-            continue
-        quality = 1.0
-        for parameter in parameters:
-            name, _, value = parameter.partition("=")
-            if name.strip().lower() == "q":
-                try:
-                    quality = float(value)
-                except ValueError:
-                    quality = 0.0
-        if quality > 0:
-            return True
-    return False
+    return any(
+        coding.lower() in {"gzip", "x-gzip", "*"} and quality > 0
+        for coding, quality in weighted_items(accept_encoding)
+    )
 
 
 #: Bytes of the stored upload read from the database at once when it is downloaded.

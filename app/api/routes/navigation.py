@@ -32,7 +32,14 @@ from app.storage.db import Database
 from app.storage.maps import VersionInfo
 from app.web.deps import DbDep, MapDep, MapStateDep, ReadDbSessionDep
 from app.web.errors import ApiError, ErrorBody, error_responses
-from app.web.http import JSON_MEDIA_TYPE, AcceptEncoding, IfNoneMatch, ReadyDocument, strong_etag
+from app.web.http import (
+    JSON_MEDIA_TYPE,
+    AcceptEncoding,
+    IfNoneMatch,
+    ReadyDocument,
+    strong_etag,
+    weighted_items,
+)
 from app.web.route_class import SessionEndingRoute
 
 #: The GeoJSON's key in the VersionCache (with the version's id).
@@ -71,16 +78,7 @@ def route_media_type(accept: str | None) -> str:
         return _ROUTE_MEDIA_TYPES[0]
     quality = dict.fromkeys(_ROUTE_MEDIA_TYPES, 0.0)
     specificity = dict.fromkeys(_ROUTE_MEDIA_TYPES, -1)
-    for item in accept.split(","):
-        media_range, *params = (part.strip() for part in item.split(";"))
-        q = 1.0
-        for param in params:
-            name, _, value = param.partition("=")
-            if name.strip().lower() == "q":
-                try:
-                    q = float(value)
-                except ValueError:
-                    q = 0.0
+    for media_range, q in weighted_items(accept):
         kind, _, subtype = media_range.lower().partition("/")
         for media_type in _ROUTE_MEDIA_TYPES:
             want_kind, want_subtype = media_type.split("/")
