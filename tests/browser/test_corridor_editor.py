@@ -29,7 +29,7 @@ from test_dashboard import (
     open_editor,
 )
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow]
+pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.xdist_group("corridor_editor")]
 
 #: What the page's live region said last (each announcement empties it first).
 ANNOUNCER = "#live-announcer"

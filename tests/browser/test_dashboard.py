@@ -21,7 +21,7 @@ from axe_playwright_python.sync_playwright import Axe
 from dashboard_support import TIMEOUT_MS, log_in
 from playwright.sync_api import expect
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow]
+pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.xdist_group("dashboard")]
 
 SESSIONS = Path(__file__).resolve().parents[2] / "data" / "sessions"
 OCCAM = SESSIONS / "occam_room.json"

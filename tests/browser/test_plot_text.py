@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import expect
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow]
+pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.xdist_group("plot_text")]
 
 POIS = Path(__file__).resolve().parents[2] / "data" / "demo" / "floor_2_pois.json"
 LINK = '<a href="https://example.com/phish">Exit</a>'
