@@ -1,5 +1,5 @@
 """Worker *processes*, as deployed: ``python -m workers.main`` killed with SIGKILL mid-job, stopped
-with SIGTERM mid-job (once: finish; twice: release), four processes sharing forty jobs on
+with SIGTERM mid-job (once: finish; twice: release), four processes sharing sixteen jobs on
 PostgreSQL, and the embedded mode's start/stop.
 
 The jobs that must still be running when a signal arrives are simulated sessions of 12,000 poses
@@ -210,19 +210,19 @@ def test_second_sigterm_releases_the_job(
     assert version_count(db) == 0
 
 
-def test_four_processes_forty_jobs_each_job_succeeds_exactly_once(
+def test_four_processes_sixteen_jobs_each_job_succeeds_exactly_once(
     postgres_url: str, tmp_path: Path, workers: list[WorkerProcess]
 ) -> None:
     db = Database(postgres_url)
     try:
         raw = session_bytes("onetag")
-        job_ids = {insert_session(db, raw).job_id for _ in range(40)}
+        job_ids = {insert_session(db, raw).job_id for _ in range(16)}
         supervisor = start(workers, postgres_url, tmp_path, "--processes", "4")
 
         wait_for(
             lambda: all(state == JobState.SUCCEEDED for state in job_states(db).values()),
             timeout_s=90,
-            what="all 40 jobs to succeed",
+            what="all 16 jobs to succeed",
         )
         supervisor.proc.send_signal(signal.SIGTERM)
         assert supervisor.wait(30) == 0, supervisor.output()
@@ -234,7 +234,7 @@ def test_four_processes_forty_jobs_each_job_succeeds_exactly_once(
     finally:
         db.dispose()
 
-    assert len(versions) == 40
+    assert len(versions) == 16
     assert {job_id for job_id, _ in versions} == job_ids
     assert {number for _, number in versions} == {1}
     assert {(state, attempts) for _, state, attempts, _ in jobs} == {("succeeded", 1)}

@@ -90,6 +90,9 @@ def axis(name: str = LINEAR, low: float = 1e-6, high: float = 1e-2, num: int = 5
         (lambda: axis(high=0.0), "high must be a positive variance"),
         (lambda: axis(high=math.inf), "high must be a positive variance, got inf"),
         (lambda: axis(low=math.nan), "low must be a positive variance, got nan"),
+        # beyond what a build takes as a parameter (params.PARAM_RANGES): refused when swept too
+        (lambda: axis(low=1e-30), "low must be 1e-12 to 1e+06 m²/s, got 1e-30"),
+        (lambda: axis(high=1e9), "high must be 1e-12 to 1e+06 m²/s, got 1e+09"),
         (lambda: axis(name="huber_k"), "'huber_k' cannot be swept"),
         (lambda: axis(name="nonsense"), "tunable parameters: tag_position_var_m2"),
         (lambda: axis(low=1.0, high=1e-3), "low 1 is above high 0.001"),

@@ -62,7 +62,7 @@ from app.domain.evaluation.metrics import (
 from app.domain.frames import FloatArray
 from app.domain.json_values import finite_or_none
 from app.domain.mapping.joint import prepare_joint
-from app.domain.mapping.params import NOISE_VARIANCE_FIELDS, SlamParams
+from app.domain.mapping.params import NOISE_VARIANCE_FIELDS, PARAM_RANGES, SlamParams
 from app.domain.mapping.slam import (
     GraphInputs,
     IterationCallback,
@@ -114,6 +114,10 @@ class Axis:
             if not (math.isfinite(value) and value > 0):
                 raise ParameterError(
                     f"{self.name}: {end} must be a positive variance, got {value!r}"
+                )
+            if value not in PARAM_RANGES[self.name]:  # what a build would refuse as a parameter
+                raise ParameterError(
+                    f"{self.name}: {end} must be {PARAM_RANGES[self.name]}, got {value:g}"
                 )
         if self.low > self.high:
             raise ParameterError(f"{self.name}: low {self.low:g} is above high {self.high:g}")
