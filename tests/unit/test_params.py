@@ -403,6 +403,9 @@ def test_every_number_has_a_range_and_the_defaults_lie_in_theirs():
         ("max_distance_m", 0.01),
         ("keyframe_interval_s", 0),  # every pose
         ("noise_prior_dof", 0.0),
+        ("stairs_yaw_var_rad2_per_m", 0),  # off, the default
+        ("stairs_yaw_var_rad2_per_m", 1.5e-3),  # docs/multi-session.md, issue 37
+        ("stairs_linear_var_m2_per_m", 3e-2),
         ("max_iterations", 10_000),
         ("max_iterations", 1),
         ("max_view_angle_deg", 90),

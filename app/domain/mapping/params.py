@@ -84,6 +84,8 @@ PARAM_RANGES: dict[str, ParamRange] = {
     "odom_angular_var_rad2_per_s": ParamRange(*VARIANCE_RANGE, "rad²/s"),
     "gravity_var_rad2": ParamRange(*VARIANCE_RANGE, "rad²"),
     "huber_k": ParamRange(0.1, 100.0, "σ", off=0.0),
+    "stairs_yaw_var_rad2_per_m": ParamRange(1e-8, 1.0, "rad²/m", off=0.0),
+    "stairs_linear_var_m2_per_m": ParamRange(1e-8, 1.0, "m²/m", off=0.0),
     "noise_prior_dof": ParamRange(0.0, 1e6, "pseudo-rows"),
     "max_reprojection_px": ParamRange(0.1, 1e4, "px"),
     "max_view_angle_deg": ParamRange(1.0, 90.0, "degrees"),
@@ -117,6 +119,15 @@ class SlamParams:
                                     residual (σ units); 0 = off. The default, 3.548, is
                                     √χ²₆(0.95): a sighting outside the 95% region its noise
                                     allows is down-weighted (``noise.robust_threshold``).
+
+    Stairs (building maps of several walks only; ``joint/stairs.py``): the variance added to a
+    walk's odometry per metre it climbs or descends (its own odometry's height: stairs, ramps,
+    lifts), on top of its rate × time, so that each walk's link between two floors weighs by
+    the flights it climbed, not by the seconds it spent between tag sightings. 0 = off, the
+    default: 1.5e-3 and 3e-2 (the simulator's stairs error) make simulated pairs of walks 6–7%
+    better on average but the real two-floor pair 1% worse (docs/multi-session.md, issue 37).
+        stairs_yaw_var_rad2_per_m   rotation variance (about each axis) per metre climbed, rad²/m.
+        stairs_linear_var_m2_per_m  translation variance (per axis) per metre climbed, m²/m.
 
     Noise estimation (``noise.py``):
         estimate_noise              estimate each walk's odometry and tag variances from its own
@@ -166,6 +177,8 @@ class SlamParams:
     odom_angular_var_rad2_per_s: float = 1e-4
     gravity_var_rad2: float = 1e-4
     huber_k: float = HUBER_K
+    stairs_yaw_var_rad2_per_m: float = 0.0
+    stairs_linear_var_m2_per_m: float = 0.0
     estimate_noise: bool = True
     noise_prior_dof: float = NOISE_PRIOR_DOF
 
@@ -213,6 +226,11 @@ class SlamParams:
             )
         if self.huber_k < 0:
             raise ParameterError(f"huber_k must be ≥ 0 (0 disables it), got {self.huber_k}")
+        for name in ("stairs_yaw_var_rad2_per_m", "stairs_linear_var_m2_per_m"):
+            if getattr(self, name) < 0:
+                raise ParameterError(
+                    f"{name} must be ≥ 0 (0 turns it off), got {getattr(self, name)}"
+                )
         if self.noise_prior_dof < 0:
             raise ParameterError(f"noise_prior_dof must be ≥ 0, got {self.noise_prior_dof}")
         if not 0 < self.max_view_angle_deg <= 90:

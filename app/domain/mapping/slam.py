@@ -520,6 +520,7 @@ class GraphInputs:
         tag_variance_scale: FloatArray | None = None,
         odometry_variance_scale: FloatArray | None = None,
         noise_scales: FloatArray | None = None,
+        odometry_added_variance: FloatArray | None = None,
     ) -> None:
         """``chain_starts``: the first pose row of each pose chain (a joint map's sessions,
         ``joint.py``): no odometry links the last pose of one chain to the first of the next, and
@@ -531,7 +532,11 @@ class GraphInputs:
         ``screening.burst_variance_scale``) and ``odometry_variance_scale`` ((N,) per pose, taken
         at the step's first keyframe) multiply the noise variances. ``noise_scales``: (S, 4)
         per chain, the factors on its odometry linear, odometry angular, tag position and tag
-        orientation variances (``noise.COMPONENTS``; what each walk's data support)."""
+        orientation variances (``noise.COMPONENTS``; what each walk's data support).
+        ``odometry_added_variance``: (N, 2) variance added to the odometry from pose i to pose
+        i + 1, translation (m², per axis) and rotation (rad², per axis), on top of the rate ×
+        time and not scaled by ``noise_scales``; a step between keyframes adds up its poses'
+        (a building map's stairs, ``joint/stairs.py``)."""
         self.session = session
         self.screening = screening or screen_detections(session.detections, params)
         detections = session.detections
@@ -617,6 +622,12 @@ class GraphInputs:
             if odometry_variance_scale is None
             else np.asarray(odometry_variance_scale, dtype=np.float64)[self.keyframes[:-1]]
         )
+        #: (K−1, 2) variance added to each odometry step, translation m² and rotation rad²
+        self.odometry_added_variance = np.zeros((max(len(keyframes) - 1, 0), 2))
+        if odometry_added_variance is not None:
+            added = np.asarray(odometry_added_variance, dtype=np.float64).reshape(n, 2)
+            summed = np.concatenate([np.zeros((1, 2)), np.cumsum(added, axis=0)])
+            self.odometry_added_variance = summed[self.keyframes[1:]] - summed[self.keyframes[:-1]]
         #: (S, 4) each chain's factors on its noise components (``noise.COMPONENTS``)
         self.noise_scales = (
             np.ones((len(starts), len(COMPONENTS)))
@@ -840,16 +851,23 @@ def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
 
 
 def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.BetweenFactorPose3]:
-    """2b. Odometry between consecutive keyframes, noise growing with the time between them (one
-    noise model per distinct duration and walk)."""
-    noise_by_dt: dict[tuple[float, float, float], gtsam.noiseModel.Base] = {}
+    """2b. Odometry between consecutive keyframes, noise growing with the time between them, plus
+    any variance added to the step (``GraphInputs.odometry_added_variance``; one noise model per
+    distinct duration, walk and added variance)."""
+    noise_by_dt: dict[tuple[float, ...], gtsam.noiseModel.Base] = {}
     factors = []
     keyframes = inputs.keyframes.tolist()
     linear_scale, angular_scale = inputs.odometry_scales()
     for k, phone_T_next in enumerate(inputs.phone_T_next):
         if not inputs.odometry_linked[k]:
             continue  # the next keyframe starts another pose chain (session)
-        key = (float(inputs.odometry_dt_s[k]), float(linear_scale[k]), float(angular_scale[k]))
+        key = (
+            float(inputs.odometry_dt_s[k]),
+            float(linear_scale[k]),
+            float(angular_scale[k]),
+            float(added[k, 0]),
+            float(added[k, 1]),
+        )
         noise = noise_by_dt.get(key)
         if noise is None:
             sigmas = odometry_sigmas(key[0], params)
@@ -882,6 +900,7 @@ def _gravity_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.Atti
         if noise is None:
             noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(float(variance)))
             noise_by_variance[float(variance)] = noise
+    added = inputs.odometry_added_variance
         factors.append(gtsam.AttitudeFactorPose3(X(int(i)), world_up, noise, phone_up))
     return factors
 
@@ -891,6 +910,9 @@ def _tag_factors(
 ) -> tuple[list[gtsam.BetweenFactorPose3], list[FloatArray]]:
     """2d. Tags, under a Huber kernel; and each factor's covariance (tag frame)."""
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
+            if key[3] or key[4]:
+                sigmas[:3] = np.sqrt(sigmas[:3] ** 2 + key[4])
+                sigmas[3:] = np.sqrt(sigmas[3:] ** 2 + key[3])
     covariances = _tag_covariances(inputs, params)
     factors = []
     for k, landmark_key in enumerate(inputs.landmark_keys):

@@ -23,6 +23,7 @@ import numpy as np
 
 from app.domain.frames import FloatArray
 from app.domain.mapping.joint import JointMap
+from app.domain.mapping.joint.stairs import stairs_variance
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.slam import GraphInputs, refine, solved_poses, values_from
 
@@ -36,8 +37,9 @@ def resolve_with_loose_stretches(
 ) -> dict[int, FloatArray]:
     """The tags of ``joint`` solved again with the odometry variance × ``variance_factor`` on
     each walk's stretches in ``loose`` (walk name → (first pose row, last pose row) of the walk's
-    own session, end exclusive), from ``joint``'s optimum; each walk keeps its noise and weight.
-    With no stretch loosened it is the map's graph solved again (a baseline to compare with)."""
+    own session, end exclusive), from ``joint``'s optimum; each walk keeps its noise, weight and
+    stairs' variance (``params``'). With no stretch loosened it is the map's graph solved again
+    (a baseline to compare with)."""
     params = params or SlamParams()
     fixed = dataclasses.replace(params, estimate_noise=False)
     scale = np.ones(joint.combined.num_poses)
@@ -50,6 +52,9 @@ def resolve_with_loose_stretches(
         chain_starts=[part.pose_rows.start for part in joint.parts],
         noise_scales=np.stack([part.noise_scales for part in joint.parts]),
         odometry_variance_scale=scale,
+        odometry_added_variance=np.concatenate(
+            [stairs_variance(session, params) for session in joint.sessions]
+        ),
     )
     start = values_from(inputs, joint.map.world_T_phone[inputs.keyframes], joint.map.tag_poses())
     solution = refine(inputs, fixed, start)

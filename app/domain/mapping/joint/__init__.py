@@ -17,6 +17,8 @@ walks.py      1. each walk alone: its tag depth scale, its own map and its noise
 alignment.py  2. two walks: one placed on the other by a turn about +y and a translation
 placing.py    2. all walks placed at once; 3. each walk's candidate odometry scale
 plan.py       steps 1–2 as a plan; 4. the walks concatenated into one graph's inputs
+stairs.py     4. each walk's climbs from its own odometry: the variance they may add to it
+              (the stairs rule, off by default) and its links between levels (the report)
 scale.py      3. a candidate odometry scale kept only if it lowers the joint map's cost
 weights.py    5. a tag one walk disagrees on set apart; 6. a walk its noise does not explain
               down-weighted

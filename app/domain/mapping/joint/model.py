@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from app.domain.errors import InvisibleMapError
 from app.domain.frames import FloatArray
+from app.domain.mapping.joint.stairs import StairLink
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.noise import NoiseEstimate
 from app.domain.upload.session import Session
@@ -120,6 +121,10 @@ class SessionPart:
         noise, i.e. without the disagreement factor).
     redundancy_gain: Δr, the degrees of freedom joining gave it (step 6, ``weights.py``).
     weighting: why it weighs what it does, in a sentence ("" for a map of one walk).
+    stair_links: the stretches its odometry alone carries from a tag on one level to a tag on
+        another (the stairs between floors), with the σ of heading the map gave each and its
+        share of every walk's links between the same two levels (``stairs.StairLink``): how much
+        it decides where one floor sits against another.
     alone: its own map, alone (in its own world frame): the report compares with it.
     """
 
@@ -141,6 +146,7 @@ class SessionPart:
     cost_joint: float = math.nan
     redundancy_gain: float = 0.0
     weighting: str = ""
+    stair_links: tuple[StairLink, ...] = ()
     alone: MapResult | None = None
     fit: WalkFit | None = None
 

@@ -27,11 +27,17 @@ from app.domain.mapping.joint.placing import (
     odometry_scale_candidates,
     walk_placements,
 )
+from app.domain.mapping.joint.stairs import Climb, stairs_on, stairs_variance, walk_climbs
 from app.domain.mapping.joint.walks import fit_walk, scaled_tag_depths, tag_depth_scale
 from app.domain.mapping.map_result import Rejection
 from app.domain.mapping.params import SlamParams
 from app.domain.mapping.screening import DetectionGeometry, Screening, screen_detections
-from app.domain.mapping.slam import GraphInputs, local_landmark_key
+from app.domain.mapping.slam import (
+    GraphInputs,
+    chain_costs,
+    local_landmark_key,
+    values_from,
+)
 from app.domain.upload.session import PointOfInterest, Session, TagDetections
 
 #: Time between consecutive sessions in the joint map's clock, s (no odometry spans it).
@@ -177,6 +183,13 @@ class JointInputs:
     start_T_tag: dict[int, FloatArray]
     #: (S,) each walk's disagreement factor to start from (1, or a warm start's)
     start_disagreement: FloatArray
+    #: (N, 2) the variance each walk's stairs add to its odometry (``stairs.py``), and each
+    #: walk's climbs
+    added_variance: FloatArray
+    climbs: tuple[tuple[Climb, ...], ...]
+    #: (S,) each walk's cost at its own optimum under the joint map's model (its stairs' variance
+    #: included): what its cost in the joint map is compared with (``weights.weigh_walks``)
+    cost_alone: FloatArray
 
     def graph_inputs(
         self, params: SlamParams, splits: frozenset[tuple[int, int]], disagreement: FloatArray
@@ -197,6 +210,7 @@ class JointInputs:
             chain_starts=self.starts,
             local_landmarks=local,
             noise_scales=self.base_scales * disagreement[:, None],
+            odometry_added_variance=self.added_variance,
         )
 
 
@@ -241,8 +255,20 @@ def joint_inputs(
     for s, dataset in enumerate(plan.datasets):
         tag_k, odometry_k = (variance_scales or {}).get(dataset, (1.0, 1.0))
         base[s] *= (odometry_k, odometry_k, tag_k, tag_k)
+    climbs = tuple(tuple(walk_climbs(session)) for session in plan.sessions)
+    added = np.concatenate(
+        [
+            stairs_variance(session, params, walk)
+            for session, walk in zip(plan.sessions, climbs, strict=True)
+        ]
+    )
     inputs = GraphInputs(
-        combined, params, screening=screening, chain_starts=starts, noise_scales=base
+        combined,
+        params,
+        screening=screening,
+        chain_starts=starts,
+        noise_scales=base,
+        odometry_added_variance=added,
     )
     # start: each walk's own optimum, placed; each tag where the walks put it (mean position)
     ends = [*starts[1:], combined.num_poses]
@@ -293,7 +319,36 @@ def joint_inputs(
         start_T_keyframe=world_T_phone[inputs.keyframes],
         start_T_tag=world_T_tag,
         start_disagreement=disagreement,
+        added_variance=added,
+        climbs=climbs,
+        cost_alone=_costs_alone(
+            plan, params, [added[a:b] for a, b in zip(starts, ends, strict=True)]
+        ),
     )
+
+
+def _costs_alone(plan: JointPlan, params: SlamParams, added: Sequence[FloatArray]) -> FloatArray:
+    """(S,) each walk's cost at its own optimum (``WalkFit.cost``), evaluated with its stairs'
+    variance ``added`` when there is any (the joint map's model of its odometry)."""
+    costs = np.array([fit.cost for fit in plan.fits])
+    if not stairs_on(params):
+        return costs
+    fixed = dataclasses.replace(params, estimate_noise=False)
+    for s, fit in enumerate(plan.fits):
+        if not added[s].any():
+            continue
+        inputs = GraphInputs(
+            plan.sessions[s],
+            fixed,
+            screening=plan.screenings[s],
+            noise_scales=fit.noise_scales,
+            odometry_added_variance=added[s],
+        )
+        values = values_from(
+            inputs, fit.alone.world_T_phone[inputs.keyframes], fit.alone.tag_poses()
+        )
+        costs[s] = float(chain_costs(inputs, fixed, values)[0])
+    return costs
 
 
 def _frame_change(

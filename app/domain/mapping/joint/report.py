@@ -15,6 +15,7 @@ import numpy as np
 from app.domain.frames import FloatArray
 from app.domain.mapping.joint.model import SessionPart
 from app.domain.mapping.joint.plan import JointInputs, JointPlan
+from app.domain.mapping.joint.stairs import StairLink, stair_link_trust, tag_levels
 from app.domain.mapping.joint.weights import MAX_DISAGREEMENT_FACTOR, Weighing
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.slam import GraphInputs
@@ -108,6 +109,17 @@ def session_parts(
         )
     )
     kept = set(result.tag_ids.tolist())
+    links = stair_link_trust(
+        plan.sessions,
+        [
+            joint.screening.used[a:b]
+            for a, b in zip(joint.detection_starts, detection_ends, strict=True)
+        ],
+        tag_levels(result.tag_poses()),
+        joint.climbs,
+        result.params,
+        inputs.noise_scales[:, 1],
+    )
     parts = []
     for s, dataset in enumerate(plan.datasets):
         rows = slice(joint.detection_starts[s], detection_ends[s])
@@ -138,7 +150,7 @@ def session_parts(
                 noise=fit.noise,
                 noise_scales=inputs.noise_scales[s].copy(),
                 disagreement_factor=float(disagreement[s]),
-                cost_alone=fit.cost,
+                cost_alone=float(joint.cost_alone[s]),
                 cost_joint=float(weighing.cost_joint[s]),
                 redundancy_gain=float(weighing.gain[s]),
                 weighting="; ".join(
@@ -146,11 +158,37 @@ def session_parts(
                     for note in (
                         _weighting(s, disagreement, weighing),
                         _scale_note(s, plan, scale_drops),
+                        _stairs_note(links[s], result.params.stairs_yaw_var_rad2_per_m > 0),
                     )
                     if note
                 ),
+                stair_links=tuple(links[s]),
                 alone=fit.alone,
                 fit=fit,
             )
         )
     return tuple(parts)
+
+
+def _stairs_note(links: list[StairLink], stairs_on: bool) -> str:
+    """How much a walk's links between levels decide where the levels sit, in a sentence: for
+    each two levels that other walks join too ("" if none)."""
+    sentences = []
+    for pair in sorted({link.levels for link in links}):
+        mine = [link for link in links if link.levels == pair]
+        if sum(link.share_by_time for link in mine) > 1.0 - 1e-9:
+            continue  # no other walk joins these two levels: nothing to weigh it against
+        climbed_m = sum(link.climbed_m for link in mine)
+        sigmas = ", ".join(f"{math.degrees(link.sigma_yaw_rad):.1f}°" for link in mine)
+        share = sum(link.share for link in mine)
+        if stairs_on:
+            how = f"heading σ {sigmas} with the stairs' variance, {share:.0%} of the heading "
+            how += f"between them ({sum(link.share_by_time for link in mine):.0%} by time alone)"
+        else:
+            how = f"heading σ {sigmas} by time alone, {share:.0%} of the heading between them"
+        times = {1: "once", 2: "twice"}.get(len(mine), f"{len(mine)} times")
+        sentences.append(
+            f"its odometry alone joins levels {pair[0]} and {pair[1]} {times} "
+            f"({climbed_m:.1f} m climbed): {how}"
+        )
+    return "; ".join(sentences)

@@ -81,7 +81,7 @@ def weigh_walks(
         cost_joint = chain_costs(inputs, params, solution.values)
     finally:
         inputs.noise_scales = scales
-    cost_alone = np.array([fit.cost for fit in joint.plan.fits])
+    cost_alone = joint.cost_alone
     gain = _redundancy_gain(joint, inputs, disagreement, splits)
     excess = cost_joint - cost_alone
     limit = np.array([chi2_quantile(DISAGREEMENT_QUANTILE, max(1, round(g))) for g in gain])
