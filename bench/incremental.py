@@ -3,6 +3,7 @@
     .venv/bin/python bench/incremental.py               # N = 5, 20, 50, 100, 200 (long)
     .venv/bin/python bench/incremental.py --quick       # N = 5, 20
     .venv/bin/python bench/incremental.py --sizes 50 --batch-max 50 --json out.json
+    .venv/bin/python bench/incremental.py --isam-only --isam 5 20 50 100 200   # ISAM2 engine
 
 For each N: N + 1 simulated walks of one building (``simulate_building_sessions``, seed 7, 1,200
 poses = 2 minutes each, as bench/multi_session.py's table 4), then, each in CPU seconds
@@ -26,6 +27,14 @@ Each N runs in a process of its own (its peak memory is its own). Then the shipp
 mac building (floor_2_straight, desnat_straight_once, straight_209_occam whole, and
 oblique_209_occam when it ships): the first two built, the third added, against the batch build
 of all three, with and without its down-weighting.
+
+With ``--isam N …``: the ISAM2 engine (``incremental.IsamBuilding``) on the same buildings, each N
+in a process of its own: the first build, walk N + 1 added and taken out again (and the ISAM2
+updates each took), the state written as rows, and the tree made again from those rows (a
+restarted worker), with their distances to the batch build of the same walks (for N + 1 ≤
+``--batch-max``) and the peak memory before the batch build runs (the simulation's included;
+in brackets the resident memory of the parsed sessions before the build, and what the build
+added to it). ``--isam-only`` skips the summary design's tables.
 """
 
 from __future__ import annotations
@@ -58,6 +67,7 @@ from app.domain.evaluation.simulate_building import (  # noqa: E402
 )
 from app.domain.mapping.incremental import (  # noqa: E402
     IncrementalMap,
+    IsamBuilding,
     Walk,
     add_walk,
     build,
@@ -89,7 +99,10 @@ def main() -> int:
         "--isam",
         type=int,
         nargs="*",
-        help="also time the other design, gtsam's ISAM2 on the joint graph, at these N",
+        help="also time the ISAM2 engine (IsamBuilding) at these N",
+    )
+    parser.add_argument(
+        "--isam-only", action="store_true", help="only the ISAM2 engine (with --isam)"
     )
     parser.add_argument("--isam-one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -98,20 +111,22 @@ def main() -> int:
         print(json.dumps(one_size(args.one, args.batch_max)))
         return 0
     if args.isam_one is not None:
-        print(json.dumps(isam_size(args.isam_one)))
+        print(json.dumps(isam_size(args.isam_one, args.batch_max)))
         return 0
-    sizes = args.sizes or (QUICK_SIZES if args.quick else SIZES)
+    sizes = [] if args.isam_only else args.sizes or (QUICK_SIZES if args.quick else SIZES)
     rows = []
     for n in sizes:
         command = [sys.executable, __file__, "--one", str(n), "--batch-max", str(args.batch_max)]
         done = subprocess.run(command, capture_output=True, text=True, check=True)
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
         print(f"N = {n}: done", file=sys.stderr)
-    print("## Simulated buildings (CPU s; distances to the batch build of the same walks, mm)\n")
-    print(render_markdown_table(size_table(rows), justify="right"))
-    print()
     results: dict[str, Any] = {"sizes": rows}
-    if not args.no_real:
+    if rows:
+        print("## Simulated buildings (CPU s; distances to the batch build of the same walks, mm)")
+        print()
+        print(render_markdown_table(size_table(rows), justify="right"))
+        print()
+    if not args.no_real and not args.isam_only:
         mixed = mixed_walks()
         results["mixed"] = mixed
         print("## Simulated walks that differ (MIXED_WALKS): the last one added to the others\n")
@@ -124,12 +139,21 @@ def main() -> int:
     if args.isam:
         isam_rows = []
         for n in args.isam:
-            command = [sys.executable, __file__, "--isam-one", str(n)]
+            command = [
+                sys.executable, __file__, "--isam-one", str(n), "--batch-max", str(args.batch_max)
+            ]  # fmt: skip
             done = subprocess.run(command, capture_output=True, text=True, check=True)
             isam_rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(f"ISAM2 N = {n}: done", file=sys.stderr)
         results["isam"] = isam_rows
-        print("\n## The other design: ISAM2 on the joint graph (CPU s)\n")
+        print("\n## The ISAM2 engine (IsamBuilding; CPU s; distances to the batch build, mm)\n")
         print(render_markdown_table(isam_table(isam_rows), justify="right"))
+        if not args.no_real:
+            results["isam_mixed"] = mixed_walks("isam")
+            results["isam_real"] = real_walks("isam")
+            for title, key in (("MIXED_WALKS", "isam_mixed"), ("the mac walks", "isam_real")):
+                print(f"\n## The ISAM2 engine on {title}: the last one added to the others\n")
+                print(render_markdown_table(real_table(results[key]), justify="right"))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0
@@ -266,13 +290,13 @@ def size_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
     return lines
 
 
-def real_walks() -> list[dict[str, Any]]:
+def real_walks(engine: str = "summaries") -> list[dict[str, Any]]:
     present = [name for name in MAC_WALKS if (SESSIONS / f"{name}.json").exists()]
     sessions: dict[str, Session] = {n: load_session(SESSIONS / f"{n}.json") for n in present}
-    return added_last([Walk(walk_id=n, session=s) for n, s in sessions.items()])
+    return added_last([Walk(walk_id=n, session=s) for n, s in sessions.items()], engine=engine)
 
 
-def mixed_walks() -> list[dict[str, Any]]:
+def mixed_walks(engine: str = "summaries") -> list[dict[str, Any]]:
     """Issue 25's building (as configured, 3× noisier, odometry +2%, oblique) and a fifth walk as
     configured: the batch build down-weights and rescales there."""
     out = []
@@ -285,22 +309,32 @@ def mixed_walks() -> list[dict[str, Any]]:
             for s, style in zip(building.sessions, building.styles, strict=True)
         ]
         walks[-1] = Walk(walk_id=f"seed {seed}: fifth", session=walks[-1].session)
-        out.extend(added_last(walks, only_last=True))
+        out.extend(added_last(walks, only_last=True, engine=engine))
     return out
 
 
-def added_last(walks: Sequence[Walk], *, only_last: bool = False) -> list[dict[str, Any]]:
-    """For each k ≥ 2 (only the last with ``only_last``): walks[:k] built, walks[k] added,
-    against the batch build of walks[:k + 1] with and without its down-weighting."""
+def added_last(
+    walks: Sequence[Walk], *, only_last: bool = False, engine: str = "summaries"
+) -> list[dict[str, Any]]:
+    """For each k ≥ 2 (only the last with ``only_last``): walks[:k] built, walks[k] added
+    (``engine``: "summaries" or "isam", whose "relinearized" is its ISAM2 updates), against the
+    batch build of walks[:k + 1] with and without its down-weighting."""
     params = SlamParams()
     sessions = {w.walk_id: w.session for w in walks}
     out = []
     for last in [len(walks) - 1] if only_last else range(2, len(walks)):
         started = time.process_time()
-        state, _ = build(walks[:last], params)
-        build_s = time.process_time() - started
-        started = time.process_time()
-        _, added = add_walk(state, walks[last], params, load=sessions.__getitem__)
+        if engine == "isam":
+            tree, _ = IsamBuilding.build(walks[:last], params)
+            build_s = time.process_time() - started
+            started = time.process_time()
+            added = tree.add(walks[last])
+            added = dataclasses.replace(added, relinearized=("",) * added.rounds)
+        else:
+            state, _ = build(walks[:last], params)
+            build_s = time.process_time() - started
+            started = time.process_time()
+            _, added = add_walk(state, walks[last], params, load=sessions.__getitem__)
         add_s = time.process_time() - started
         names = [w.walk_id for w in walks[: last + 1]]
         chosen = [sessions[n] for n in names]
@@ -345,96 +379,117 @@ def real_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
     return lines
 
 
-def isam_size(n: int) -> dict[str, Any]:
-    """gtsam's ISAM2 on the batch build's joint graph (each walk's own noise, no down-weighting):
-    N walks in from the batch build's start, walk N + 1's factors added, then taken out again
-    (its poses held by loose priors: a variable without factors is indeterminate), and a restart
-    (ISAM2 made anew from every factor at the stored optimum: what a worker without the tree in
-    memory pays). The walks' own fits (``prepare_joint``) are not counted: both designs need
-    them."""
-    import gtsam  # the bench only: the domain keeps gtsam calls in mapping/
-
-    from app.domain.mapping.joint import prepare_joint
-    from app.domain.mapping.slam import TrialGraph, values_from
-
+def isam_size(n: int, batch_max: int) -> dict[str, Any]:
+    """The ISAM2 engine (``incremental.IsamBuilding``) on the building of ``one_size``: the
+    first N walks built, walk N + 1 added, taken out again, the state stored and the tree made
+    again from it (a restarted worker), each in CPU s; and, for N + 1 ≤ ``batch_max``, the
+    largest tag / pose distance to the batch build of the same walks after each."""
     params = SlamParams()
-    fixed = dataclasses.replace(params, estimate_noise=False)
     building = simulate_building_sessions(
         SimulationConfig(num_poses=SIMULATED_POSES, seed=7), count=n + 1
     )
-    sessions = [parse_session(s.upload) for s in building.sessions]
-    joint = prepare_joint(sessions, params, names=[f"walk {k + 1}" for k in range(n + 1)])
+    walks = [
+        Walk(walk_id=f"walk {k + 1}", session=parse_session(s.upload))
+        for k, s in enumerate(building.sessions)
+    ]
+    del building  # its uploads (JSON): a worker holds the parsed sessions only
     started = time.process_time()
-    graph = TrialGraph(joint.inputs).graph(fixed)
-    graph_s = time.process_time() - started
-    values = values_from(joint.inputs, joint.start_T_keyframe, joint.start_T_tag)
-    first_new = joint.starts[-1]
-
-    def is_new(key: int) -> bool:
-        symbol = gtsam.Symbol(key)
-        return bool(symbol.chr() == ord("x") and symbol.index() >= first_new)
-
-    old, new = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
-    for k in range(graph.size()):
-        factor = graph.at(k)
-        keys = list(factor.keys())
-        (new if any(is_new(key) for key in keys) else old).add(factor)
-    old_values, new_values = gtsam.Values(), gtsam.Values()
-    for key in values.keys():  # noqa: SIM118 (gtsam.Values)
-        (new_values if is_new(key) else old_values).insert(key, values.atPose3(key))
-    settings = gtsam.ISAM2Params()
-    settings.setRelinearizeThreshold(0.01)
-    settings.relinearizeSkip = 1
-    isam = gtsam.ISAM2(settings)
+    optimize_session(walks[-1].session, params)
+    single_s = time.process_time() - started
+    sessions_mib = resident_mib()
     started = time.process_time()
-    isam.update(old, old_values)
-    for _ in range(5):
-        isam.update()
+    tree, built = IsamBuilding.build(walks[:n], params)
     build_s = time.process_time() - started
+    tree_mib = resident_mib() - sessions_mib
     started = time.process_time()
-    added = isam.update(new, new_values)
-    for _ in range(3):
-        isam.update()
-    estimate = isam.calculateEstimate()
+    added = tree.add(walks[n])
     add_s = time.process_time() - started
     started = time.process_time()
-    loose = gtsam.NonlinearFactorGraph()
-    noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e3)
-    for key in new_values.keys():  # noqa: SIM118 (gtsam.Values)
-        loose.add(gtsam.PriorFactorPose3(key, estimate.atPose3(key), noise))
-    isam.update(loose, gtsam.Values(), list(added.getNewFactorsIndices()))
-    for _ in range(3):
-        isam.update()
-    isam.calculateEstimate()
+    removed = tree.remove(walks[n].walk_id)
     remove_s = time.process_time() - started
     started = time.process_time()
-    gtsam.ISAM2(settings).update(graph, estimate)
-    restart_s = time.process_time() - started
-    return {
+    state = tree.state()
+    rows = [state.to_dict(), *(w.to_dict() for w in state.walks)]
+    state_s = time.process_time() - started
+    del tree
+    started = time.process_time()
+    _, restored = IsamBuilding.restore(state, walks[:n], params)
+    restore_s = time.process_time() - started
+    out: dict[str, Any] = {
         "n": n,
-        "graph_s": graph_s,
+        "tags": len(added.tag_ids),
+        "single_s": single_s,
         "build_s": build_s,
+        "build_timings_ms": built.timings_ms,
         "add_s": add_s,
+        "add_timings_ms": added.timings_ms,
+        "add_updates": added.rounds,
         "remove_s": remove_s,
-        "restart_s": restart_s,
+        "remove_updates": removed.rounds,
+        "state_s": state_s,
+        "state_mib": sum(len(r["arrays"]) + len(json.dumps({**r, "arrays": ""})) for r in rows)
+        / 2**20,
+        "restore_s": restore_s,
         "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "sessions_mib": sessions_mib,
+        "tree_mib": tree_mib,
     }
+    if n + 1 <= batch_max:
+        sessions = [w.session for w in walks]
+        names = [w.walk_id for w in walks]
+        started = time.process_time()
+        before = optimize_sessions(sessions[:n], params, names=names[:n])
+        out["batch_build_s"] = time.process_time() - started
+        started = time.process_time()
+        after = optimize_sessions(sessions, params, names=names, initial=before)
+        out["batch_add_s"] = time.process_time() - started
+        out["build_diff_mm"] = differences_mm(built, before)
+        out["add_diff_mm"] = differences_mm(added, after)
+        out["remove_diff_mm"] = differences_mm(removed, before)
+        out["restore_diff_mm"] = differences_mm(restored, before)
+        out["batch_features"] = batch_features(after)
+    return out
+
+
+def resident_mib() -> float:
+    """The process's resident memory now, MiB (``VmRSS``; Linux)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
 
 
 def isam_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
     lines = [
-        ["N", "graph of N + 1 s", "first build s", "add s", "remove s", "restart s", "peak MiB"]
-    ]
+        ["N", "tags", "single walk s", "first build s", "add s (updates)",
+         "remove s (updates)", "state s / MiB", "rebuild from state s",
+         "peak MiB (sessions, tree)",
+         "batch build s", "batch add s", "build Δ tag/pose", "add Δ tag/pose",
+         "remove Δ tag/pose", "rebuilt Δ tag/pose", "batch did"],
+    ]  # fmt: skip
     for r in rows:
+
+        def diff(key: str, r: dict[str, Any] = r) -> str:
+            return f"{r[key][0]:.2f} / {r[key][1]:.1f}" if key in r else "—"
+
         lines.append(
             [
                 str(r["n"]),
-                f"{r['graph_s']:.2f}",
-                f"{r['build_s']:.2f}",
-                f"{r['add_s']:.2f}",
-                f"{r['remove_s']:.2f}",
-                f"{r['restart_s']:.2f}",
-                f"{r['peak_mib']:.0f}",
+                str(r["tags"]),
+                f"{r['single_s']:.2f}",
+                f"{r['build_s']:.1f}",
+                f"{r['add_s']:.2f} ({r['add_updates']})",
+                f"{r['remove_s']:.2f} ({r['remove_updates']})",
+                f"{r['state_s']:.2f} / {r['state_mib']:.1f}",
+                f"{r['restore_s']:.1f}",
+                f"{r['peak_mib']:.0f} ({r['sessions_mib']:.0f}, {r['tree_mib']:.0f})",
+                f"{r['batch_build_s']:.1f}" if "batch_build_s" in r else "not run",
+                f"{r['batch_add_s']:.1f}" if "batch_add_s" in r else "not run",
+                diff("build_diff_mm"),
+                diff("add_diff_mm"),
+                diff("remove_diff_mm"),
+                diff("restore_diff_mm"),
+                str(r.get("batch_features", "—")),
             ]
         )
     return lines

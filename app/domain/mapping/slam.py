@@ -839,7 +839,20 @@ def _factor_graph(factors: list[Any]) -> gtsam.NonlinearFactorGraph:
 def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
     """2a. The gauge prior on the first pose: its heading (the turn about the world's up, which
     is ``gauge_up`` in the phone frame) and its position; its roll and pitch are gravity's."""
-    up = inputs.gauge_up / np.linalg.norm(inputs.gauge_up)
+    return _heading_position_prior(X(0), inputs.gauge_pose, inputs.gauge_up)
+
+
+def gauge_prior(key: int, world_T_phone: FloatArray) -> gtsam.PriorFactorPose3:
+    """The gauge prior of 2a on the pose ``key``, holding it at ``world_T_phone``'s heading and
+    position (the world's +y seen from that pose is its up): the one a graph gets when its
+    first walk, which held the gauge, is taken out (``mapping/incremental/isam.py``)."""
+    return _heading_position_prior(key, to_pose3(world_T_phone), world_T_phone[:3, :3].T @ WORLD_UP)
+
+
+def _heading_position_prior(
+    key: int, pose: gtsam.Pose3, phone_up: FloatArray
+) -> gtsam.PriorFactorPose3:
+    up = phone_up / np.linalg.norm(phone_up)
     along_up = np.outer(up, up)
     information = np.zeros((6, 6))
     information[:3, :3] = along_up / GAUGE_PRIOR_SIGMA_RAD**2 + GAUGE_TILT_INFORMATION * (
@@ -847,7 +860,32 @@ def _gauge_prior(inputs: GraphInputs) -> gtsam.PriorFactorPose3:
     )
     information[3:, 3:] = np.eye(3) / GAUGE_PRIOR_SIGMA_M**2
     noise = gtsam.noiseModel.Gaussian.Information(information)
-    return gtsam.PriorFactorPose3(X(0), inputs.gauge_pose, noise)
+    return gtsam.PriorFactorPose3(key, pose, noise)
+
+
+def chain_graph(
+    inputs: GraphInputs, params: SlamParams, *, key_offset: int = 0, gauge: bool = True
+) -> gtsam.NonlinearFactorGraph:
+    """The graph :func:`refine` solves for ``inputs`` of one pose chain (a walk), in the same
+    order (the gauge prior only with ``gauge``; then odometry, gravity, tags), every phone pose
+    ``X(i)`` renamed ``X(key_offset + i)``; landmark keys are kept. A walk's share of a building
+    map's joint graph, numbered where the building keeps it (``mapping/incremental/isam.py``):
+    for the walk at pose row ``key_offset`` of ``joint.combine_sessions``, factor for factor
+    the joint graph's factors of that chain."""
+    if inputs.num_chains != 1:
+        raise ValueError(f"one pose chain expected, got {inputs.num_chains}")
+    problem = _build_problem(inputs, params)
+    graph = gtsam.NonlinearFactorGraph()
+    pose_tag = ord("x")
+    for k in range(0 if gauge else 1, int(problem.graph.size())):
+        factor = problem.graph.at(k)
+        if key_offset:
+            keys = factor.keys()  # a gtsam KeyVector
+            factor = factor.rekey(
+                [key + key_offset if key >> 56 == pose_tag else key for key in keys]
+            )
+        graph.add(factor)
+    return graph
 
 
 def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.BetweenFactorPose3]:
@@ -858,6 +896,7 @@ def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.Bet
     factors = []
     keyframes = inputs.keyframes.tolist()
     linear_scale, angular_scale = inputs.odometry_scales()
+    added = inputs.odometry_added_variance
     for k, phone_T_next in enumerate(inputs.phone_T_next):
         if not inputs.odometry_linked[k]:
             continue  # the next keyframe starts another pose chain (session)
@@ -873,6 +912,9 @@ def _odometry_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.Bet
             sigmas = odometry_sigmas(key[0], params)
             sigmas[:3] *= math.sqrt(key[2])
             sigmas[3:] *= math.sqrt(key[1])
+            if key[3] or key[4]:
+                sigmas[:3] = np.sqrt(sigmas[:3] ** 2 + key[4])
+                sigmas[3:] = np.sqrt(sigmas[3:] ** 2 + key[3])
             noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             noise_by_dt[key] = noise
         factors.append(
@@ -900,7 +942,6 @@ def _gravity_factors(inputs: GraphInputs, params: SlamParams) -> list[gtsam.Atti
         if noise is None:
             noise = gtsam.noiseModel.Isotropic.Sigma(2, math.sqrt(float(variance)))
             noise_by_variance[float(variance)] = noise
-    added = inputs.odometry_added_variance
         factors.append(gtsam.AttitudeFactorPose3(X(int(i)), world_up, noise, phone_up))
     return factors
 
@@ -910,9 +951,6 @@ def _tag_factors(
 ) -> tuple[list[gtsam.BetweenFactorPose3], list[FloatArray]]:
     """2d. Tags, under a Huber kernel; and each factor's covariance (tag frame)."""
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k) if params.huber_k > 0 else None
-            if key[3] or key[4]:
-                sigmas[:3] = np.sqrt(sigmas[:3] ** 2 + key[4])
-                sigmas[3:] = np.sqrt(sigmas[3:] ** 2 + key[3])
     covariances = _tag_covariances(inputs, params)
     factors = []
     for k, landmark_key in enumerate(inputs.landmark_keys):
@@ -1341,6 +1379,8 @@ __all__ = [
     "Solution",
     "TrialGraph",
     "chain_costs",
+    "chain_graph",
+    "gauge_prior",
     "gravity_variances",
     "linearize_and_solve_ms",
     "local_landmark_key",

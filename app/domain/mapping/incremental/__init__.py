@@ -1,12 +1,40 @@
-"""Building maps that grow a walk at a time (§10, issue 38).
+"""Building maps that grow a walk at a time (§10, issue 38): two designs, measured.
 
-Status: a measured design, not yet what the worker serves. It matches the batch build within
-millimetres on uniform simulated walks (bench/incremental.py), but not on mixed ones (a walk whose
-odometry scale the batch corrects) nor on the real mac walks, where the relinearization loop does
-not converge (3 m off the batch with desnat_straight_once): a summary holds a walk's curvature
-only near where it was made, and the loop has no outer check of the walks' true cost. The same
-bench measures gtsam's ISAM2 on the batch graph (``--isam N``), the engine to wire in next; the
-fingerprints and row layout of ``state.py`` carry over to it.
+Status: a domain engine, not yet what the worker serves (docs/multi-session.md, "Incremental
+building maps", says what wiring it needs).
+
+**gtsam's ISAM2 on the batch build's joint graph** (``isam.py``, the engine to wire in): each
+walk's factors are those of its chain in the batch graph, known by their indices in the tree, so
+an add puts one walk's factors in and a removal takes them out (ISAM2 drops the variables left
+without factors), and the tree is updated until it relinearizes nothing. Its graph is the batch
+build's, so its optimum is the batch map where the batch build keeps every walk as it is (no
+odometry rescaled, no tag set apart, no walk down-weighted: those it does not redo yet). The
+tree cannot be stored; what makes it can, as data (``isam_state.py``): each walk's fit (depth
+scale, noise scales, cost alone), its key offset, placement and optimized keyframes, and the
+tags; a restarted worker makes the tree again from them and the sessions in one elimination.
+Measured (``.venv/bin/python bench/incremental.py --isam-only --isam 5 20 50 100 200``; CPU s,
+simulated walks of 1,200 poses, seed 7):
+
+    walks   first build   add one   remove one   rebuild from state   Δ to batch, tags / poses
+       20         2.8       0.38        0.17            0.3               0.02 / 0.3 mm
+       50         6.2       0.37        0.14            0.5               0.08 / 7.7 mm
+      100        12.7       0.38        0.16            1.0               (batch not run)
+      200        41.7       1.03        0.59            2.3               (batch not run)
+
+(peak 1,105 MiB at 200, the simulation's included; docs/multi-session.md has the whole table.)
+
+    building, served = IsamBuilding.build(walks, params)
+    served = building.add(Walk(walk_id="w9", session=s9))
+    served = building.remove("w3")
+    state = building.state()                      # rows: state.to_dict(), w.to_dict()
+    building, served = IsamBuilding.restore(state, walks, params)   # StaleStateError: rebuild
+
+**Each walk condensed to a summary factor on its tags** (``summary.py``, ``building.py``,
+``updates.py``): within millimetres of the batch build on uniform simulated walks, but not on
+mixed ones (a walk whose odometry scale the batch corrects) nor on the real mac walks, where the
+relinearization loop does not converge (3 m off the batch with desnat_straight_once): a summary
+holds a walk's curvature only near where it was made, and the loop has no outer check of the
+walks' true cost. The fingerprints of ``state.py`` serve both designs.
 
     state, served = build(walks, params)                          # from scratch
     state, served = add_walk(state, Walk(walk_id="w9", session=s), params, load=by_id)
@@ -30,6 +58,8 @@ that takes it from the batch map, bench/incremental.py measures it): the odometr
 each walk's first pose keeps its tilt prior (1 / rad², against gravity's ~10⁴ per keyframe),
 which the batch graph has on the first walk's only.
 
+isam.py        IsamBuilding: the building map in an ISAM2 tree (build, add, remove, restore)
+isam_state.py  IsamState, IsamWalkState: what makes the tree again, as rows
 state.py     BuildingState, WalkSummary, Walk, fingerprints, StaleStateError
 summary.py   one walk's summary (gtsam: its graph linearized, its poses eliminated)
 building.py  the building problem: tags and placements under the summaries
@@ -37,6 +67,12 @@ updates.py   build, add_walk, remove_walk
 """
 
 from app.domain.mapping.incremental.building import BuildingSolution, solve_building
+from app.domain.mapping.incremental.isam import MAX_UPDATES, RELINEARIZE_THRESHOLD, IsamBuilding
+from app.domain.mapping.incremental.isam_state import (
+    ISAM_STATE_FORMAT,
+    IsamState,
+    IsamWalkState,
+)
 from app.domain.mapping.incremental.state import (
     STATE_FORMAT,
     BuildingState,
@@ -60,13 +96,19 @@ from app.domain.mapping.incremental.updates import (
 )
 
 __all__ = [
+    "ISAM_STATE_FORMAT",
     "MAX_ROUNDS",
+    "MAX_UPDATES",
     "RELINEARIZE_M",
     "RELINEARIZE_RAD",
+    "RELINEARIZE_THRESHOLD",
     "STATE_FORMAT",
     "BuildingSolution",
     "BuildingState",
     "IncrementalMap",
+    "IsamBuilding",
+    "IsamState",
+    "IsamWalkState",
     "SessionLoader",
     "StaleStateError",
     "Walk",
