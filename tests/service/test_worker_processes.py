@@ -2,8 +2,8 @@
 with SIGTERM mid-job (once: finish; twice: release), four processes sharing sixteen jobs on
 PostgreSQL, and the embedded mode's start/stop.
 
-The jobs that must still be running when a signal arrives are simulated sessions of 12,000 poses
-(2–3 s of work); the signal is sent once the job's row says it is in the ``optimize``
+The jobs that must still be running when a signal arrives are simulated sessions of 6,000 poses
+(seconds of work); the signal is sent once the job's row says it is in the ``optimize``
 stage. A worker that is to be killed holds a short lease (2 s, heartbeat 0.5 s) so that its job
 is reaped quickly; every other worker a long one, so that a loaded machine, where gtsam keeps the
 GIL from the heartbeat thread for a whole Levenberg–Marquardt iteration, cannot expire the lease of
@@ -41,7 +41,7 @@ from workers.main import start_worker_processes, stop_worker_processes
 
 pytestmark = pytest.mark.slow
 
-LONG_JOB_POSES = 12_000
+LONG_JOB_POSES = 6_000
 #: The lease of a worker the test kills (its job is reaped this long after its last heartbeat), s.
 DOOMED_LEASE_S = 2.0
 #: The lease of every other worker, s: the default, far longer than a stalled heartbeat.
