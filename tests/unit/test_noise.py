@@ -20,6 +20,7 @@ from app.domain.mapping.noise import (
     WalkNoise,
     chi2_cdf,
     chi2_quantile,
+    noise_estimate_from_dict,
     robust_threshold,
     updated_scales,
 )
@@ -133,6 +134,65 @@ def test_the_estimate_is_reported_in_the_parameters_units() -> None:
     as_dict = estimate.to_dict(params)
     assert as_dict["components"]["odom_angular"]["chi2_per_redundancy"] is None  # JSON: no NaN
     assert WalkNoise.of(params).scales(params) == pytest.approx(np.ones(4))
+
+
+def test_the_estimate_as_json_is_exact_and_reads_back_as_it_was() -> None:
+    """Every field of the document, exactly (a map's stored noise and the API show it), and the
+    document read back field for field (NaN where JSON says null)."""
+    estimate = NoiseEstimate(
+        scales=np.array([0.5, 2.0, 0.25, 4.0]),
+        redundancy=np.array([10.0, 2.0, 50.0, 60.0]),
+        rows=np.array([30.0, 10.0, 60.0, 61.0]),
+        chi2_per_redundancy=np.array([1.5, math.nan, 0.75, 1.0]),
+        rounds=4,
+        converged=False,
+        note="the rounds ran out",
+    )
+    params = SlamParams()
+    document = estimate.to_dict(params)
+    assert document == {
+        "variances": {
+            "odom_linear_var_m2_per_s": 0.5 * params.odom_linear_var_m2_per_s,
+            "odom_angular_var_rad2_per_s": 2.0 * params.odom_angular_var_rad2_per_s,
+            "tag_position_var_m2": 0.25 * params.tag_position_var_m2,
+            "tag_orientation_var_rad2": 4.0 * params.tag_orientation_var_rad2,
+        },
+        "components": {
+            "odom_linear": {
+                "scale": 0.5,
+                "redundancy": 10.0,
+                "rows": 30.0,
+                "chi2_per_redundancy": 1.5,
+            },
+            "odom_angular": {
+                "scale": 2.0,
+                "redundancy": 2.0,
+                "rows": 10.0,
+                "chi2_per_redundancy": None,
+            },
+            "tag_position": {
+                "scale": 0.25,
+                "redundancy": 50.0,
+                "rows": 60.0,
+                "chi2_per_redundancy": 0.75,
+            },
+            "tag_orientation": {
+                "scale": 4.0,
+                "redundancy": 60.0,
+                "rows": 61.0,
+                "chi2_per_redundancy": 1.0,
+            },
+        },
+        "rounds": 4,
+        "converged": False,
+        "note": "the rounds ran out",
+    }
+    again = noise_estimate_from_dict(document)
+    for field in ("scales", "redundancy", "rows", "chi2_per_redundancy"):
+        np.testing.assert_array_equal(getattr(again, field), getattr(estimate, field))
+    assert (again.rounds, again.converged, again.note) == (4, False, "the rounds ran out")
+    no_note = {k: v for k, v in document.items() if k != "note"}  # written before the note
+    assert noise_estimate_from_dict(no_note).note == ""
 
 
 @pytest.mark.slow

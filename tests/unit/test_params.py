@@ -189,6 +189,8 @@ def test_non_finite_values_are_rejected(name, value):
         ("max_distance_m", "-3"),
         ("tag_size_m", "0"),
         ("relative_error_tol", "0"),
+        ("keyframe_interval_s", "-1"),
+        ("noise_prior_dof", "-1"),
     ],
 )
 def test_out_of_range_values_are_rejected(name, value):
@@ -198,7 +200,18 @@ def test_out_of_range_values_are_rejected(name, value):
 
 @pytest.mark.parametrize(
     ("name", "value"),
-    [("tag_depth_var_ratio", "1"), ("max_view_angle_deg", "90"), ("max_iterations", "1")],
+    [
+        ("tag_depth_var_ratio", "1"),
+        ("max_view_angle_deg", "90"),
+        ("max_iterations", "1"),
+        # 0 means something for these: every pose kept, the prior off; so does the off value
+        ("keyframe_interval_s", "0"),
+        ("noise_prior_dof", "0"),
+        ("huber_k", "0"),
+        ("stairs_yaw_var_rad2_per_m", "0"),
+        ("keyframe_interval_s", "3600"),
+        ("huber_k", "100"),
+    ],
 )
 def test_range_boundaries_are_accepted(name, value):
     params = SlamParams().with_overrides({name: value})
@@ -351,6 +364,10 @@ OUT_OF_RANGE = [
     ("converged_step_m", "1e3", "1e-12 to 1 m"),
     ("converged_step_rad", "0", "1e-12 to 1 rad"),
     ("relative_error_tol", "2", "1e-16 to 1"),
+    ("keyframe_interval_s", "3601", "0 to 3600 s"),
+    ("huber_k", "0.05", "0 (off) or 0.1 to 100"),  # between off and the range
+    ("stairs_yaw_var_rad2_per_m", "1e-9", "0 (off) or 1e-08 to 1 rad²/m"),
+    ("stairs_linear_var_m2_per_m", "2", "0 (off) or 1e-08 to 1 m²/m"),
     ("tag_sizes_m", "300:1e308", "0.001 to 10 m"),
     ("tag_sizes_m", {"-1": 0.15}, "0 to 2147483647"),
     ("tag_sizes_m", {str(2**31): 0.15}, "0 to 2147483647"),
