@@ -130,6 +130,14 @@ class Settings(BaseSettings):
     device_max_auto_tune_trials: int = Field(default=20, ge=0, le=1000)
     #: A job attempt that runs longer than this fails for good, with the reason (0: no budget).
     job_time_budget_s: float = Field(default=3600.0, ge=0)
+    #: Building maps made incremental (issue 38; ``INVISIBLE_MAP_INCREMENTAL_BUILDS``): a build
+    #: that adds or takes out one walk of a map whose current version has a current ISAM2 state
+    #: (``app.storage.isam_states``) makes that change in the state restored from the database
+    #: (``incremental.changes``), and the worker logs how far it is from the batch build of the
+    #: same walks. Not yet served: the later stages read the batch build's ``JointMap``, which
+    #: is still made and served (docs/multi-session.md, "Incremental building maps"). Off by
+    #: default; every batch build of several walks stores its state either way.
+    incremental_builds: bool = False
     #: How long an API process answers from its memory of a key it checked, s (0: every request
     #: reads the key). The bound on seeing a revocation made by another process (the CLI,
     #: another API process); a revocation in this process and a key's ``expires_at`` count at

@@ -154,6 +154,7 @@ class Worker:
                     control=control,
                     retry_backoff_s=self.settings.retry_backoff_s,
                     time_budget_s=self.settings.job_time_budget_s,
+                    incremental_builds=self.settings.incremental_builds,
                 )
         except Exception as err:
             # Recording the outcome failed (the database went away for longer than the lease):

@@ -60,6 +60,7 @@ from app.domain.formats.derived_documents import APP_MAP_EXPORT, packed_document
 from app.domain.formats.map_io import map_from_json, map_to_app_format, map_to_json
 from app.domain.frames import FloatArray
 from app.domain.json_values import finite_or_none
+from app.domain.mapping.incremental import IsamState, Walk
 from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.map_result import MapResult
 from app.domain.mapping.noise import COMPONENTS
@@ -90,6 +91,7 @@ from app.storage.sessions import (
     SessionNotFound,
     raw_upload_gzip_pieces,
 )
+from workers import incremental_builds
 from workers.failures import log_failure
 from workers.lease import JobControl
 
@@ -175,6 +177,13 @@ class JobContext:
     sessions: list[Session] = field(default_factory=list)
     #: the joint optimization of several sessions (``app.domain.mapping.joint``)
     joint: JointMap | None = None
+    #: what makes the next add to this building map incremental (issue 38), made from the
+    #: joint optimum; stored with the version (``app.storage.isam_states``); None when the
+    #: batch graph is not the tree's (``incremental.from_batch``)
+    isam_state: IsamState | None = None
+    #: ``Settings.incremental_builds``: a change of one walk is made in the stored state too
+    #: (``workers.incremental_builds``) and checked against the batch build
+    incremental_builds: bool = False
     #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
     auto_tune_trials: int = 0
     #: build_map with ``ground_truth``: tag id → world_T_tag, for the ground-truth metric
@@ -489,6 +498,20 @@ def _optimize_joint(ctx: JobContext) -> None:
         ctx.check_interrupted()
 
     map_id = _need(ctx.lease.map_id, "map_id")
+    params = _need(ctx.params, "params")
+    walks = [Walk(walk_id=n, session=s) for n, s in zip(names, ctx.sessions, strict=True)]
+    incremental = (
+        incremental_builds.incremental_change(
+            ctx.db,
+            map_id,
+            walks,
+            params,
+            functools.partial(_stored_session, ctx.db),
+            ctx.lease.job_id,
+        )
+        if ctx.incremental_builds
+        else None
+    )
     fingerprints = {name: _fingerprint(s) for name, s in zip(names, ctx.sessions, strict=True)}
     previous, reused = warm_start(map_id, fingerprints, _need(ctx.params, "params"))
     if previous is not None:
@@ -520,6 +543,27 @@ def _optimize_joint(ctx: JobContext) -> None:
             f"{len(part.alignment.shared_tags)} shared tags, {part.detections_used} detections "
             f"used; {part.weighting}"
         )
+    if incremental is not None:  # after the walks' lines: the log keeps its last lines
+        served, note = incremental
+        if served is not None:
+            note = f"{note}; {incremental_builds.compared_with_batch(served, joint, params)}"
+        ctx.log(f"optimize: incremental: {note}")
+        logger.info(
+            "job %d: incremental: %s",
+            ctx.lease.job_id,
+            note,
+            extra={"action": "incremental_build", "job_id": ctx.lease.job_id},
+        )
+    ctx.isam_state, line = incremental_builds.state_of_batch(joint, walks, params, ctx.lease.job_id)
+    ctx.log(line)
+
+
+def _stored_session(db: Database, session_id: int) -> Session | None:
+    """A stored session by id, None when it is gone (a walk taken out of a building map)."""
+    try:
+        return load_session_upload(db, session_id)[1]
+    except PermanentJobError:
+        return None
 
 
 def _session_contributions(ctx: JobContext) -> list[dict[str, Any]] | None:
@@ -737,6 +781,10 @@ def store(ctx: JobContext) -> None:
             bulk=bulk,
             generation=ctx.map_generation,
         )
+        if ctx.isam_state is not None:  # in the version's transaction: never one without it
+            incremental_builds.save_state(
+                tx, map_id, ctx.version.id, ctx.isam_state, ctx.lease.job_id
+            )
     ctx.finished = True
     try:
         collected = blobs.collect_orphan_blobs(ctx.db)
@@ -850,10 +898,12 @@ def run_job(
     control: JobControl,
     retry_backoff_s: float,
     time_budget_s: float = 0.0,
+    incremental_builds: bool = False,
 ) -> JobReport:
     """Run ``stages`` for ``lease``'s job and record how it ended; see the module docstring.
     ``time_budget_s`` > 0: the attempt fails for good (PermanentJobError, with the reason) once
     it has run that long, at the next :meth:`JobContext.check_interrupted`.
+    ``incremental_builds``: ``Settings.incremental_builds`` (``workers.incremental_builds``).
 
     Never raises for an ``Exception`` of a stage (it is recorded on the job), only when recording
     fails too (the database unreachable: the lease then expires and the reaper requeues the job).
@@ -861,7 +911,13 @@ def run_job(
     propagates.
     """
     started_s = time.perf_counter()
-    ctx = JobContext(db=db, lease=lease, control=control, log_tail=lease.log_tail)
+    ctx = JobContext(
+        db=db,
+        lease=lease,
+        control=control,
+        log_tail=lease.log_tail,
+        incremental_builds=incremental_builds,
+    )
     if time_budget_s > 0:
         ctx.time_budget_s, ctx.deadline_s = time_budget_s, time.monotonic() + time_budget_s
     total_weight = sum(stage.weight for stage in stages) or 1.0

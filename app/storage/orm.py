@@ -6,8 +6,10 @@ Tables (singular, snake_case): ``api_key`` with its dashboard logins (``admin_lo
 ``map_version`` with one ``map_tag`` row per tag, ``blob`` with its ``blob_chunk`` rows (a
 version's bulk data, content-addressed), ``job`` (the queue) and ``worker`` (who is alive
 and what it runs), ``localization``, ``sweep`` with one ``sweep_trial`` row per finished trial,
-``session_image`` (the app's picture of a session's map), and ``corridor_edit`` (an operator's
-corrections of a map's corridor graph).
+``session_image`` (the app's picture of a session's map), ``corridor_edit`` (an operator's
+corrections of a map's corridor graph), ``job_stage`` (how long each stage of a job took), and
+``isam_state`` with its ``isam_walk_state`` rows (what makes a building map's next version
+incremental, issue 38).
 """
 
 from __future__ import annotations
@@ -384,6 +386,52 @@ class MapVersion(Base):
     #: the map's ``generation`` it was built for (it was the map's generation when it was
     #: stored); null for versions stored before generations
     generation: Mapped[int | None]
+
+
+class IsamStateRow(Base):
+    """What makes a building map's ISAM2 tree again (issue 38; ``app.domain.mapping.incremental
+    .isam_state.IsamState.to_dict``), stored with the map version it was made for: the building's
+    row here, one :class:`IsamWalkStateRow` per walk. Plain values and ``.npz`` bytes, never
+    pickle. Derivable (a batch build makes it again), so backups skip it; deleted with its
+    version (and so with its map)."""
+
+    __tablename__ = "isam_state"
+
+    map_version_id: Mapped[int] = mapped_column(
+        ForeignKey("map_version.id", ondelete="CASCADE"), primary_key=True, autoincrement=False
+    )
+    map_id: Mapped[int] = mapped_column(ForeignKey("map.id", ondelete="CASCADE"), index=True)
+    format: Mapped[str] = mapped_column(String(32))
+    #: ``building_fingerprint`` of its walks and parameters (SHA-256, hex)
+    fingerprint: Mapped[str] = mapped_column(String(64))
+    params: Mapped[dict[str, Any]]
+    walk_ids: Mapped[list[str]] = mapped_column(JSONValue)
+    walk_fingerprints: Mapped[list[str]] = mapped_column(JSONValue)
+    next_key: Mapped[int]
+    #: ``.npz``: tag_ids (T,), map_T_tag (T, 3, 4) m
+    arrays: Mapped[bytes] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class IsamWalkStateRow(Base):
+    """One walk of an :class:`IsamStateRow` (``IsamWalkState.to_dict``), ``position`` its place
+    in the map's order."""
+
+    __tablename__ = "isam_walk_state"
+
+    map_version_id: Mapped[int] = mapped_column(
+        ForeignKey("isam_state.map_version_id", ondelete="CASCADE"),
+        primary_key=True,
+        autoincrement=False,
+    )
+    position: Mapped[int] = mapped_column(primary_key=True, autoincrement=False)
+    walk_id: Mapped[str] = mapped_column(String(100))
+    fingerprint: Mapped[str] = mapped_column(String(64))
+    depth_scale: Mapped[float] = mapped_column(Float)
+    cost_alone: Mapped[float] = mapped_column(Float)
+    key_offset: Mapped[int]
+    #: ``.npz``: noise_scales (4,), map_T_world (3, 4), keyframes (K,), map_T_keyframe (K, 3, 4)
+    arrays: Mapped[bytes] = mapped_column(LargeBinary)
 
 
 class Blob(Base):

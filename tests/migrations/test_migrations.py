@@ -221,3 +221,17 @@ def test_the_localization_state_is_stored_uncompressed_on_postgresql(empty_db):
     assert _state_storage(empty_db) == "x"
     command.upgrade(config, "head")
     assert _state_storage(empty_db) == "e"
+
+
+@BACKENDS
+def test_the_isam_state_tables_go_with_their_revision(empty_db):
+    # issue 38: derivable state, so the downgrade drops it (a batch build writes it again)
+    config = alembic_config(empty_db.url.render_as_string(hide_password=False))
+    command.upgrade(config, "head")
+    state_tables = {"isam_state", "isam_walk_state"}
+    assert state_tables <= set(inspect(empty_db.engine).get_table_names())
+    command.downgrade(config, "3c9e51b7a2d8")  # the revision before
+    assert not state_tables & set(inspect(empty_db.engine).get_table_names())
+    command.upgrade(config, "head")
+    assert state_tables <= set(inspect(empty_db.engine).get_table_names())
+    command.check(config)

@@ -38,7 +38,10 @@ and idempotent replay keep working), a running one as queued again without the s
 ``sweep_trials`` jobs are not: their trials' ``job_id`` is null, and a sweep still running is
 marked canceled. API keys are in it by name and prefix (to name the uploaders), with their
 SHA-256 hashes only when asked (``include_key_hashes``; the file is created readable by its owner
-only). Live localization sessions and worker rows are not in it.
+only). Live localization sessions and worker rows are not in it, nor how long jobs' stages took
+(``job_stage``), nor the building maps' incremental state (``isam_state``, ``isam_walk_state``:
+derivable, ``app.storage.isam_states``): a restored map's next change is built the batch way,
+and writes the state again.
 
 **Import** runs in one transaction, and checks the whole archive (every member's size and SHA-256,
 the set of members; each size before anything is inflated, a member read whole at most

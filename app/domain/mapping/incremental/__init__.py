@@ -1,7 +1,9 @@
 """Building maps that grow a walk at a time (§10, issue 38): two designs, measured.
 
-Status: a domain engine, not yet what the worker serves (docs/multi-session.md, "Incremental
-building maps", says what wiring it needs).
+Status: a domain engine whose state every batch build of several walks stores with its version
+(``from_batch.py``, ``app.storage.isam_states``) and which the worker runs and checks against the
+batch build with ``INVISIBLE_MAP_INCREMENTAL_BUILDS`` (``changes.py``); not yet what it serves
+(docs/multi-session.md, "Incremental building maps", says what serving it needs).
 
 **gtsam's ISAM2 on the batch build's joint graph** (``isam.py``, the engine to wire in): each
 walk's factors are those of its chain in the batch graph, known by their indices in the tree, so
@@ -60,6 +62,8 @@ which the batch graph has on the first walk's only.
 
 isam.py        IsamBuilding: the building map in an ISAM2 tree (build, add, remove, restore)
 isam_state.py  IsamState, IsamWalkState: what makes the tree again, as rows
+from_batch.py  state_from_batch: the state of a batch build's optimum, no solve
+changes.py     one_walk_change, apply_change: which change the engine makes from a stored state
 state.py     BuildingState, WalkSummary, Walk, fingerprints, StaleStateError
 summary.py   one walk's summary (gtsam: its graph linearized, its poses eliminated)
 building.py  the building problem: tags and placements under the summaries
