@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import gzip
 import json
 import math
@@ -353,6 +354,19 @@ def test_session_with_empty_frames_has_no_detections():
     session = parse_session(make_upload(frames=[[], []]))
     assert len(session.detections) == 0
     assert session.warnings
+
+
+@pytest.mark.parametrize("frames", [[], [[], []]])
+def test_no_detections_have_the_layout_of_detections(frames):
+    """A session without sightings has every detection array as one with sightings has it, only
+    empty: the same trailing shape and the same dtype (the solver, the stores and the stream
+    parser concatenate and index them alike)."""
+    seen = parse_session(make_upload()).detections
+    none = parse_session(make_upload(frames=frames)).detections
+    for field in dataclasses.fields(type(seen)):
+        empty, full = getattr(none, field.name), getattr(seen, field.name)
+        assert empty.shape == (0, *full.shape[1:]), field.name
+        assert empty.dtype == full.dtype, field.name
 
 
 def test_single_detection_session():
