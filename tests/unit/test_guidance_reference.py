@@ -17,6 +17,7 @@ from app.domain.navigation.instructions import (
     CHORD_M,
     JUNCTION_SNAP_M,
     MIN_SPACING_M,
+    TAIL_MIN_CHORD_M,
     Decision,
     decision_points,
     guidance_steps,
@@ -70,10 +71,36 @@ def reference_decision_points(
             for d in chosen
         ) or any(index == d.index for d in chosen):
             continue
+        if reference_tail(xyz, walked_m, walked[k], [d.along_m for d in chosen]):
+            continue
         chosen.append(
             Decision(index=index, turn_deg=turn, at_junction=at_junction, along_m=along_m)
         )
     return sorted(chosen, key=lambda d: d.along_m)
+
+
+def reference_tail(
+    xyz: np.ndarray, walked_m: np.ndarray, at_m: float, chosen_m: list[float]
+) -> bool:
+    """The bend at ``at_m`` measured with its chords stopping at the chosen decisions within
+    ``CHORD_M`` (issue 39): under ``BEAR_MIN_DEG``, it is the tail of one of them."""
+    near = [d for d in chosen_m if 0 < abs(d - at_m) < CHORD_M]
+    if not near:
+        return False
+    from_m = max([at_m - CHORD_M, 0.0] + [d for d in near if d < at_m])
+    to_m = min([at_m + CHORD_M, float(walked_m[-1])] + [d for d in near if d > at_m])
+    if at_m - from_m < TAIL_MIN_CHORD_M or to_m - at_m < TAIL_MIN_CHORD_M:
+        return False
+    xz = xyz[:, [0, 2]]
+    here, back, ahead = (
+        np.array([np.interp(m, walked_m, xz[:, 0]), np.interp(m, walked_m, xz[:, 1])])
+        for m in (at_m, from_m, to_m)
+    )
+    before, after = here - back, ahead - here
+    turn = np.degrees(
+        np.arctan2(before[1] * after[0] - before[0] * after[1], float(before @ after))
+    )
+    return bool(abs(turn) < BEAR_MIN_DEG)
 
 
 def stretches() -> list[np.ndarray]:

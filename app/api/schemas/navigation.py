@@ -211,6 +211,20 @@ _TURN_EXAMPLE: dict[str, Any] = {
     "side": None,
     "text": "At tag 305, turn left, to 9 o'clock.",
 }
+_KEEP_EXAMPLE: dict[str, Any] = {
+    "instruction": "keep left at the fork",
+    "kind": "keep",
+    "position": [0.0, 0.0, -20.0],
+    "distance_m": 0.0,
+    "turn_deg": 15.0,
+    "floor": 1,
+    "turn": None,
+    "clock": None,
+    "steps_count": None,
+    "landmark": "tag 307",
+    "side": "left",
+    "text": "At tag 307, keep left at the fork.",
+}
 _LAST_GO_EXAMPLE: dict[str, Any] = {
     **_GO_EXAMPLE,
     "instruction": "go straight 9 m to Room 209, on your right",
@@ -240,16 +254,19 @@ class StepPublic(BaseModel):
     ``clock``, ``steps_count``, ``landmark``, ``side``: what a program or a simulated walker
     reads), and ``text``, the same step as a plain sentence for a screen reader (metres and
     steps, left/right and the clock, landmarks by name). A turn's word is a function of its angle
-    alone: |turn_deg| < 20 straight, 20–45 bear, 45–135 turn, 135–150 sharp, ≥ 150 around."""
+    alone: |turn_deg| < 20 straight, 20–45 bear, 45–135 turn, 135–150 sharp, ≥ 150 around. A
+    ``keep`` step ("keep left at the fork") is said at a junction the route goes through without a
+    turn while another way leaves within 45° of straight on; its ``side`` is the side to keep."""
 
-    model_config = _examples(_TURN_EXAMPLE, _LAST_GO_EXAMPLE)
+    model_config = _examples(_TURN_EXAMPLE, _KEEP_EXAMPLE, _LAST_GO_EXAMPLE)
 
     instruction: str = Field(description="as spoken, in the request's style")
-    kind: Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
+    kind: Literal["face", "go", "announce", "turn", "keep", "stairs", "elevator", "arrive"]
     position: list[float] = Field(description="[x, y, z], m, map frame")
     distance_m: float = Field(description="length to walk (go) or of the stairs, m; else 0")
     turn_deg: float | None = Field(
-        description="signed horizontal turn, + is left (face, announce and turn steps)"
+        description="signed horizontal turn, + is left (face, announce and turn steps; on a keep "
+        "step the route's own bend at the fork)"
     )
     floor: int = Field(description="floor number where the step starts, 1 = lowest")
     turn: Literal["straight", "bear", "turn", "sharp", "around"] | None = Field(
@@ -273,7 +290,9 @@ class StepPublic(BaseModel):
         "within 3 m, on its floor), or the goal on the last go step and the arrival",
     )
     side: Literal["ahead", "left", "right", "behind"] | None = Field(
-        default=None, description="where the goal is: on the last go step and the arrival"
+        default=None,
+        description="where the goal is: on the last go step and the arrival; on a keep step, "
+        'the side to keep at the fork ("ahead": straight on)',
     )
     text: str = Field(default="", description="the step as a sentence for a screen reader")
 

@@ -20,13 +20,20 @@ How instructions are chosen (angles in the horizontal x–z plane, + is left, as
    (:func:`turn_class`: straight < 20°, bear 20–45°, turn 45–135°, sharp 135–150°, around
    ≥ 150°), whatever the map. So instructions are at least ``MIN_SPACING_M`` apart except at
    junctions. A decision at a node an operator quieted (a corridor edit,
-   ``app.domain.navigation.corridor_edits``) is silent too.
+   ``app.domain.navigation.corridor_edits``) is silent too. A bend within ``CHORD_M`` of a
+   stronger decision that bends under ``BEAR_MIN_DEG`` measured with its chords stopping there is
+   that decision's tail (:func:`_tail_of`). At a junction the route goes through silently while
+   another branch leaves near straight on, "keep left at the fork" (:mod:`.forks`).
 3. **Announcements.** Before a turn, a leg long enough to keep them ``MIN_SPACING_M`` apart gets
    "in N m, turn left" ``ANNOUNCE_BEFORE_M`` before the corner.
 4. **First and last steps.** Given the phone's heading (``heading_rad``: the walking direction's
    angle in the x–z plane, atan2(−x, −z), 0 = facing −z, + turning left), the first step says how
-   to turn to face the way. The last walked step gives the remaining distance and the side of the
-   tag or point of interest ("on your left"), which the arrival repeats.
+   to turn to face the way — from where the walker stands, for a route from a position more than
+   ``LEG_TOLERANCE_M`` off the graph (toward the end of the first go step; with nothing to walk
+   on the graph, toward the goal, and straight to it). The last walked step gives the remaining
+   distance and the side of the tag or point of interest ("on your left"), which the arrival
+   repeats: as the walker sees it where the app says "arrive", ``END_MARGIN_M`` before the end,
+   facing the way it walks there.
 5. **Stairs and elevators** say their length and the floor you arrive at, by the building's floor
    labels when given (``floor_labels``), else numbered from 1.
 6. **The conventions blind travellers use** (issue 39). Each step also gets ``turn`` (its class),
@@ -54,6 +61,8 @@ from app.domain.errors import ParameterError
 from app.domain.frames import FloatArray
 from app.domain.navigation.corridor_edits import QUIET_NODES
 from app.domain.navigation.floors import assign_floors
+from app.domain.navigation.forks import Fork, keep_step
+from app.domain.navigation.forks import forks as _forks
 from app.domain.navigation.path_graph import STAIRS, WALK, PathGraph
 from app.domain.navigation.path_graph.geometry import douglas_peucker_end_legs
 from app.domain.navigation.polyline import distances_along_m, point_along, segment_lengths_m
@@ -88,6 +97,9 @@ CHORD_M = 4.0
 END_MARGIN_M = 2.0
 #: A bend this close to a junction (along the route, m) is at that junction.
 JUNCTION_SNAP_M = 3.0
+#: A bend within ``CHORD_M`` of a stronger decision is measured again with its chords stopping
+#: there (:func:`_tail_of`) when both are at least this long, m.
+TAIL_MIN_CHORD_M = 0.5
 #: One rule for the words of a turn, by its angle alone (:func:`turn_class`, docs/navigation.md
 #: "Instruction wording"): |turn| below this is straight on (no facing step, a goal "ahead"),
 #: degrees.
@@ -104,6 +116,9 @@ TURN_AROUND_MIN_DEG = 150.0
 BEAR_MIN_DEG = 30.0
 #: "in N m" is said this far before a turn, m.
 ANNOUNCE_BEFORE_M = 5.0
+#: A fork this far or more along from the last step gets a "go straight" before its "keep left";
+#: nearer (a fork at the route's start), the facing step is the last, m.
+KEEP_MIN_LEG_M = 0.5
 #: The first step says nothing about facing when the way is within this of the heading (straight
 #: on), degrees.
 FACING_OK_DEG = STRAIGHT_MAX_DEG
@@ -182,6 +197,7 @@ def plan_guided_route(
         heading_rad=heading_rad,
         style=style,
         floor_labels=floor_labels,
+        origin_m=start.position_m if isinstance(start, PositionEnd) else None,
     )
     return dataclasses.replace(route, steps=steps)
 
@@ -243,21 +259,24 @@ def _guidance_steps(
     heading_rad: float | None,
     style: GuidanceStyle,
     floor_labels: Sequence[str] | None,
+    origin_m: Point3 | None = None,
 ) -> list[Step]:
     """:func:`guidance_steps` of the route through ``nodes`` whose polyline is (N, 3) ``xyz``,
     the same as ``points``, with (N − 1) ``lengths_m`` the 3-D length of each segment; ``lookups``
-    are ``pg``'s."""
+    are ``pg``'s; ``origin_m`` where the walker stands when the route starts from a position (its
+    facing step points from there)."""
     kinds, junction, at = _segment_kinds(lookups, points, nodes)
     quiet_at = pg.graph.graph.get(QUIET_NODES, ())  # corridor edits: silenced nodes
     quiet = [n in quiet_at for n in at] if quiet_at else [False] * len(at)
     floors = _point_floors(pg, lookups, points)
     steps: list[Step] = []
     heading: tuple[float, float] | None = None
+    seen_from: Point3 | None = None
     first_walk = True
     for kind, i, j in _runs(kinds):
         if kind == WALK:
             facing = heading_rad if first_walk else None
-            heading = _walk_steps(
+            heading, seen_from = _walk_steps(
                 xyz[i : j + 2],
                 points[i : j + 2],
                 lengths_m[i : j + 1],
@@ -267,13 +286,25 @@ def _guidance_steps(
                 facing,
                 style,
                 steps,
+                at=at[i : j + 2],
+                lookups=lookups,
+                origin_m=origin_m if i == 0 else None,  # the route starts walking there
             )
             first_walk = False
         else:
-            heading = None
+            heading, seen_from = None, None
             steps.append(_floor_change(xyz, floors, kind, i, j + 1, style, floor_labels))
     end = points[-1] if points else (0.0, 0.0, 0.0)
-    side = _side(heading, end, goal_thing_m)
+    if (
+        origin_m is not None
+        and goal_thing_m is not None
+        and not any(s.kind in ("go", "stairs", "elevator") for s in steps)
+    ):
+        # nothing to walk on the graph (tags facing each other across a corridor): straight
+        # from where the walker stands to the thing
+        steps, heading, end = _straight_to(origin_m, goal_thing_m, heading_rad, style, floors)
+        seen_from = end
+    side = _side(heading, seen_from or end, goal_thing_m)
     said = SIDE_WORDS[side] if side else ""
     if steps and steps[-1].kind == "go" and side:
         last = steps[-1]
@@ -295,6 +326,38 @@ def _guidance_steps(
     return _written(
         steps, _landmarks(pg), goal_name=goal_name, style=style, floor_labels=floor_labels
     )
+
+
+def _straight_to(
+    origin_m: Point3,
+    thing_m: FloatArray,
+    heading_rad: float | None,
+    style: GuidanceStyle,
+    floors: Sequence[int],
+) -> tuple[list[Step], tuple[float, float] | None, Point3]:
+    """The steps of a route too short to walk on the graph: face the thing from ``origin_m``
+    (given the heading) and go straight to it; (steps, the heading walked, where they end)."""
+    floor = floors[0] if floors else 0
+    thing = (float(thing_m[0]), float(origin_m[1]), float(thing_m[2]))
+    way = _direction(origin_m, thing)
+    distance_m = _norm_xz(thing[0] - origin_m[0], thing[2] - origin_m[2])
+    steps: list[Step] = []
+    if way is None or distance_m < SIDE_MIN_M:
+        return steps, None, origin_m
+    if heading_rad is not None:
+        facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))
+        bearing = signed_turn_deg(facing, _xyz(way))
+        if turn_class(bearing) != "straight":
+            words = turn_words(bearing, style)
+            if not style.clock and turn_class(bearing) != "around":
+                words = f"{words} {round(abs(bearing))}°"
+            steps.append(_step(f"{words} to face the way", origin_m, "face", 0.0, bearing, floor))
+    said = distance_words(distance_m, style.units, style.stride_m)
+    steps.append(_step(f"go straight {said}", origin_m, "go", distance_m, floor=floor))
+    # the walk ends short of the thing (it is on a wall), so that it is "ahead"
+    short_m = min(2 * SIDE_MIN_M, distance_m / 2)
+    end = (thing[0] - short_m * way[0], origin_m[1], thing[2] - short_m * way[1])
+    return steps, way, end
 
 
 def walk_stretches(pg: PathGraph, route: Route) -> list[tuple[FloatArray, list[bool]]]:
@@ -362,10 +425,32 @@ def _decisions(
             index == d_index
             or (abs(along_m - d_along_m) < MIN_SPACING_M and not (at_junction and d_at_junction))
             for d_index, _, d_at_junction, d_along_m in chosen
-        ):
+        ) and not _tail_of(xyz, walked_m, walked[k], [d[3] for d in chosen]):
             chosen.append((index, turn_deg, at_junction, along_m))
     chosen.sort(key=_along)
     return chosen
+
+
+def _tail_of(xyz: FloatArray, walked_m: FloatArray, at_m: float, chosen_m: list[float]) -> bool:
+    """Whether the bend at ``at_m`` along the stretch (N, 3) is the tail of a stronger decision
+    ``chosen_m`` along it within ``CHORD_M``: measured with its chords stopping at the decisions
+    (the walker turned there), it bends less than ``BEAR_MIN_DEG``."""
+    before_m = [d for d in chosen_m if at_m - CHORD_M < d < at_m]
+    after_m = [d for d in chosen_m if at_m < d < at_m + CHORD_M]
+    if not before_m and not after_m:
+        return False
+    total_m = float(walked_m[-1])
+    from_m = max([at_m - CHORD_M, 0.0, *before_m])
+    to_m = min([at_m + CHORD_M, total_m, *after_m])
+    if at_m - from_m < TAIL_MIN_CHORD_M or to_m - at_m < TAIL_MIN_CHORD_M:
+        return False
+    here = np.array([np.interp(at_m, walked_m, xyz[:, c]) for c in (0, 2)])
+    back = np.array([np.interp(from_m, walked_m, xyz[:, c]) for c in (0, 2)])
+    ahead = np.array([np.interp(to_m, walked_m, xyz[:, c]) for c in (0, 2)])
+    before, after = here - back, ahead - here
+    cross_y = before[1] * after[0] - before[0] * after[1]
+    turn_deg = math.degrees(math.atan2(cross_y, float(before @ after)))
+    return abs(turn_deg) < BEAR_MIN_DEG
 
 
 def _strongest(bend: tuple[int, float]) -> float:
@@ -525,16 +610,37 @@ def _walk_steps(
     heading_rad: float | None,
     style: GuidanceStyle,
     steps: list[Step],
-) -> tuple[float, float] | None:
+    *,
+    at: Sequence[int | None] = (),
+    lookups: NodeLookups | None = None,
+    origin_m: Point3 | None = None,
+) -> tuple[tuple[float, float] | None, Point3 | None]:
     """Append the steps of a walked stretch, (N, 3) ``xyz`` and the same as ``points``, whose
-    segments are ``lengths_m`` long; return its final x–z heading. A decision at a point that
-    ``quiet`` flags (a node an operator quieted) is not announced."""
+    segments are ``lengths_m`` long; return the x–z heading the goal's side is told in and the
+    point it is told from (where the app says "arrive", walking the last leg). A decision at a
+    point that ``quiet`` flags (a node an operator quieted) is not announced. Given the nodes
+    ``at`` its points and the graph's ``lookups``, a junction the stretch goes through without a
+    spoken decision where another branch leaves near straight on gets "keep left/right"
+    (:mod:`app.domain.navigation.forks`). A walker who stands more than ``LEG_TOLERANCE_M`` off
+    the stretch's start (``origin_m``, a route from a position) is turned to face, from where it
+    stands, the end of the first go step (the first spoken decision, or the stretch's end)."""
     walked = distances_along_m(lengths_m)
+    decisions = [
+        d
+        for d in _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
+        if _announced(d[1], d[2]) and not quiet[d[0]]
+    ]
     first_dir = last_dir = None
     if len(points) > 1:
         xs, zs = [p[0] for p in points], [p[2] for p in points]
         first_end, last_start = douglas_peucker_end_legs(xs, zs, LEG_TOLERANCE_M)
         first_dir = _direction(points[0], points[first_end])
+        if (
+            origin_m is not None
+            and _norm_xz(origin_m[0] - points[0][0], origin_m[2] - points[0][2]) > LEG_TOLERANCE_M
+        ):
+            leg_end_m = decisions[0][3] if decisions else walked[-1]
+            first_dir = _direction(origin_m, point_along(points, walked, leg_end_m)) or first_dir
         last_dir = _direction(points[last_start], points[-1])
     if heading_rad is not None and first_dir is not None:
         facing = (-math.sin(heading_rad), 0.0, -math.cos(heading_rad))  # heading_direction, x y z
@@ -544,12 +650,31 @@ def _walk_steps(
             if not style.clock and turn_class(bearing) != "around":
                 words = f"{words} {round(abs(bearing))}°"
             steps.append(_step(f"{words} to face the way", points[0], "face", 0.0, bearing, floor))
-    decisions = _decisions(xyz, junction, np.array(walked), walked, END_MARGIN_M)
+    if lookups is not None and len(at) == len(points):
+        silent = {k for k, q in enumerate(quiet) if q} | {d[0] for d in decisions}
+        silent |= {k for k, w in enumerate(walked) if walked[-1] - w < END_MARGIN_M}
+        keeps = _forks(points, walked, at, junction, lookups, skip=frozenset(silent))
+    else:
+        keeps = []
+    events = sorted([(d[3], d) for d in decisions] + [(f.along_m, f) for f in keeps], key=_first)
     from_m, from_i = 0.0, 0
-    for index, turn_deg, at_junction, along_m in decisions:
-        if not _announced(turn_deg, at_junction) or quiet[index]:
-            continue
+    for along_m, event in events:
         leg_m = along_m - from_m
+        if isinstance(event, Fork):
+            if leg_m >= KEEP_MIN_LEG_M:
+                steps.append(
+                    _step(
+                        f"go straight {distance_words(leg_m, style.units, style.stride_m)}",
+                        points[from_i],
+                        "go",
+                        leg_m,
+                        floor=floor,
+                    )
+                )
+            steps.append(keep_step(event, points[event.index], floor))
+            from_m, from_i = along_m, event.index
+            continue
+        index, turn_deg = event[0], event[1]
         steps.append(
             _step(
                 f"go straight {distance_words(leg_m, style.units, style.stride_m)}",
@@ -561,9 +686,11 @@ def _walk_steps(
         )
         words = turn_words(turn_deg, style)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
-            at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
+            announce_at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
             ahead = distance_words(ANNOUNCE_BEFORE_M, style.units, style.stride_m)
-            steps.append(_step(f"in {ahead}, {words}", at, "announce", 0.0, turn_deg, floor))
+            steps.append(
+                _step(f"in {ahead}, {words}", announce_at, "announce", 0.0, turn_deg, floor)
+            )
         steps.append(_step(words, points[index], "turn", 0.0, turn_deg, floor))
         from_m, from_i = along_m, index
     rest_m = walked[-1] - from_m
@@ -577,7 +704,21 @@ def _walk_steps(
                 floor=floor,
             )
         )
-    return last_dir
+    # The goal's side is told as the walker sees it where the app says "arrive", END_MARGIN_M
+    # before the end (no bend nearer the end is told, so the walker does not turn there),
+    # facing the way it walks there: over the CHORD_M before that point, after the last told
+    # decision. A last leg too short for that (under CHORD_M / 2) is seen from its end.
+    seen_from = points[-1] if points else None
+    heading_to_m = walked[-1] - END_MARGIN_M
+    heading_from_m = max(heading_to_m - CHORD_M, from_m)
+    if heading_to_m - heading_from_m >= CHORD_M / 2 and len(points) > 1:
+        seen_from = point_along(points, walked, heading_to_m)
+        last_dir = _direction(point_along(points, walked, heading_from_m), seen_from) or last_dir
+    return last_dir, seen_from
+
+
+def _first(event: tuple[float, object]) -> float:
+    return event[0]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -707,6 +848,10 @@ def _written(
                     text = f"in {ahead}, {phrase + ', ' if phrase else ''}{words}"
                 else:
                     text = f"{phrase + ', ' if phrase else ''}{words}"
+            case "keep":
+                found = near(step)
+                landmark, phrase = found if found else (None, "")
+                text = f"{phrase + ', ' if phrase else ''}{step.instruction}"
             case "go":
                 count = steps_count(step.distance_m, style.stride_m)
                 text = f"go straight {spoken_distance(step.distance_m, style.stride_m)}"

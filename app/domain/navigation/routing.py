@@ -75,7 +75,9 @@ AVOID_SETS: tuple[frozenset[str], ...] = (
 #: A snapped position within this distance of an edge end, m, is that node.
 SNAP_TO_NODE_M = 1e-6
 
-StepKind: TypeAlias = Literal["face", "go", "announce", "turn", "stairs", "elevator", "arrive"]
+StepKind: TypeAlias = Literal[
+    "face", "go", "announce", "turn", "keep", "stairs", "elevator", "arrive"
+]
 #: The class of a turn by its angle alone (:func:`app.domain.navigation.instructions.turn_class`).
 TurnClass: TypeAlias = Literal["straight", "bear", "turn", "sharp", "around"]
 #: Where a thing is from the walker: the side of the goal on arrival.
@@ -170,15 +172,18 @@ class Step:
     ``position_m``: where to do it (map frame, m): the start of a stretch to walk, the corner of a
     turn, the foot (or top) of the stairs, the arrival point. ``distance_m``: the stretch's length
     along the path (m; 0 for turns and arrival). ``turn_deg``: signed horizontal turn, + is left
-    (face, announce and turn steps only). ``floor``: floor index (0 = lowest) where the step
-    starts.
+    (face, announce and turn steps; on a keep step, the route's own bend at its fork).
+    ``floor``: floor index (0 = lowest) where the step starts. A ``keep`` step ("keep left at
+    the fork", :mod:`app.domain.navigation.forks`) is said at a junction the route goes through
+    without a turn while another way goes on near straight ahead.
 
     Written by :mod:`app.domain.navigation.instructions` (the defaults are for steps made by
     hand): ``turn``: the class of ``turn_deg`` (``turn_class``), ``clock``: its clock-face hour
     (12 ahead, 3 right, 9 left), ``steps_count``: ``distance_m`` in the walker's strides (go
     steps), ``landmark``: the tag or point of interest at the step ("Room 210", "tag 305"),
-    ``side``: where the goal is on the last walked step and the arrival, ``text``: the step as
-    one plain sentence for a screen reader ("Turn right, to 3 o'clock.").
+    ``side``: where the goal is on the last walked step and the arrival, and the side to keep
+    on a keep step ("ahead" for straight on), ``text``: the step as one plain sentence for a
+    screen reader ("Turn right, to 3 o'clock.").
     """
 
     instruction: str
