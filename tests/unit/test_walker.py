@@ -111,3 +111,34 @@ def test_capsule_free_space_is_the_lines_widened() -> None:
     space = CapsuleFreeSpace.of_lines([L_CORNERS_XZ], radius_m=1.0)
     inside = space.contains(np.array([[0.5, -10.0], [8.0, -20.9], [1.5, -10.0], [8.0, -18.5]]), 0)
     assert inside.tolist() == [True, True, False, False]
+
+
+def y_fork() -> tuple[PathGraph, CapsuleFreeSpace, tuple[float, float]]:
+    """20 m north to a fork: the corridor bends 15° left to tag 2 while a spur goes straight on
+    (corridors 2 m wide); the graph of ``tests.unit.test_forks`` and its true building."""
+    from tests.unit.test_forks import FORK_XZ, SOUTH_XZ, ahead_xz, fork
+
+    to_2, to_3 = ahead_xz(FORK_XZ, 15.0, 15.0), ahead_xz(FORK_XZ, 0.0, 15.0)
+    space = CapsuleFreeSpace.of_lines([[SOUTH_XZ, FORK_XZ, to_2], [FORK_XZ, to_3]], radius_m=1.0)
+    return fork(15.0, 0.0), space, to_2
+
+
+def test_told_keep_left_the_walker_takes_the_bending_branch_and_not_without() -> None:
+    pg, space, goal_xz = y_fork()
+    route = plan_guided_route(pg, TagEnd(1), TagEnd(2), heading_rad=0.0)
+    assert "keep left at the fork" in [s.instruction for s in route.steps]
+    unsaid = [s for s in route.steps if s.kind != "keep"]
+    told = [
+        walk_steps(
+            steps,
+            space,
+            Start(xz=(0.0, 0.0), heading_rad=0.0),
+            goal_xz=goal_xz,
+            goal_floor=0,
+            rng=np.random.default_rng(seed),
+        ).arrived
+        for steps in (route.steps, unsaid)
+        for seed in range(20)
+    ]
+    assert sum(told[:20]) == 20
+    assert sum(told[20:]) <= 2  # straight on into the spur

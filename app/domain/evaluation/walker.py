@@ -3,12 +3,13 @@
 
     space = BoxFreeSpace.of_building(walk.building)               # a simulated building's truth
     space = CapsuleFreeSpace.of_lines(lines_xz, radius_m=1.6)     # corridors drawn as centrelines
-    route = plan_guided_route(pg, TagEnd(a), TagEnd(b), heading_rad=start.heading_rad)
+    route = plan_guided_route(pg, PositionEnd(p), TagEnd(b), heading_rad=start.heading_rad)
     outcome = walk_steps(route.steps, space, start, goal_xz=…, goal_floor=0, rng=rng)
-    outcome.arrived, outcome.reason, outcome.where_xz
+    outcome = walk_steps(…, app=TagCorrections(…))    # … re-routed when a tag shows it off the way
+    outcome.arrived, outcome.reason, outcome.where_xz, outcome.corrections
 
 The walker knows only the steps as a user hears them (``Step.kind``, ``turn_deg``,
-``distance_m``; never the route's polyline nor the map). It errs as people do:
+``distance_m``, ``side``; never the route's polyline nor the map). It errs as people do:
 
 - **Heading.** Every turn it makes (the facing turn included) is off by a uniform error of up to
   ``heading_error_deg`` (±15°).
@@ -16,154 +17,89 @@ The walker knows only the steps as a user hears them (``Step.kind``, ``turn_deg`
   it counts its steps, and its steps are not the 0.7 m it assumes.
 - **Walls stop it.** It moves in ``step_m`` steps inside the free space; a wall met at up to
   ``slide_max_deg`` from its heading turns it along the wall (a cane or a hand on the wall: it
-  *shorelines*); a wall met more head-on stops it (the corridor ends there).
+  *shorelines*); a wall met more head-on stops it (the corridor ends there) — unless that is
+  more than ``short_m`` short of the distance it was told: then it feels along the wall for the
+  way on, up to ``around_max_deg`` off the way it set out (never back).
 - **A trailing hand where the instruction says so.** Before a turn ("in 5 m, turn left"; the
-  last ``search`` window of the leg: ``search_share`` of the leg, at least ``search_min_m``) it
-  steps over to the wall on the turn's side and trails it; it turns (a turn of at least
-  ``SEARCH_MIN_TURN_DEG``; a "bear" is taken where the told distance ends) at the first
-  opening its hand finds there (the wall gone ``probe_m`` out), after stepping
-  ``into_opening_m`` into it.
-  No opening within the window past the told distance: it turns where it is.
+  last window of the leg: ``search_share`` of it, at least ``search_min_m``, but not in its
+  first half) it steps over to the wall on the turn's side (none within ``wall_find_m``: open
+  space, it turns there) and trails it ``hand_m`` off. The hand feels the wall's direction
+  (``feel_ahead_m`` ahead of the body, out to ``probe_m``): along a wall that bends less than
+  ``corner_deg`` the walker turns with it; where the wall turns away by ``corner_deg`` or more,
+  or is gone (an opening), it is at the corner: it steps ``into_opening_m`` on and turns as
+  told. No corner within the window past the told distance: it turns where it is.
+- **Forks.** Told "keep left" (or "right"), or "bear left" (said only at a junction), it trails
+  that wall from the window before the fork to the window after it, turning with the wall and
+  crossing openings on that side: the branch it keeps to continues the wall, so the wall turns
+  it (a bear is not turned by its angle as well).
 - **Arrival.** On the last leg ("… to tag 311, on your right") the walker trails the wall of
-  the side it is told for the leg's last window, and the app says "arrive" when it is within
-  ``arrive_within_m`` of the goal (it tracks the phone against the tags); with
-  ``app_says_arrive=False`` the walker stops when it has walked the told distance.
-- **Stairs.** "take the stairs" takes the nearest stairs' foot or head within ``stairs_find_m``
-  to their other end (a handrail leads); none there is a failure.
+  the side it is told for the leg's last window (crossing openings), and the app says "arrive"
+  when it is within ``arrive_within_m`` of the goal (it tracks the phone against the tags); with
+  ``app_says_arrive=False`` the walker stops when it has walked the told distance. Told "arrive
+  at tag 311, on your right" while not there yet, it turns to that side and walks up to the wall
+  (``wall_find_m`` at most).
+- **Stairs.** Before "take the stairs" its cane finds their first step (within ``cane_m``) and
+  it stops there; then it takes the nearest stairs' foot or head within ``stairs_find_m`` to
+  the top (or foot) of their last flight (a handrail leads); none there is a failure.
+- **The app's corrections** (``app``, none by default): the real app localizes the phone on
+  every tag its camera sees and can route again from there (DESIGN §7). Every
+  ``check_every_m`` walked, after every leg, and when it is lost (a wall where it should walk
+  on, the steps done short of the goal; then it steps back ``step_back_m`` from the wall and
+  turns on the spot to let the phone look round), the walker asks ``app.correct``; new steps
+  replace the rest of the old ones, at most ``max_corrections`` times
+  (:mod:`app.domain.evaluation.walker_app` says when they come).
 
 Success is ending within ``arrive_within_m`` of the goal (horizontally, on its floor) without a
-turn of more than ``TURN_AROUND_DEG`` (a "turn around" is a failure of the instructions).
-Every failure says where (x–z, m) and why: the step it happened at, in its own words.
+turn of more than ``TURN_AROUND_DEG`` told in a route's steps (a "turn around" is a failure of
+the instructions). Every failure says where (x–z, m) and why: the step it happened at, in its own
+words.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Protocol
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
-import numpy.typing as npt
 
-from app.domain.errors import ParameterError
+from app.domain.evaluation.walker_body import (
+    DEFAULT_WALKER,
+    Body,
+    Corrected,
+    Corrector,
+    WalkerErrors,
+    stairs_tops,
+    take_stairs,
+    to_polyline_m,
+    wrapped,
+)
+from app.domain.evaluation.walker_space import (
+    BoxFreeSpace,
+    CapsuleFreeSpace,
+    FreeSpace,
+)
 from app.domain.frames import FloatArray
 from app.domain.navigation.routing import Step
 
-BoolArray = npt.NDArray[np.bool_]
+__all__ = [
+    "DEFAULT_WALKER",
+    "TURN_AROUND_DEG",
+    "BoxFreeSpace",
+    "CapsuleFreeSpace",
+    "Corrector",
+    "FreeSpace",
+    "Start",
+    "WalkOutcome",
+    "WalkerErrors",
+    "walk_steps",
+]
 
 #: A told turn beyond this is a turn-around: the route sends the walker back, degrees.
 TURN_AROUND_DEG = 150.0
-#: Before a turn of at least this the walker trails the wall for the opening; a "bear" (a fork
-#: or a bend of the corridor) it takes where it has walked the told distance, degrees.
-SEARCH_MIN_TURN_DEG = 45.0
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class WalkerErrors:
-    """How the walker errs and searches (see the module docstring); SI units in the names.
-
-    WalkerErrors()                              # ±15° per turn, ±10% per leg, the app says arrive
-    WalkerErrors(heading_error_deg=0.0, stride_error=0.0)     # a perfect walker
-    WalkerErrors(app_says_arrive=False)          # stops after the told distance of the last leg
-    """
-
-    heading_error_deg: float = 15.0
-    stride_error: float = 0.10
-    step_m: float = 0.1
-    slide_max_deg: float = 45.0
-    search_share: float = 0.25
-    search_min_m: float = 3.0
-    probe_m: float = 1.0
-    wall_find_m: float = 4.0
-    into_opening_m: float = 0.8
-    arrive_within_m: float = 2.0
-    app_says_arrive: bool = True
-    stairs_find_m: float = 3.0
-
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if not math.isfinite(float(value)) or float(value) < 0:
-                raise ParameterError(f"{name} must be finite and ≥ 0, got {value!r}")
-        if self.step_m <= 0 or self.stride_error >= 1:
-            raise ParameterError("step_m must be > 0 and stride_error < 1")
-
-
-DEFAULT_WALKER = WalkerErrors()
-
-
-class FreeSpace(Protocol):
-    """Where a walker can be: ``contains(xz, floor)`` → (N,) bool for points (N, 2), m."""
-
-    def contains(self, xz: FloatArray, floor: int) -> BoolArray: ...
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class BoxFreeSpace:
-    """The free space of a simulated building: axis-aligned boxes (B, 2, 3) of min and max
-    corners (y up), each on the floor whose level its bottom is nearest; ``stairs`` the stairs'
-    centrelines (P, 3), each from its lower end."""
-
-    boxes_m: FloatArray
-    floor_levels_m: tuple[float, ...]
-    stairs: tuple[FloatArray, ...] = ()
-    _on_floor: BoolArray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        levels = np.asarray(self.floor_levels_m, dtype=np.float64)
-        bottoms, tops = self.boxes_m[:, 0, 1], self.boxes_m[:, 1, 1]
-        # (B, F): a box is on every floor whose level lies within it (a stairwell spans two)
-        on_floor = (bottoms[:, None] - 0.5 <= levels[None, :]) & (levels[None, :] < tops[:, None])
-        object.__setattr__(self, "_on_floor", on_floor)
-
-    @classmethod
-    def of_building(cls, building: object) -> BoxFreeSpace:
-        """The truth of an ``app.domain.evaluation.simulate.Building``."""
-        boxes = np.asarray(building.free_space_boxes_m, dtype=np.float64)  # type: ignore[attr-defined]
-        ends = np.asarray(building.edge_nodes)  # type: ignore[attr-defined]
-        xyz = np.asarray(building.node_xyz_m)  # type: ignore[attr-defined]
-        polylines = building.edge_polylines_m  # type: ignore[attr-defined]
-        stairs = tuple(
-            np.asarray(polylines[e], dtype=np.float64)
-            for e in range(len(ends))
-            if abs(float(xyz[ends[e, 0], 1] - xyz[ends[e, 1], 1])) > 1e-9
-        )
-        levels = tuple(float(v) for v in building.floor_heights_m)  # type: ignore[attr-defined]
-        return cls(boxes, levels, stairs)
-
-    def contains(self, xz: FloatArray, floor: int) -> BoolArray:
-        on = self._on_floor[:, floor]
-        low, high = self.boxes_m[on, 0][:, [0, 2]], self.boxes_m[on, 1][:, [0, 2]]
-        p = xz[:, None, :]
-        return np.asarray(((p >= low[None]) & (p <= high[None])).all(axis=2).any(axis=1))
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class CapsuleFreeSpace:
-    """Corridors drawn as centrelines: segments (S, 2, 2) (x–z, m) widened by ``radius_m``, one
-    floor (floor 0)."""
-
-    segments_m: FloatArray
-    radius_m: float
-
-    @classmethod
-    def of_lines(
-        cls, lines_xz: Sequence[Sequence[tuple[float, float]]], *, radius_m: float
-    ) -> CapsuleFreeSpace:
-        segments = [(a, b) for line in lines_xz for a, b in itertools.pairwise(line)]
-        return cls(np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2), radius_m)
-
-    def contains(self, xz: FloatArray, floor: int) -> BoolArray:
-        if floor != 0:
-            return np.zeros(len(xz), dtype=np.bool_)
-        a, b = self.segments_m[:, 0], self.segments_m[:, 1]
-        ab = b - a
-        ap = xz[:, None, :] - a[None]
-        t = np.clip((ap * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-12), 0.0, 1.0)
-        distance = np.linalg.norm(ap - t[..., None] * ab, axis=2).min(axis=1)
-        return np.asarray(distance <= self.radius_m)
+#: A told turn below this is a "bear" (``instructions.TURN_MIN_DEG``), degrees.
+BEAR_MAX_DEG = 45.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -180,7 +116,8 @@ class Start:
 class WalkOutcome:
     """What happened: ``arrived``; ``reason`` (why it failed, or "arrived"); ``where_xz`` where
     it ended or failed, m; ``distance_to_goal_m`` at the end; ``path_xz`` (K, 2) its walk; the
-    index of the step it failed at (None if it arrived)."""
+    index of the step it failed at (None if it arrived); ``corrections``: how many times the app
+    routed it again."""
 
     arrived: bool
     reason: str
@@ -188,73 +125,21 @@ class WalkOutcome:
     distance_to_goal_m: float
     path_xz: FloatArray
     failed_step: int | None = None
+    corrections: int = 0
 
 
-class _Blocked(Exception):
-    pass
+HandMode = Literal["turn", "follow"]
 
 
-@dataclass(slots=True)
-class _Walker:
-    space: FreeSpace
-    xz: FloatArray
-    heading_rad: float
-    floor: int
-    errors: WalkerErrors
-    path: list[tuple[float, float]]
-    notes: list[str] = field(default_factory=list)
+@dataclass(frozen=True, slots=True)
+class _Hand:
+    """A hand on the wall of ``side`` (+1 left, −1 right) from ``from_m`` to ``to_m`` along a
+    leg: ``turn`` looks for the corner of a turn, ``follow`` trails the wall across openings."""
 
-    def note(self, words: str) -> None:
-        """Remember what went unexpectedly (the first such note explains a failure)."""
-        x, z = self.xz
-        self.notes.append(f"{words} at ({x:.1f}, {z:.1f})")
-
-    def forward(self) -> FloatArray:
-        return np.array([-math.sin(self.heading_rad), -math.cos(self.heading_rad)])
-
-    def side(self, sign: float) -> FloatArray:
-        """The unit x–z vector to the left (``sign`` +1) or right (−1)."""
-        h = self.heading_rad
-        return sign * np.array([-math.cos(h), math.sin(h)])
-
-    def free(self, xz: FloatArray) -> bool:
-        return bool(self.space.contains(xz[None, :], self.floor)[0])
-
-    def step(self) -> bool:
-        """One ``step_m`` forward, along a wall met at a glancing angle; False when blocked."""
-        e = self.errors
-        for delta_deg in _slide_angles(e.slide_max_deg):
-            h = self.heading_rad + math.radians(delta_deg)
-            to = self.xz + e.step_m * np.array([-math.sin(h), -math.cos(h)])
-            if self.free(to):
-                self.xz = to
-                self.heading_rad = h  # the wall turned it: it now walks along the wall
-                self.path.append((float(to[0]), float(to[1])))
-                return True
-        return False
-
-    def sidestep(self, direction: FloatArray, up_to_m: float) -> bool:
-        """Step sideways until a wall is within ``probe_m / 2``; False if none within
-        ``up_to_m`` (open space on that side)."""
-        e = self.errors
-        moved = 0.0
-        while moved < up_to_m:
-            if not self.free(self.xz + 0.5 * e.probe_m * direction):
-                return True
-            to = self.xz + e.step_m * direction
-            if not self.free(to):
-                return True
-            self.xz = to
-            self.path.append((float(to[0]), float(to[1])))
-            moved += e.step_m
-        return False
-
-
-def _slide_angles(max_deg: float) -> list[float]:
-    angles = [0.0]
-    for d in range(5, int(max_deg) + 1, 5):
-        angles += [float(d), float(-d)]
-    return angles
+    side: float
+    mode: HandMode
+    from_m: float
+    to_m: float
 
 
 def walk_steps(
@@ -266,15 +151,17 @@ def walk_steps(
     goal_floor: int,
     rng: np.random.Generator,
     errors: WalkerErrors = DEFAULT_WALKER,
+    app: Corrector | None = None,
 ) -> WalkOutcome:
     """Walk ``steps`` from ``start`` through ``space`` (see the module docstring)."""
-    w = _Walker(
+    w = Body(
         space=space,
         xz=np.array(start.xz, dtype=np.float64),
         heading_rad=start.heading_rad,
         floor=start.floor,
         errors=errors,
         path=[(float(start.xz[0]), float(start.xz[1]))],
+        app=app,
     )
     goal = np.asarray(goal_xz, dtype=np.float64)
 
@@ -287,44 +174,141 @@ def walk_steps(
             distance_to_goal_m=d,
             path_xz=np.array(w.path, dtype=np.float64).reshape(-1, 2),
             failed_step=k,
+            corrections=w.corrections,
         )
 
+    plan = list(steps)
+    while True:
+        try:
+            failure, k = _follow(w, plan, goal, goal_floor, rng)
+            if failure is None and _near(w, goal, goal_floor, errors):
+                return outcome(True, "arrived", None)
+            if failure is None:
+                w.check(scanning=True)  # lost: it turns on the spot so that the phone looks round
+        except Corrected as corrected:
+            plan = corrected.steps
+            continue
+        if failure is not None:
+            return outcome(False, failure, k)
+        d = float(np.linalg.norm(w.xz - goal))
+        where = "on another floor" if w.floor != goal_floor else f"{d:.1f} m from the goal"
+        first = f"; first, {w.notes[0]}" if w.notes else ""
+        return outcome(False, f"ended {where}{first}", len(plan) - 1)
+
+
+def _follow(
+    w: Body,
+    steps: Sequence[Step],
+    goal: FloatArray,
+    goal_floor: int,
+    rng: np.random.Generator,
+) -> tuple[str | None, int | None]:
+    """Follow ``steps``: (None, None) when they are done or the goal reached, else (the
+    failure's words, the step's index). Raises ``Corrected`` when the app routes again."""
+    errors = w.errors
     last_walk = max((k for k, s in enumerate(steps) if s.kind == "go"), default=-1)
+    kept: float | None = None  # the side a "keep" holds into the next leg
     for k, s in enumerate(steps):
         if s.kind in ("face", "turn"):
             turn = float(s.turn_deg or 0.0)
             if abs(turn) > TURN_AROUND_DEG and s.kind == "turn":
-                return outcome(False, f"turn-around told at step {k} ({s.instruction!r})", k)
+                return f"turn-around told at step {k} ({s.instruction!r})", k
+            if s.kind == "turn" and _is_bear(s):
+                kept = math.copysign(1.0, turn)  # the hand on that wall took it round
+                continue
             error = rng.uniform(-errors.heading_error_deg, errors.heading_error_deg)
             w.heading_rad += math.radians(turn + error)
+        elif s.kind == "keep":
+            kept = _SIDES.get(s.side or "")
         elif s.kind == "go":
-            following = next((t for t in steps[k + 1 :] if t.kind != "announce"), None)
-            turn_side = (
-                math.copysign(1.0, float(following.turn_deg or 0.0))
-                if following is not None
-                and following.kind == "turn"
-                and abs(float(following.turn_deg or 0.0)) >= SEARCH_MIN_TURN_DEG
-                else _told_side(s.instruction)
-                if k == last_walk
-                else None
-            )
             told_m = s.distance_m
             judged_m = told_m * (1 + rng.uniform(-errors.stride_error, errors.stride_error))
-            failure = _walk_leg(w, judged_m, told_m, turn_side, k == last_walk, goal, errors, k)
+            hands = _hands(steps, k, k == last_walk, judged_m, told_m, kept, errors)
+            kept = None
+            w.blocked = False
+            following = next((t for t in steps[k + 1 :] if t.kind != "announce"), None)
+            stairs_from_m = (
+                max(judged_m - _window_m(told_m, errors), judged_m / 2)
+                if following is not None and following.kind == "stairs"
+                else None
+            )
+            failure = _walk_leg(
+                w, judged_m, told_m, hands, k == last_walk, goal, k, stairs_from_m=stairs_from_m
+            )
             if failure:
-                return outcome(False, f"{failure} (step {k}: {s.instruction!r})", k)
+                w.check(scanning=True)
+                return f"{failure} (step {k}: {s.instruction!r})", k
             if k == last_walk and errors.app_says_arrive and _near(w, goal, goal_floor, errors):
-                return outcome(True, "arrived", None)
+                return None, None
+            w.check(scanning=w.blocked)  # stopped by a wall, it looks round
         elif s.kind in ("stairs", "elevator"):
-            failure = _change_floor(w, space, errors)
+            failure = take_stairs(w, errors)
             if failure:
-                return outcome(False, f"{failure} (step {k}: {s.instruction!r})", k)
-    if _near(w, goal, goal_floor, errors):
-        return outcome(True, "arrived", None)
-    d = float(np.linalg.norm(w.xz - goal))
-    where = "on another floor" if w.floor != goal_floor else f"{d:.1f} m from the goal"
-    first = f"; first, {w.notes[0]}" if w.notes else ""
-    return outcome(False, f"ended {where}{first}", len(steps) - 1)
+                w.check(scanning=True)
+                return f"{failure} (step {k}: {s.instruction!r})", k
+        elif (
+            s.kind == "arrive" and s.side in _FACING_DEG and not _near(w, goal, goal_floor, errors)
+        ):
+            # not there yet: it turns to the side it is told and walks up to the wall there
+            error = rng.uniform(-errors.heading_error_deg, errors.heading_error_deg)
+            w.heading_rad += math.radians(_FACING_DEG[s.side] + error)
+            walked_m = 0.0
+            while walked_m < errors.wall_find_m and not _near(w, goal, goal_floor, errors):
+                if not w.step(slide_max_deg=0.0):
+                    break
+                walked_m += errors.step_m
+    return None, None
+
+
+#: Where the walker turns to find a goal "on your left" and so on, degrees (+ left).
+_FACING_DEG = {"ahead": 0.0, "left": 90.0, "right": -90.0, "behind": 180.0}
+
+
+#: The hand's sign for a side said.
+_SIDES = {"left": 1.0, "right": -1.0}
+
+
+def _hands(
+    steps: Sequence[Step],
+    k: int,
+    last: bool,
+    judged_m: float,
+    told_m: float,
+    kept: float | None,
+    errors: WalkerErrors,
+) -> list[_Hand]:
+    """Where the hand goes on the wall along go step ``k`` (the first that applies wins)."""
+    window_m = _window_m(told_m, errors)
+    from_m = max(judged_m - window_m, judged_m / 2)  # not in the first half: it just started
+    hands = []
+    following = next((t for t in steps[k + 1 :] if t.kind != "announce"), None)
+    if following is not None and following.kind == "turn" and following.turn_deg:
+        sign = math.copysign(1.0, following.turn_deg)
+        if _is_bear(following):
+            hands.append(_Hand(sign, "follow", from_m, math.inf))
+        else:
+            hands.append(_Hand(sign, "turn", from_m, judged_m + window_m))
+    elif following is not None and following.kind == "keep" and following.side in _SIDES:
+        hands.append(_Hand(_SIDES[following.side], "follow", from_m, math.inf))
+    elif last:
+        told = _told_side(steps[k].instruction)
+        if told is not None:
+            hands.append(_Hand(told, "follow", from_m, math.inf))
+    if kept is not None:
+        hands.append(_Hand(kept, "follow", 0.0, window_m))
+    return hands
+
+
+def _window_m(told_m: float, errors: WalkerErrors) -> float:
+    """How long before (and after) a told distance the walker searches: the leg's
+    ``search_share``, at least ``search_min_m``."""
+    return max(errors.search_min_m, errors.search_share * told_m)
+
+
+def _is_bear(step: Step) -> bool:
+    """A "bear left/right": said only at a fork; the walker keeps to that side's wall through
+    it (as for "keep left"), which turns it into the branch."""
+    return abs(float(step.turn_deg or 0.0)) < BEAR_MAX_DEG
 
 
 def _told_side(instruction: str) -> float | None:
@@ -337,51 +321,95 @@ def _told_side(instruction: str) -> float | None:
     return None
 
 
-def _near(w: _Walker, goal: FloatArray, goal_floor: int, errors: WalkerErrors) -> bool:
+def _near(w: Body, goal: FloatArray, goal_floor: int, errors: WalkerErrors) -> bool:
     return w.floor == goal_floor and float(np.linalg.norm(w.xz - goal)) <= errors.arrive_within_m
 
 
 def _walk_leg(
-    w: _Walker,
+    w: Body,
     judged_m: float,
     told_m: float,
-    hand_side: float | None,
+    hands: Sequence[_Hand],
     last: bool,
     goal: FloatArray,
-    errors: WalkerErrors,
     k: int,
+    *,
+    stairs_from_m: float | None = None,
 ) -> str | None:
-    """Walk one leg (step ``k``) of ``told_m`` (the walker judges ``judged_m``); ``hand_side``
-    (+1 left, −1 right): the side whose wall it trails near the leg's end (the next turn's, or
-    the goal's on the last leg). A failure's words, or None."""
-    window_m = max(errors.search_min_m, errors.search_share * told_m)
-    walked_m = 0.0
-    # before a turn, and on the last leg told the goal's side, the hand goes on that wall for the
-    # leg's last window (not at its start: the walker may still be in the corridor it turned from)
-    search_from_m = math.inf if hand_side is None else judged_m - window_m
+    """Walk one leg (step ``k``) of ``told_m`` (the walker judges ``judged_m``) with ``hands`` on
+    the walls; before stairs (from ``stairs_from_m`` on) it stops where its cane finds their
+    first step. A failure's words, or None."""
+    errors = w.errors
     arriving = last and errors.app_says_arrive
-    limit_m = judged_m + window_m if (hand_side is not None and not last) or arriving else judged_m
-    trailing = False
+    turning = next((h for h in hands if h.mode == "turn"), None)
+    limit_m = judged_m
+    if turning is not None:
+        limit_m = turning.to_m
+    elif arriving:
+        limit_m = judged_m + _window_m(told_m, errors)
+    first_steps = stairs_tops(w) if stairs_from_m is not None else np.zeros((0, 2, 2))
+    walked_m = 0.0
+    checked_m = 0.0
+    set_out_rad = w.heading_rad
+    holding: _Hand | None = None
+    touching = False  # the hand is on the wall
+    crossing = False  # … and lost it at an opening
+    retry_m = 0.0
     while walked_m < limit_m:
         if arriving and float(np.linalg.norm(w.xz - goal)) <= errors.arrive_within_m:
             return None
-        if hand_side is not None and walked_m >= search_from_m:
-            hand = w.side(hand_side)
-            if not trailing:
-                trailing = True
-                if not w.sidestep(hand, errors.wall_find_m) and not last:
+        if (
+            stairs_from_m is not None
+            and walked_m >= stairs_from_m
+            and any(to_polyline_m(w.xz, top) <= errors.cane_m for top in first_steps)
+        ):
+            return None  # the cane finds the stairs
+        if walked_m - checked_m >= errors.check_every_m:
+            checked_m = walked_m
+            w.check(scanning=False)
+        hand = next((h for h in hands if h.from_m <= walked_m < h.to_m), None)
+        if hand is not holding:
+            holding, touching, crossing, retry_m = hand, False, False, 0.0
+        if hand is not None:
+            if not touching and crossing:
+                # across an opening, the hand reaches out for the wall as it walks on
+                touching = w.wall_m(w.xz, w.side(hand.side)) is not None
+            elif not touching and hand.mode == "turn":
+                # it steps over to the wall; none there: open space on that side, it turns here
+                if not w.sidestep(w.side(hand.side), errors.wall_find_m):
                     w.note(f"no wall on the turn's side to trail (step {k})")
-                    return None  # open space on that side: it turns here
-            elif not w.free(w.xz + errors.probe_m * hand):
-                w.sidestep(hand, 0.3)  # the wall is there: keep the hand on it
-            elif not last:
-                # the wall is gone: an opening; step into it, then turn
-                for _ in range(round(errors.into_opening_m / errors.step_m)):
-                    if not w.step():
-                        break
-                return None
-            # on the last leg the hand crosses an opening and finds the wall again beyond it
-        if not w.step():
+                    return None
+                touching = True
+            elif not touching and walked_m >= retry_m:
+                # following, it steps over to the wall; none there (an opening): it steps back
+                # and walks on, to try again a metre on
+                back = w.xz.copy()
+                touching = w.sidestep(w.side(hand.side), errors.wall_find_m)
+                if not touching:
+                    w.move(back)
+                    retry_m = walked_m + 1.0
+            if touching:
+                turn_max_deg = errors.corner_deg if hand.mode == "turn" else 90.0
+                away_deg = w.trail(hand.side, turn_max_deg=turn_max_deg)
+                at_opening = away_deg is None or away_deg >= errors.corner_deg
+                if hand.mode == "turn" and at_opening:
+                    # the wall is gone or turns away: the corner; step into it, then turn
+                    for _ in range(round(errors.into_opening_m / errors.step_m)):
+                        if not w.step():
+                            break
+                    return None
+                elif hand.mode == "follow":
+                    # following: across an opening the hand finds the wall again beyond it
+                    touching = away_deg is not None
+                    crossing = not touching
+        # a wall well short of the told distance: it feels along it for the way on, up to
+        # ``around_max_deg`` off the way it set out (so it never walks back)
+        slide_max_deg = errors.slide_max_deg
+        if walked_m < judged_m - errors.short_m:
+            off_deg = abs(math.degrees(wrapped(w.heading_rad - set_out_rad)))
+            slide_max_deg = max(slide_max_deg, errors.around_max_deg - off_deg)
+        if not w.step(slide_max_deg=slide_max_deg):
+            w.blocked = True
             if walked_m < 1.0 and told_m >= 2.0:
                 x, z = w.xz
                 return (
@@ -395,49 +423,10 @@ def _walk_leg(
                 )
             return None  # the corridor ends here: the next step begins at its end
         walked_m += errors.step_m
-    if hand_side is not None and not last:
+    if turning is not None:
+        window_m = turning.to_m - judged_m
         w.note(
             f"no opening on the turn's side up to {window_m:.0f} m past the told distance "
             f"(step {k})"
         )
     return None
-
-
-def _change_floor(w: _Walker, space: FreeSpace, errors: WalkerErrors) -> str | None:
-    """Take the nearest stairs within ``stairs_find_m`` to their other end; a failure's words
-    or None."""
-    stairs = getattr(space, "stairs", ())
-    levels = getattr(space, "floor_levels_m", (0.0,))
-    best: tuple[float, FloatArray, bool] | None = None
-    for line in stairs:
-        for from_start in (True, False):
-            ordered = line if from_start else line[::-1]
-            end_floor = int(np.argmin(np.abs(np.asarray(levels) - ordered[0][1])))
-            if end_floor != w.floor:
-                continue
-            # the stairs' level approach on this floor (to the first step), then the flights
-            level = ordered[np.abs(ordered[:, 1] - ordered[0][1]) < 0.05][:, [0, 2]]
-            d = _to_polyline_m(w.xz, level)
-            if d <= errors.stairs_find_m and (best is None or d < best[0]):
-                best = (d, line, from_start)
-    if best is None:
-        x, z = w.xz
-        return f"no stairs within {errors.stairs_find_m:.0f} m of ({x:.1f}, {z:.1f})"
-    _, line, from_start = best
-    line = line if from_start else line[::-1]
-    w.xz = line[-1][[0, 2]].astype(np.float64)
-    w.floor = int(np.argmin(np.abs(np.asarray(levels) - line[-1][1])))
-    out = line[-1][[0, 2]] - line[-2][[0, 2]]
-    w.heading_rad = math.atan2(-out[0], -out[1])
-    w.path.append((float(w.xz[0]), float(w.xz[1])))
-    return None
-
-
-def _to_polyline_m(p: FloatArray, polyline: FloatArray) -> float:
-    """Distance from the point (2,) to the polyline (K, 2), m."""
-    if len(polyline) == 1:
-        return float(np.linalg.norm(polyline[0] - p))
-    a, b = polyline[:-1], polyline[1:]
-    ab = b - a
-    t = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-12), 0.0, 1.0)
-    return float(np.linalg.norm(a + t[:, None] * ab - p, axis=1).min())
