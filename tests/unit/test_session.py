@@ -591,8 +591,16 @@ def test_empty_bytes():
 
 def test_deeply_nested_json_is_a_format_error():
     # A hostile upload: far deeper than any session, must not escape as RecursionError.
-    with pytest.raises(SessionFormatError):
-        decode_json_bytes(b"[" * 100_000 + b"]" * 100_000)
+    with pytest.raises(SessionFormatError) as info:
+        decode_json_bytes(b"[" * 100_000 + b"]" * 100_000, source="upload.json")
+    check_format_error(info.value, "", "upload.json is nested too deeply to be a session")
+
+
+def test_an_integer_of_too_many_digits_is_not_valid_json():
+    with pytest.raises(SessionFormatError) as info:
+        decode_json_bytes(b'{"map_id": ' + b"9" * 5000 + b"}", source="upload.json")
+    check_format_error(info.value, "", "upload.json is not valid JSON: Exceeds the limit")
+    assert "sys.set_int_max_str_digits" not in info.value.reason  # the advice after ';' is cut
 
 
 def test_missing_file(tmp_path):
