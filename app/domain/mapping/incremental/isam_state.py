@@ -41,7 +41,8 @@ from .state import (
     _full_poses,
     _npz,
     building_fingerprint,
-    walk_fingerprint,
+    ordered_walk_rows,
+    require_made_from,
 )
 
 #: Version of the serialized form; :meth:`IsamState.from_dict` refuses any other.
@@ -134,19 +135,7 @@ class IsamState:
     def require_current(self, walks: Sequence[Walk], params: SlamParams) -> None:
         """Raise :class:`StaleStateError` unless this state was made from exactly ``walks`` (in
         this order, with these data) and ``params``: the caller then builds from scratch."""
-        given = [w.walk_id for w in walks]
-        if given != list(self.walk_ids):
-            raise StaleStateError(
-                f"the incremental state is stale: it holds walks {list(self.walk_ids)}, "
-                f"the map has {given}"
-            )
-        current = building_fingerprint(
-            [(w.walk_id, walk_fingerprint(w.session)) for w in walks], params
-        )
-        if current != self.fingerprint:
-            raise StaleStateError(
-                "the incremental state is stale: a walk's data or the parameters changed"
-            )
+        require_made_from(self.walk_ids, self.fingerprint, walks, params)
 
     def to_dict(self) -> dict[str, Any]:
         """The building's row; the walks' are rows of their own (``walks[k].to_dict()``)."""
@@ -165,16 +154,7 @@ class IsamState:
         """Inverse of :meth:`to_dict` with the walks' rows (any order). Raises
         :class:`StaleStateError` when the rows are not the ones the building row was made
         with."""
-        if row.get("format") != ISAM_STATE_FORMAT:
-            raise StaleStateError(f"unknown state format {row.get('format')!r}")
-        by_id = {w.walk_id: w for w in walks}
-        ids = [str(w) for w in row["walk_ids"]]
-        missing = [w for w in ids if w not in by_id]
-        if missing:
-            raise StaleStateError(f"no walk row for walks {missing}")
-        ordered = tuple(by_id[w] for w in ids)
-        if [w.fingerprint for w in ordered] != list(row["walk_fingerprints"]):
-            raise StaleStateError("a walk's row is not the one this state was made with")
+        ordered = ordered_walk_rows(row, walks, ISAM_STATE_FORMAT, "row")
         arrays = _from_npz(row["arrays"])
         state = cls(
             walks=ordered,

@@ -25,7 +25,7 @@ import io
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -39,6 +39,19 @@ IntArray = npt.NDArray[np.int64]
 
 #: Version of the serialized form; :meth:`BuildingState.from_dict` refuses any other.
 STATE_FORMAT = "incremental-building/1"
+
+
+class _WalkRow(Protocol):
+    """A walk's row of either design's state: which walk, and its data's fingerprint."""
+
+    @property
+    def walk_id(self) -> str: ...
+
+    @property
+    def fingerprint(self) -> str: ...
+
+
+WalkRowT = TypeVar("WalkRowT", bound=_WalkRow)
 
 
 class StaleStateError(InvisibleMapError):
@@ -189,16 +202,7 @@ class BuildingState:
     def from_dict(cls, row: Mapping[str, Any], walks: Sequence[WalkSummary]) -> BuildingState:
         """Inverse of :meth:`to_dict` with the walks' rows (any order). Raises
         :class:`StaleStateError` when the rows are not the ones the building row was made with."""
-        if row.get("format") != STATE_FORMAT:
-            raise StaleStateError(f"unknown state format {row.get('format')!r}")
-        by_id = {w.walk_id: w for w in walks}
-        ids = [str(w) for w in row["walk_ids"]]
-        missing = [w for w in ids if w not in by_id]
-        if missing:
-            raise StaleStateError(f"no summary row for walks {missing}")
-        ordered = tuple(by_id[w] for w in ids)
-        if [w.fingerprint for w in ordered] != list(row["walk_fingerprints"]):
-            raise StaleStateError("a walk's summary row is not the one this state was made with")
+        ordered = ordered_walk_rows(row, walks, STATE_FORMAT, "summary row")
         arrays = _from_npz(row["arrays"])
         state = cls(
             walks=ordered,
@@ -238,18 +242,46 @@ def building_fingerprint(walks: Sequence[tuple[str, str]], params: SlamParams) -
 def require_current(state: BuildingState, walks: Sequence[Walk], params: SlamParams) -> None:
     """Raise :class:`StaleStateError` unless ``state`` was made from exactly ``walks`` (in this
     order, with these data) and ``params``: the caller then builds from scratch."""
+    require_made_from(state.walk_ids, state.fingerprint, walks, params)
+
+
+def require_made_from(
+    walk_ids: Sequence[str], fingerprint: str, walks: Sequence[Walk], params: SlamParams
+) -> None:
+    """Raise :class:`StaleStateError` unless a state of ``walk_ids`` whose
+    :func:`building_fingerprint` is ``fingerprint`` was made from exactly ``walks`` (in this
+    order, with these data) and ``params`` (either design's state)."""
+    made, given = list(walk_ids), [w.walk_id for w in walks]
+    if made != given:
+        raise StaleStateError(
+            f"the incremental state is stale: it holds walks {made}, the map has {given}"
+        )
     current = building_fingerprint(
         [(w.walk_id, walk_fingerprint(w.session)) for w in walks], params
     )
-    if current != state.fingerprint:
-        made = list(state.walk_ids)
-        given = [w.walk_id for w in walks]
-        why = (
-            f"it holds walks {made}, the map has {given}"
-            if made != given
-            else "a walk's data or the parameters changed"
+    if current != fingerprint:
+        raise StaleStateError(
+            "the incremental state is stale: a walk's data or the parameters changed"
         )
-        raise StaleStateError(f"the incremental state is stale: {why}")
+
+
+def ordered_walk_rows(
+    row: Mapping[str, Any], walks: Sequence[WalkRowT], state_format: str, what: str
+) -> tuple[WalkRowT, ...]:
+    """The walks' rows ``walks`` (any order) in the order of the building's ``row``, checked
+    against it: StaleStateError for another ``state_format``, a walk without a row, or a row
+    (``what``) whose fingerprint is not the one the building row was made with."""
+    if row.get("format") != state_format:
+        raise StaleStateError(f"unknown state format {row.get('format')!r}")
+    by_id = {w.walk_id: w for w in walks}
+    ids = [str(w) for w in row["walk_ids"]]
+    missing = [w for w in ids if w not in by_id]
+    if missing:
+        raise StaleStateError(f"no {what} for walks {missing}")
+    ordered = tuple(by_id[w] for w in ids)
+    if [w.fingerprint for w in ordered] != list(row["walk_fingerprints"]):
+        raise StaleStateError(f"a walk's {what} is not the one this state was made with")
+    return ordered
 
 
 def _npz(**arrays: npt.NDArray[Any]) -> bytes:
