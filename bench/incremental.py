@@ -54,8 +54,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
@@ -220,23 +218,7 @@ def one_size(n: int, batch_max: int) -> dict[str, Any]:
 def differences_mm(served: IncrementalMap, joint: JointMap) -> list[float]:
     """The largest tag and pose position distances between the served map and the batch map,
     mm (both in the first walk's world)."""
-    tags = joint.map.tag_poses()
-    mine = served.tag_poses()
-    tag_mm = max(1e3 * float(np.linalg.norm(tags[t][:3, 3] - mine[t][:3, 3])) for t in tags)
-    pose_mm = max(
-        1e3
-        * float(
-            np.max(
-                np.linalg.norm(
-                    joint.map.world_T_phone[part.pose_rows, :3, 3]
-                    - served.walk_poses(part.dataset)[:, :3, 3],
-                    axis=1,
-                )
-            )
-        )
-        for part in joint.parts
-    )
-    return [tag_mm, pose_mm]
+    return [1e3 * d for d in served.largest_differences_m(joint)]
 
 
 def batch_features(joint: JointMap) -> str:

@@ -19,7 +19,6 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 
-import numpy as np
 from sqlalchemy.orm import Session as DbSession
 
 from app.domain.errors import InvisibleMapError
@@ -99,25 +98,10 @@ def compared_with_batch(served: IncrementalMap, joint: JointMap, params: SlamPar
     why_not = why_not_incremental(joint, params)
     if why_not is not None:
         return f"not the batch map, whose build changed {why_not}"
-    if served.walk_ids != tuple(p.dataset for p in joint.parts) or not np.array_equal(
-        served.tag_ids, joint.map.tag_ids
-    ):
+    try:
+        tag_m, pose_m = served.largest_differences_m(joint)
+    except ValueError:
         return "not the batch map (other walks or tags)"
-    tag_m = float(
-        np.max(np.linalg.norm(served.map_T_tag[:, :3, 3] - joint.map.world_T_tag[:, :3, 3], axis=1))
-    )
-    pose_m = max(
-        float(
-            np.max(
-                np.linalg.norm(
-                    served.world_T_phone[s][:, :3, 3]
-                    - joint.map.world_T_phone[part.pose_rows, :3, 3],
-                    axis=1,
-                )
-            )
-        )
-        for s, part in enumerate(joint.parts)
-    )
     within = tag_m <= INCREMENTAL_TAG_BOUND_M and pose_m <= INCREMENTAL_POSE_BOUND_M
     return (
         f"{tag_m * 1e3:.2f} mm (tags), {pose_m * 1e3:.2f} mm (poses) from the batch map, "

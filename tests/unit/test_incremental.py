@@ -87,24 +87,8 @@ def four_by_adding() -> tuple[BuildingState, IncrementalMap]:
 def largest_differences_m(served: IncrementalMap, joint: JointMap) -> tuple[float, float]:
     """The largest tag and pose position differences, both in the first walk's world."""
     assert served.walk_ids == tuple(part.dataset for part in joint.parts)
-    batch_tags, served_tags = joint.map.tag_poses(), served.tag_poses()
-    assert set(batch_tags) == set(served_tags)
-    tag_m = max(
-        float(np.linalg.norm(batch_tags[t][:3, 3] - served_tags[t][:3, 3])) for t in batch_tags
-    )
-    pose_m = max(
-        float(
-            np.max(
-                np.linalg.norm(
-                    joint.map.world_T_phone[part.pose_rows, :3, 3]
-                    - served.walk_poses(part.dataset)[:, :3, 3],
-                    axis=1,
-                )
-            )
-        )
-        for part in joint.parts
-    )
-    return tag_m, pose_m
+    assert set(joint.map.tag_poses()) == set(served.tag_poses())
+    return served.largest_differences_m(joint)
 
 
 def test_adding_a_walk_gives_the_batch_map_of_all_of_them() -> None:

@@ -36,6 +36,7 @@ from app.domain.frames import FloatArray, make_pose, se3_inverse
 from app.domain.mapping.joint import (
     MIN_SHARED_TAGS,
     AlignmentError,
+    JointMap,
     WalkFit,
     align_session,
     plan_sessions,
@@ -95,6 +96,32 @@ class IncrementalMap:
 
     def walk_poses(self, walk_id: str) -> FloatArray:
         return self.world_T_phone[self.walk_ids.index(walk_id)]
+
+    def largest_differences_m(self, joint: JointMap) -> tuple[float, float]:
+        """The largest tag and pose position differences to ``joint``, the batch map of the
+        same walks (both in the first walk's world), m. ValueError when ``joint`` has other
+        walks or other tags."""
+        if self.walk_ids != tuple(part.dataset for part in joint.parts):
+            raise ValueError(f"other walks: {self.walk_ids} against the batch map's")
+        batch_tags, served_tags = joint.map.tag_poses(), self.tag_poses()
+        if set(batch_tags) != set(served_tags):
+            raise ValueError(f"other tags: {sorted(set(batch_tags) ^ set(served_tags))}")
+        tag_m = max(
+            float(np.linalg.norm(batch_tags[t][:3, 3] - served_tags[t][:3, 3])) for t in batch_tags
+        )
+        pose_m = max(
+            float(
+                np.max(
+                    np.linalg.norm(
+                        joint.map.world_T_phone[part.pose_rows, :3, 3]
+                        - self.walk_poses(part.dataset)[:, :3, 3],
+                        axis=1,
+                    )
+                )
+            )
+            for part in joint.parts
+        )
+        return tag_m, pose_m
 
 
 def build(
