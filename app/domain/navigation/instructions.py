@@ -657,33 +657,22 @@ def _walk_steps(
     else:
         keeps = []
     events = sorted([(d[3], d) for d in decisions] + [(f.along_m, f) for f in keeps], key=_first)
+
+    def go_straight(leg_m: float, from_i: int) -> Step:
+        words = distance_words(leg_m, style.units, style.stride_m)
+        return _step(f"go straight {words}", points[from_i], "go", leg_m, floor=floor)
+
     from_m, from_i = 0.0, 0
     for along_m, event in events:
         leg_m = along_m - from_m
         if isinstance(event, Fork):
             if leg_m >= KEEP_MIN_LEG_M:
-                steps.append(
-                    _step(
-                        f"go straight {distance_words(leg_m, style.units, style.stride_m)}",
-                        points[from_i],
-                        "go",
-                        leg_m,
-                        floor=floor,
-                    )
-                )
+                steps.append(go_straight(leg_m, from_i))
             steps.append(keep_step(event, points[event.index], floor))
             from_m, from_i = along_m, event.index
             continue
         index, turn_deg = event[0], event[1]
-        steps.append(
-            _step(
-                f"go straight {distance_words(leg_m, style.units, style.stride_m)}",
-                points[from_i],
-                "go",
-                leg_m,
-                floor=floor,
-            )
-        )
+        steps.append(go_straight(leg_m, from_i))
         words = turn_words(turn_deg, style)
         if leg_m >= ANNOUNCE_BEFORE_M + MIN_SPACING_M:
             announce_at = point_along(points, walked, along_m - ANNOUNCE_BEFORE_M)
@@ -695,15 +684,7 @@ def _walk_steps(
         from_m, from_i = along_m, index
     rest_m = walked[-1] - from_m
     if rest_m >= 0.5:
-        steps.append(
-            _step(
-                f"go straight {distance_words(rest_m, style.units, style.stride_m)}",
-                points[from_i],
-                "go",
-                rest_m,
-                floor=floor,
-            )
-        )
+        steps.append(go_straight(rest_m, from_i))
     # The goal's side is told as the walker sees it where the app says "arrive", END_MARGIN_M
     # before the end (no bend nearer the end is told, so the walker does not turn there),
     # facing the way it walks there: over the CHORD_M before that point, after the last told
