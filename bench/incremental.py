@@ -200,18 +200,31 @@ def one_size(n: int, batch_max: int) -> dict[str, Any]:
         "state_mib": state_mib,
     }
     if n + 1 <= batch_max:
-        sessions = [w.session for w in walks]
-        names = [w.walk_id for w in walks]
-        started = time.process_time()
-        before = optimize_sessions(sessions[:n], params, names=names[:n])
-        out["batch_build_s"] = time.process_time() - started
-        started = time.process_time()
-        after = optimize_sessions(sessions, params, names=names, initial=before)
-        out["batch_add_s"] = time.process_time() - started
-        out["build_diff_mm"] = differences_mm(built, before)
-        out["add_diff_mm"] = differences_mm(added, after)
-        out["remove_diff_mm"] = differences_mm(removed, before)
-        out["batch_features"] = batch_features(after)
+        out.update(against_the_batch(walks, n, params, build=built, add=added, remove=removed))
+    return out
+
+
+def against_the_batch(
+    walks: list[Walk],
+    n: int,
+    params: SlamParams,
+    **served: IncrementalMap,
+) -> dict[str, Any]:
+    """The batch build of the first ``n`` walks and, warm, of all of them (CPU s), and how far
+    each map of ``served`` is from its batch map, mm (``add``: all the walks'; ``build``,
+    ``remove``, ``restore``: the first ``n`` walks')."""
+    sessions = [w.session for w in walks]
+    names = [w.walk_id for w in walks]
+    out: dict[str, Any] = {}
+    started = time.process_time()
+    before = optimize_sessions(sessions[:n], params, names=names[:n])
+    out["batch_build_s"] = time.process_time() - started
+    started = time.process_time()
+    after = optimize_sessions(sessions, params, names=names, initial=before)
+    out["batch_add_s"] = time.process_time() - started
+    for name, map_ in served.items():
+        out[f"{name}_diff_mm"] = differences_mm(map_, after if name == "add" else before)
+    out["batch_features"] = batch_features(after)
     return out
 
 
@@ -417,19 +430,11 @@ def isam_size(n: int, batch_max: int) -> dict[str, Any]:
         "tree_mib": tree_mib,
     }
     if n + 1 <= batch_max:
-        sessions = [w.session for w in walks]
-        names = [w.walk_id for w in walks]
-        started = time.process_time()
-        before = optimize_sessions(sessions[:n], params, names=names[:n])
-        out["batch_build_s"] = time.process_time() - started
-        started = time.process_time()
-        after = optimize_sessions(sessions, params, names=names, initial=before)
-        out["batch_add_s"] = time.process_time() - started
-        out["build_diff_mm"] = differences_mm(built, before)
-        out["add_diff_mm"] = differences_mm(added, after)
-        out["remove_diff_mm"] = differences_mm(removed, before)
-        out["restore_diff_mm"] = differences_mm(restored, before)
-        out["batch_features"] = batch_features(after)
+        out.update(
+            against_the_batch(
+                walks, n, params, build=built, add=added, remove=removed, restore=restored
+            )
+        )
     return out
 
 
