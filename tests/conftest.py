@@ -26,6 +26,7 @@ from sqlalchemy.engine import URL, Engine
 from app.storage.db import Database
 from app.storage.migrate import upgrade_to_head
 from tests.demo_support import Demo, running_demo
+from tests.fastapi_caches import forget_fastapi_caches
 
 POSTGRES_ADMIN_URL = os.environ.get(
     "TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -83,6 +84,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 def pytest_runtest_setup(item: pytest.Item) -> None:
     if _UNGROUPED in item.stash:
         pytest.fail(item.stash[_UNGROUPED], pytrace=False)
+
+
+@pytest.fixture(autouse=True)
+def _forget_the_apps_fastapi_cached() -> Iterator[None]:
+    """Each test's apps freed after it (``tests/fastapi_caches.py`` says why)."""
+    yield
+    forget_fastapi_caches()
 
 
 def _database_url(name: str) -> URL:
