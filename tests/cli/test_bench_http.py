@@ -1,6 +1,6 @@
 """``bench/http.py --quick --no-wrk`` on SQLite: the HTTP benchmark runs end to end with the Python
 client and prints a row with positive requests/s and no failed request for every endpoint it
-measures (20 maps instead of 50, 1 s per endpoint: 30–55 s), and, on a machine of several cores,
+measures (2 maps instead of 50, 0.3 s per endpoint: about 30 s), and, on a machine of several cores,
 the second table under ``serve``'s default API processes."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ ROWS = (
     "GET /v1/maps/{id}/geojson",
     "POST /v1/maps/{id}/routes (tag 300 → 320)",
     "POST /v1/localizations/{id}/updates",
-    "GET /v1/maps (4 maps)",
+    "GET /v1/maps (2 maps)",
     "GET /v1/jobs/{id}",
     "GET /v1/info",
     "update() alone, in process (same documents)",
@@ -63,8 +63,8 @@ def test_quick_run_on_sqlite_with_the_python_client(tmp_path: Path) -> None:
         [
             *(sys.executable, "-m", "bench.http", "--quick", "--no-wrk"),
             # A smoke run: every row measured, briefly, over few maps (building the default 50
-            # takes 30 s on a busy machine; 20 took ~15 s of this test's 48 s).
-            *("--duration-s", "0.5", "--maps", "4"),
+            # takes 30 s on a busy machine; 20 took ~15 s of this test's 48 s, 4 took 7 s).
+            *("--duration-s", "0.3", "--maps", "2"),
         ],
         cwd=REPO_ROOT,
         env=env,
