@@ -103,7 +103,7 @@ def test_the_job_of_a_killed_worker_process_is_requeued_at_once(
 ) -> None:
     """Not after its lease (30 s here) runs out: the supervisor ends the dead process's lease."""
     settings = Settings(database_url=database_url, **{**FAST, "lease_s": 30.0, "heartbeat_s": 0.5})
-    job_id = insert_session(db, simulated_bytes(12_000)).job_id
+    job_id = insert_session(db, simulated_bytes(6_000)).job_id  # long enough to be killed mid-way
     supervisor = WorkerSupervisor(settings, 1)
     supervisor.start()
     try:
