@@ -146,16 +146,24 @@ def fresh_database_url(
 
 class PostgresDatabases:
     """Fresh copies of the template database for this test process, made and dropped off the
-    tests' path: while a test runs, the next test's copy is made, and a finished test's is dropped
-    (``CREATE DATABASE … TEMPLATE`` and ``DROP DATABASE`` take ~0.25 s each, and some 500 tests
-    take one). One thread does both, in order; a copy that cannot be made fails the test that
-    takes it, and a drop that fails fails the run at its end."""
+    tests' path: while a test runs, the next test's copy is made, and finished tests' copies are
+    dropped in batches. ``CREATE DATABASE … TEMPLATE`` takes ~0.3–0.5 s here; a ``DROP
+    DATABASE`` waits for a checkpoint of its own, ~0.1–1.4 s one after another, but several
+    dropped at once share one (6 in 0.8 s, one after another 7.5 s). One thread makes copies,
+    another drops them, ``DROP_BATCH`` at a time, concurrently, so a drop never delays the next
+    test's copy. A copy that cannot be made fails the test that takes it; a drop that fails fails
+    the run at its end."""
+
+    #: finished tests' databases dropped together (at most this many left at the end)
+    DROP_BATCH = 8
 
     def __init__(self, template: str) -> None:
         self.template = template
         self.admin = _admin_engine()
-        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-databases")
+        self.maker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-databases")
+        self.dropper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-drops")
         self.ahead: Future[str] | None = None
+        self.finished: list[str] = []
         self.failed_drops: list[str] = []
 
     def _create(self) -> str:
@@ -171,22 +179,32 @@ class PostgresDatabases:
         except Exception as err:  # reported at the end of the run
             self.failed_drops.append(f"{name}: {err}")
 
+    def _drop_all(self, names: list[str]) -> None:
+        with ThreadPoolExecutor(max_workers=len(names)) as drops:
+            list(drops.map(self._drop, names))
+
     def take(self) -> str:
         """A fresh database's name (the one made ahead, if any); starts making the next."""
         name = self.ahead.result() if self.ahead is not None else self._create()
-        self.ahead = self.executor.submit(self._create)
+        self.ahead = self.maker.submit(self._create)
         return name
 
     def give_back(self, name: str) -> None:
-        self.executor.submit(self._drop, name)
+        self.finished.append(name)
+        if len(self.finished) >= self.DROP_BATCH:
+            self.dropper.submit(self._drop_all, self.finished)
+            self.finished = []
 
     def close(self) -> None:
         if self.ahead is not None:
             try:
-                self.give_back(self.ahead.result())
+                self.finished.append(self.ahead.result())
             except Exception as err:
                 self.failed_drops.append(f"the copy made ahead: {err}")
-        self.executor.shutdown(wait=True)
+        if self.finished:
+            self.dropper.submit(self._drop_all, self.finished)
+        self.maker.shutdown(wait=True)
+        self.dropper.shutdown(wait=True)
         self.admin.dispose()
         assert not self.failed_drops, f"test databases not dropped: {self.failed_drops}"
 
