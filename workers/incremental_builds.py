@@ -1,5 +1,5 @@
 """A building map's incremental side of a build (issue 38), beside the batch build that
-``pipeline._optimize_joint`` still serves.
+``pipeline.joint.optimize_joint`` still serves.
 
     state, line = state_of_batch(joint, walks, params, job_id)   # stored with the version
     served, note = incremental_change(db, map_id, walks, params, load_removed, job_id)
@@ -40,7 +40,7 @@ INCREMENTAL_POSE_BOUND_M = 0.05
 
 
 def session_id_of(name: str) -> int | None:
-    """The session id of a walk named ``session 12`` (``pipeline._optimize_joint``'s names)."""
+    """The session id of a walk named ``session 12`` (``pipeline.joint.optimize_joint``'s names)."""
     prefix, _, number = name.partition(" ")
     return int(number) if prefix == "session" and number.isdigit() else None
 

@@ -14,9 +14,8 @@ from api_support import ADMIN, running_api
 
 from app.config import Settings
 from app.domain.evaluation.tuning import TuningTarget
-from app.domain.mapping import slam
 from app.domain.mapping.params import SlamParams
-from app.domain.mapping.slam import optimize_session
+from app.domain.mapping.slam import optimize_session, trial
 from app.domain.upload.session import decode_json_bytes, parse_session
 from app.storage import queue
 from app.storage.db import Database
@@ -56,7 +55,7 @@ def worker(db: Database, **settings: float) -> Worker:
 def test_a_cancel_stops_a_running_optimization_within_seconds(
     db: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(pipeline, "optimize_session", endless_optimizer)
+    monkeypatch.setattr(pipeline.build_map, "optimize_session", endless_optimizer)
     job_id = insert_session(db, session_bytes("onetag")).job_id
     thread = threading.Thread(target=worker(db).run_once)
     thread.start()
@@ -78,7 +77,7 @@ def test_a_cancel_stops_a_running_optimization_within_seconds(
 def test_a_job_past_its_time_budget_fails_once_with_the_reason(
     db: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(pipeline, "optimize_session", endless_optimizer)
+    monkeypatch.setattr(pipeline.build_map, "optimize_session", endless_optimizer)
     job_id = insert_session(db, session_bytes("onetag")).job_id
     started_s = time.monotonic()
     assert worker(db, job_time_budget_s=1.0).run_once()
@@ -193,7 +192,7 @@ def test_a_cancel_stops_a_running_sweep_inside_its_trial(
         url = api.db.url.render_as_string(hide_password=False)
         build = Worker(api.db, Settings(database_url=url, lease_s=60, heartbeat_s=0.5))
         assert build.run_once()  # the map's first version, with the real optimizer
-        monkeypatch.setattr(slam, "_levenberg_marquardt", endless_levenberg_marquardt)
+        monkeypatch.setattr(trial, "levenberg_marquardt", endless_levenberg_marquardt)
         space = {"odom_linear_var_m2_per_s": {"low": 1e-6, "high": 1e-1, "num": 2}}
         started = api.client.post(
             f"/v1/maps/{created['map_id']}/sweeps", json={"space": space}, headers=ADMIN

@@ -203,7 +203,7 @@ def outage_for(calls: int, unreachable: Database, run: Stage) -> tuple[Stage, li
 def test_an_outage_shorter_than_the_lease_is_waited_out_in_the_same_attempt(
     db: Database, unreachable: Database, caplog: pytest.LogCaptureFixture, monkeypatch
 ) -> None:
-    monkeypatch.setattr(pipeline, "OUTAGE_FIRST_WAIT_S", 0.05)
+    monkeypatch.setattr(pipeline.runner, "OUTAGE_FIRST_WAIT_S", 0.05)
     inserted = insert_session(db, session_bytes("onetag"))
     stages, met = store_during_outage(3, unreachable)
 
@@ -222,7 +222,7 @@ def test_an_outage_shorter_than_the_lease_is_waited_out_in_the_same_attempt(
 def test_an_outage_longer_than_the_lease_ends_the_attempt_and_stores_nothing(
     db: Database, unreachable: Database, monkeypatch
 ) -> None:
-    monkeypatch.setattr(pipeline, "OUTAGE_FIRST_WAIT_S", 0.05)
+    monkeypatch.setattr(pipeline.runner, "OUTAGE_FIRST_WAIT_S", 0.05)
     inserted = insert_session(db, session_bytes("onetag"))
     stages, met = store_during_outage(10_000, unreachable)
     # lease 1.5 s less the 1 s margin: the store is given up after about 0.5 s of waiting

@@ -189,7 +189,7 @@ def test_a_version_is_stored_without_derived_documents_that_fail(
     def failing(*_: object, **__: object) -> Any:
         raise RuntimeError("no overview")
 
-    monkeypatch.setattr(pipeline, "packed_documents", failing)
+    monkeypatch.setattr(pipeline.build_map, "packed_documents", failing)
     created = worker_built(api)
     version = current_version(api, created["map_id"])
     assert version.app_map_sha256 is None

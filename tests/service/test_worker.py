@@ -220,7 +220,7 @@ def test_the_stored_upload_is_parsed_as_it_streams_never_whole(
 
     monkeypatch.setattr(sessions, "raw_upload", whole_file)
     monkeypatch.setattr(sessions, "raw_upload_gzip", whole_file)
-    monkeypatch.setattr(pipeline, "STORED_PIECE_BYTES", 1000)
+    monkeypatch.setattr(pipeline.loading, "STORED_PIECE_BYTES", 1000)
     assert worker_with(db).run_once()
     job = get_job(db, inserted.job_id)
     assert job.state == JobState.SUCCEEDED, job.error
@@ -311,7 +311,7 @@ def test_a_failure_to_store_rolls_back_the_finish(
         real_store_version(*args, **kwargs)  # type: ignore[arg-type]
         raise RuntimeError("connection reset while storing")
 
-    monkeypatch.setattr(pipeline.maps, "store_version", store_then_break)
+    monkeypatch.setattr(pipeline.build_map.maps, "store_version", store_then_break)
     worker_with(db).run_once()
 
     info = get_job(db, inserted.job_id)
@@ -534,7 +534,7 @@ def test_a_walk_that_falls_apart_is_said_on_the_version(
         assert nx.number_connected_components(G) > 1
         return PathGraph(graph=G, floor_levels_m=graph.floor_levels_m)
 
-    monkeypatch.setattr(pipeline, "build_skeleton", cut_in_two)
+    monkeypatch.setattr(pipeline.build_map, "build_skeleton", cut_in_two)
     inserted = insert_session(db, session_bytes("occam_room"))
 
     assert worker_with(db).run_once() is True

@@ -160,7 +160,7 @@ def test_a_map_of_one_walk_has_no_state_and_deleting_a_map_deletes_its_state(
 
 def test_one_walk_added_is_made_in_the_stored_state_after_a_restart(db: Database) -> None:
     map_id, session_ids = map_of(db, 3, incremental=True)
-    pipeline._LAST_JOINT_MAPS.clear()  # a restarted worker: nothing of the map in memory
+    pipeline.LAST_JOINT_MAPS.clear()  # a restarted worker: nothing of the map in memory
     added, log = add_walk(db, map_id, 3, incremental=True)
     lines = incremental_lines(log)
     assert len(lines) == 1, lines

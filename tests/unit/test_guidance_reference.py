@@ -150,7 +150,7 @@ def test_the_reference_stretches_have_decisions_of_every_kind():
 def reference_segment_kinds(
     pg: PathGraph, xyz: np.ndarray, nodes: list[int]
 ) -> tuple[list[str], list[bool]]:
-    """``_segment_kinds`` as it was written before it was made cheap."""
+    """``segment_kinds`` as it was written before it was made cheap."""
     adjacency = pg.graph.adj
     positions = {n: tuple(float(c) for c in d["position_m"]) for n, d in pg.graph.nodes.items()}
     junctions = {n for n, d in pg.graph.nodes.items() if d["kind"] == JUNCTION}
@@ -207,9 +207,9 @@ def test_each_point_is_matched_to_the_node_the_straightforward_way_matches(seed)
         xyz = np.array(points, dtype=np.float64).reshape(-1, 3)
         fast_points = [(x, y, z) for x, y, z in xyz.tolist()]
         want = reference_segment_kinds(pg, xyz, nodes)
-        assert instructions._segment_kinds(node_lookups(pg), fast_points, nodes)[:2] == want
+        assert instructions.segment_kinds(node_lookups(pg), fast_points, nodes)[:2] == want
         floors = assign_floors(xyz[:, 1], np.asarray(pg.floor_levels_m)).tolist()
-        assert instructions._point_floors(pg, node_lookups(pg), fast_points) == floors
+        assert instructions.point_floors(pg, node_lookups(pg), fast_points) == floors
 
 
 def test_a_point_shared_by_two_route_nodes_is_the_later_one():
@@ -223,7 +223,7 @@ def test_a_point_shared_by_two_route_nodes_is_the_later_one():
     pg = PathGraph(graph=G, floor_levels_m=(0.0, 3.0))
     points = [(0.0, 0.0, 0.0), (0.0, 3.0, 0.0), (0.0, 0.0, 0.0)]
     want = reference_segment_kinds(pg, np.array(points), [0, 1, 2])
-    assert instructions._segment_kinds(node_lookups(pg), points, [0, 1, 2])[:2] == want
+    assert instructions.segment_kinds(node_lookups(pg), points, [0, 1, 2])[:2] == want
     assert want == ([ELEVATOR, ELEVATOR], [False, False, False])
 
 
@@ -237,10 +237,10 @@ def test_a_direction_is_the_numpy_unit_vector_to_the_bit():
     for a, b in rng.normal(size=(3000, 2, 3)) * rng.choice([1e-3, 1.0, 50.0], size=(3000, 1, 1)):
         d = (b - a)[[0, 2]]
         want = (d / np.linalg.norm(d)).tolist()
-        got = instructions._direction(tuple(a.tolist()), tuple(b.tolist()))
+        got = instructions.direction(tuple(a.tolist()), tuple(b.tolist()))
         assert got is not None
         assert list(got) == want
-    assert instructions._direction((1.0, 0.0, 2.0), (1.0, 5.0, 2.0)) is None
+    assert instructions.direction((1.0, 0.0, 2.0), (1.0, 5.0, 2.0)) is None
 
 
 # --------------------------------------------------------------------------- the two ways in

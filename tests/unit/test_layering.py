@@ -193,16 +193,46 @@ def test_the_rules_say_what_the_layers_mean(module: str, imported: str, allowed:
     assert (not any(_within(imported, prefix) for prefix in banned)) == allowed
 
 
+def imported_from(node: ast.ImportFrom, module: str, path: Path) -> str:
+    """The absolute name of the module ``from … import`` reads in ``module`` (at ``path``): a
+    relative import (``from .updates import x``) resolved against the importer's package."""
+    if node.level == 0:
+        return node.module or ""
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
+
+
+@pytest.mark.parametrize(
+    ("source", "module", "filename", "expected"),
+    [
+        ("from app.domain import frames", "app.cli.main", "main.py", "app.domain"),
+        ("from .updates import x", "app.domain.mapping.incremental", "__init__.py",
+         "app.domain.mapping.incremental.updates"),
+        ("from .updates import x", "app.domain.mapping.incremental.graph", "graph.py",
+         "app.domain.mapping.incremental.updates"),
+        ("from ..frames import x", "app.domain.mapping.joint", "joint.py", "app.domain.frames"),
+        ("from . import x", "app.domain.mapping.slam.trial", "trial.py", "app.domain.mapping.slam"),
+    ],
+)  # fmt: skip
+def test_relative_imports_are_read_against_the_importers_package(
+    source: str, module: str, filename: str, expected: str
+):
+    node = ast.parse(source).body[0]
+    assert isinstance(node, ast.ImportFrom)
+    assert imported_from(node, module, Path(filename)) == expected
+
+
 def test_no_module_takes_another_modules_private_names():
     """A name with a leading underscore is its module's own: sharing it means making it public
-    (or moving it where both can reach it)."""
+    (or moving it where both can reach it). Relative imports count as much as absolute ones."""
     taken = []
     for module, path in project_modules().items():
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                if node.module.split(".")[0] not in {"app", "workers"}:
-                    continue
-                taken += [
-                    f"{module}: {node.module}.{a.name}" for a in node.names if a.name[0] == "_"
-                ]
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            source = imported_from(node, module, path)
+            if source.split(".")[0] not in {"app", "workers"}:
+                continue
+            taken += [f"{module}: {source}.{a.name}" for a in node.names if a.name[0] == "_"]
     assert taken == []

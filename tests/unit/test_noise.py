@@ -267,7 +267,7 @@ def test_the_largest_step_is_measured_in_metres_and_radians() -> None:
     before = np.stack([make_pose(rotation_about_y(0.0), [0.0, 0.0, 0.0])] * 3)
     after = before.copy()
     after[1] = make_pose(rotation_about_y(0.02), [0.0, 0.003, 0.004])
-    step_m, step_rad = slam._largest_step(_extracted(before), _extracted(after))
+    step_m, step_rad = slam.largest_step(_extracted(before), _extracted(after))
     assert step_m == pytest.approx(0.005, abs=1e-12)
     assert step_rad == pytest.approx(0.02, rel=1e-9)
 

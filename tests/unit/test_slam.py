@@ -237,7 +237,7 @@ def test_tag_marginals_equal_gtsams_marginals_of_the_whole_graph():
     inputs = slam.prepare_graph_inputs(session, params)
     assert result.noise is not None
     inputs.noise_scales = result.noise.scales[None, :]  # the variances the map was made with
-    problem = slam._build_problem(inputs, params)
+    problem = slam.build_problem(inputs, params)
     values = gtsam.Values()
     for i in range(session.num_poses):
         values.insert(X(i), gtsam.Pose3(result.world_T_phone[i]))
@@ -282,7 +282,7 @@ def test_a_trial_graph_is_the_builds_graph_for_every_noise_setting():
         settings += [default.with_overrides({name: changed}), default]
     settings.append(default.with_overrides({"huber_k": 0.0}))
     for params in settings:
-        built = slam._build_problem(inputs, params).graph
+        built = slam.build_problem(inputs, params).graph
         graph = trial_graph.graph(params)
         assert graph.size() == built.size()
         assert [list(graph.at(i).keys()) for i in range(graph.size())] == [

@@ -62,7 +62,7 @@ from app.domain.upload.session import Session
 
 from .isam_state import IsamState, IsamWalkState
 from .state import IntArray, StaleStateError, Walk, walk_fingerprint
-from .updates import IncrementalMap, _Clock
+from .updates import Clock, IncrementalMap
 
 #: ISAM2 linearizes a variable again when its step is larger than this (its tangent vector,
 #: rad and m): the served map is one Gauss–Newton step from where each variable was linearized.
@@ -137,7 +137,7 @@ class IsamBuilding:
         params = params or SlamParams()
         if not walks:
             raise InvisibleMapError("a map needs at least one session")
-        clock = _Clock()
+        clock = Clock()
         plan = plan_sessions(
             [w.session for w in walks], params, names=[w.walk_id for w in walks], fits=fits
         )
@@ -186,7 +186,7 @@ class IsamBuilding:
         ``AlignmentError`` when no tags place it; the tree is then as it was."""
         if walk.walk_id in self.walk_ids:
             raise InvisibleMapError(f"walk {walk.walk_id!r} is in the building already")
-        clock = _Clock()
+        clock = Clock()
         plan = plan_sessions(
             [walk.session],
             self.params,
@@ -231,7 +231,7 @@ class IsamBuilding:
             raise InvisibleMapError(f"walk {walk_id!r} is not in the building")
         if len(ids) == 1:
             raise InvisibleMapError("a map needs at least one session: delete the map instead")
-        clock = _Clock()
+        clock = Clock()
         s = ids.index(walk_id)
         gone = self._walks[s]
         left = [w for w in self._walks if w is not gone]
@@ -290,7 +290,7 @@ class IsamBuilding:
         made from exactly these walks and parameters (the caller builds from scratch)."""
         params = params or SlamParams.from_dict(state.params)
         state.require_current(walks, params)
-        clock = _Clock()
+        clock = Clock()
         building = cls(params)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         counts = []
@@ -336,12 +336,12 @@ class IsamBuilding:
 
     # ------------------------------------------------------------------ what is served
 
-    def served(self, clock: _Clock | None = None, updates: int = 0) -> IncrementalMap:
+    def served(self, clock: Clock | None = None, updates: int = 0) -> IncrementalMap:
         """The map as it is served: the tags and every walk's poses in the map frame (the poses
         between keyframes by their interpolated correction, as the batch build places them).
         ``rounds``: the ISAM2 updates the last change took; ``relinearized``: none (the tree
         relinearizes variables, not walks)."""
-        clock = clock or _Clock()
+        clock = clock or Clock()
         keys, graph_T = _estimate(self._isam.calculateEstimate())
         tag_ids, map_T_tag = self._tags(keys, graph_T)
         world_T_phone = []

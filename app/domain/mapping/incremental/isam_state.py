@@ -37,12 +37,12 @@ from .state import (
     IntArray,
     StaleStateError,
     Walk,
-    _from_npz,
-    _full_poses,
-    _npz,
     building_fingerprint,
+    from_npz,
+    full_poses,
     ordered_walk_rows,
     require_made_from,
+    to_npz,
 )
 
 #: Version of the serialized form; :meth:`IsamState.from_dict` refuses any other.
@@ -81,7 +81,7 @@ class IsamWalkState:
             "depth_scale": self.depth_scale,
             "cost_alone": self.cost_alone,
             "key_offset": self.key_offset,
-            "arrays": _npz(
+            "arrays": to_npz(
                 noise_scales=self.noise_scales,
                 map_T_world=self.map_T_world[:3, :],
                 keyframes=self.keyframes,
@@ -91,7 +91,7 @@ class IsamWalkState:
 
     @classmethod
     def from_dict(cls, row: Mapping[str, Any]) -> IsamWalkState:
-        arrays = _from_npz(row["arrays"])
+        arrays = from_npz(row["arrays"])
         return cls(
             walk_id=str(row["walk_id"]),
             fingerprint=str(row["fingerprint"]),
@@ -99,9 +99,9 @@ class IsamWalkState:
             cost_alone=float(row["cost_alone"]),
             key_offset=int(row["key_offset"]),
             noise_scales=arrays["noise_scales"],
-            map_T_world=_full_poses(arrays["map_T_world"]),
+            map_T_world=full_poses(arrays["map_T_world"]),
             keyframes=arrays["keyframes"].astype(np.int64),
-            map_T_keyframe=_full_poses(arrays["map_T_keyframe"]),
+            map_T_keyframe=full_poses(arrays["map_T_keyframe"]),
         )
 
 
@@ -146,7 +146,7 @@ class IsamState:
             "walk_ids": list(self.walk_ids),
             "walk_fingerprints": [w.fingerprint for w in self.walks],
             "next_key": self.next_key,
-            "arrays": _npz(tag_ids=self.tag_ids, map_T_tag=self.map_T_tag[:, :3, :]),
+            "arrays": to_npz(tag_ids=self.tag_ids, map_T_tag=self.map_T_tag[:, :3, :]),
         }
 
     @classmethod
@@ -155,11 +155,11 @@ class IsamState:
         :class:`StaleStateError` when the rows are not the ones the building row was made
         with."""
         ordered = ordered_walk_rows(row, walks, ISAM_STATE_FORMAT, "row")
-        arrays = _from_npz(row["arrays"])
+        arrays = from_npz(row["arrays"])
         state = cls(
             walks=ordered,
             tag_ids=arrays["tag_ids"].astype(np.int64),
-            map_T_tag=_full_poses(arrays["map_T_tag"]),
+            map_T_tag=full_poses(arrays["map_T_tag"]),
             params=dict(row["params"]),
             next_key=int(row["next_key"]),
         )

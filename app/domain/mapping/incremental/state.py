@@ -116,7 +116,7 @@ class WalkSummary:
             "cost": self.cost,
             "cost_alone": self.cost_alone,
             "relinearized": self.relinearized,
-            "arrays": _npz(
+            "arrays": to_npz(
                 noise_scales=self.noise_scales,
                 tag_ids=self.tag_ids,
                 world_T_tag=self.world_T_tag[:, :3, :],
@@ -130,7 +130,7 @@ class WalkSummary:
 
     @classmethod
     def from_dict(cls, row: Mapping[str, Any]) -> WalkSummary:
-        arrays = _from_npz(row["arrays"])
+        arrays = from_npz(row["arrays"])
         return cls(
             walk_id=str(row["walk_id"]),
             fingerprint=str(row["fingerprint"]),
@@ -140,11 +140,11 @@ class WalkSummary:
             relinearized=int(row["relinearized"]),
             noise_scales=arrays["noise_scales"],
             tag_ids=arrays["tag_ids"].astype(np.int64),
-            world_T_tag=_full_poses(arrays["world_T_tag"]),
+            world_T_tag=full_poses(arrays["world_T_tag"]),
             information=arrays["information"],
             gradient=arrays["gradient"],
             keyframes=arrays["keyframes"].astype(np.int64),
-            world_T_phone=_full_poses(arrays["world_T_phone"]),
+            world_T_phone=full_poses(arrays["world_T_phone"]),
             firmness=arrays["firmness"],
         )
 
@@ -191,7 +191,7 @@ class BuildingState:
             "params": dict(self.params),
             "walk_ids": list(self.walk_ids),
             "walk_fingerprints": [w.fingerprint for w in self.walks],
-            "arrays": _npz(
+            "arrays": to_npz(
                 map_T_world=self.map_T_world[:, :3, :],
                 tag_ids=self.tag_ids,
                 map_T_tag=self.map_T_tag[:, :3, :],
@@ -203,12 +203,12 @@ class BuildingState:
         """Inverse of :meth:`to_dict` with the walks' rows (any order). Raises
         :class:`StaleStateError` when the rows are not the ones the building row was made with."""
         ordered = ordered_walk_rows(row, walks, STATE_FORMAT, "summary row")
-        arrays = _from_npz(row["arrays"])
+        arrays = from_npz(row["arrays"])
         state = cls(
             walks=ordered,
-            map_T_world=_full_poses(arrays["map_T_world"]),
+            map_T_world=full_poses(arrays["map_T_world"]),
             tag_ids=arrays["tag_ids"].astype(np.int64),
-            map_T_tag=_full_poses(arrays["map_T_tag"]),
+            map_T_tag=full_poses(arrays["map_T_tag"]),
             params=dict(row["params"]),
         )
         if state.fingerprint != row["fingerprint"]:
@@ -284,18 +284,18 @@ def ordered_walk_rows(
     return ordered
 
 
-def _npz(**arrays: npt.NDArray[Any]) -> bytes:
+def to_npz(**arrays: npt.NDArray[Any]) -> bytes:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)  # type: ignore[arg-type]
     return buffer.getvalue()
 
 
-def _from_npz(data: bytes) -> dict[str, npt.NDArray[Any]]:
+def from_npz(data: bytes) -> dict[str, npt.NDArray[Any]]:
     with np.load(io.BytesIO(data), allow_pickle=False) as npz:
         return {name: np.array(npz[name]) for name in npz.files}
 
 
-def _full_poses(top: FloatArray) -> FloatArray:
+def full_poses(top: FloatArray) -> FloatArray:
     """(…, 4, 4) from the top three rows (…, 3, 4)."""
     out = np.zeros((*top.shape[:-2], 4, 4))
     out[..., :3, :] = top

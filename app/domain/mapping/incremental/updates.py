@@ -136,7 +136,7 @@ def build(
     walks optimized alone before, reused as it reuses them), then summarized and solved as a
     building. Raises ``AlignmentError`` for a walk that cannot be placed."""
     params = params or SlamParams()
-    clock = _Clock()
+    clock = Clock()
     if not walks:
         raise InvisibleMapError("a map needs at least one session")
     plan = plan_sessions(
@@ -195,7 +195,7 @@ def add_walk(
     _require_params(state, params)
     if walk.walk_id in state.walk_ids:
         raise InvisibleMapError(f"walk {walk.walk_id!r} is in the building already")
-    clock = _Clock()
+    clock = Clock()
     plan = plan_sessions(
         [walk.session], params, names=[walk.walk_id], fits=[fit] if fit is not None else ()
     )
@@ -275,7 +275,7 @@ def remove_walk(
         raise InvisibleMapError(f"walk {walk_id!r} is not in the building")
     if len(state.walks) == 1:
         raise InvisibleMapError("a map needs at least one session: delete the map instead")
-    clock = _Clock()
+    clock = Clock()
     keep = [s for s, w in enumerate(state.walks) if w.walk_id != walk_id]
     walks = tuple(state.walks[s] for s in keep)
     first_T_map = se3_inverse(state.map_T_world[keep[0]])
@@ -307,7 +307,7 @@ def _settle(
     state: BuildingState,
     params: SlamParams,
     load: SessionLoader,
-    clock: _Clock,
+    clock: Clock,
     *,
     new: set[str],
     optional: bool = False,
@@ -452,7 +452,7 @@ def _require_placed(walks: Sequence[WalkSummary]) -> None:
             )
 
 
-class _Clock:
+class Clock:
     """CPU time by step, ms."""
 
     def __init__(self) -> None:
