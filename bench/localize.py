@@ -26,9 +26,9 @@ updates, and apart for the updates that carried tag detections, which run the sm
 that did not, which only follow the odometry), with the largest window reached and the stored
 state's size.
 
-The second walk needs the simulator's building without its walk, so this file drives
-``app.domain.evaluation.simulate``'s steps (``walk_route``, ``drift_odometry``, …) with a building
-seed and a walk seed; ``simulate_session`` ties both to one seed.
+The second walk needs the simulator's building without its walk, so this file builds it
+(``build_building``) from the building's seed and records a walk through it (``record_walk``) from
+a walk seed; ``simulate_session`` ties both to one seed.
 """
 
 from __future__ import annotations
@@ -53,7 +53,6 @@ from app.domain.evaluation import simulate as sim_module  # noqa: E402
 from app.domain.evaluation.metrics import tag_rmse_m, umeyama_rigid  # noqa: E402
 from app.domain.evaluation.simulate import SimulationConfig, simulate_session  # noqa: E402
 from app.domain.frames import (  # noqa: E402
-    PHONE_T_CAMERA_CV,
     FloatArray,
     make_pose,
     rotation_about_y,
@@ -88,8 +87,8 @@ TARGETS = (
 def second_walk(config: SimulationConfig, *, walk_seed: int) -> sim_module.SimulatedSession:
     """A walk through ``config``'s building (its ``seed``) with route and noise from ``walk_seed``.
 
-    ``simulate_session`` with the same steps, but the building from ``config.seed``'s stream and
-    everything else from ``walk_seed``'s.
+    ``simulate_session`` with the same steps (``record_walk``), but the building from
+    ``config.seed``'s stream and everything else from ``walk_seed``'s.
     """
     building_stream = np.random.SeedSequence(config.seed).spawn(6)[0]
     streams = np.random.SeedSequence(walk_seed).spawn(6)
@@ -97,33 +96,8 @@ def second_walk(config: SimulationConfig, *, walk_seed: int) -> sim_module.Simul
         np.random.default_rng(s) for s in streams[1:]
     )
     building = sim_module.build_building(config, np.random.default_rng(building_stream))
-    world_T_phone_true = sim_module._walk(config, building, rng_walk)
-    world_T_phone_odometry = sim_module._drift_odometry(config, world_T_phone_true, rng_odometry)
-    tag_ids = np.array(sorted(building.world_T_tag), dtype=np.int64)
-    world_T_tags = np.stack([building.world_T_tag[int(t)] for t in tag_ids])
-    pose_index, tag_row = sim_module._visible_pairs(
-        config, building, world_T_phone_true, world_T_tags
-    )
-    camera_T_tag_true = (
-        PHONE_T_CAMERA_CV @ se3_inverse(world_T_phone_true[pose_index]) @ world_T_tags[tag_row]
-    )
-    detections = sim_module._measure(config, camera_T_tag_true, rng_tags, rng_outliers)
-    pois = sim_module._points_of_interest(config, world_T_phone_true, rng_poi)
-    upload = sim_module._upload(
-        config, world_T_phone_odometry, pose_index, tag_ids[tag_row], detections, pois
-    )
-    return sim_module.SimulatedSession(
-        config=config,
-        upload=upload,
-        world_T_phone_true=world_T_phone_true,
-        world_T_phone_odometry=world_T_phone_odometry,
-        world_T_tag_true=dict(building.world_T_tag),
-        world_T_poi_true={},
-        detection_tag_id=tag_ids[tag_row],
-        detection_pose_index=pose_index,
-        camera_T_tag_true=camera_T_tag_true,
-        detection_is_outlier=detections.is_outlier,
-        building=building,
+    return sim_module.record_walk(
+        config, building, (rng_walk, rng_odometry, rng_tags, rng_outliers, rng_poi)
     )
 
 

@@ -5,5 +5,5 @@ skeleton.py          the corridor skeleton of one walk or fused from a building 
                      (centreline.py, raster.py: its image steps)
 floors.py            floors from height
 routing.py           routes from a tag, place, node or position to another (shortest_path.py)
-instructions.py      turn-by-turn at decision points only (polyline.py: a route's geometry)
+instructions/        turn-by-turn at decision points only (polyline.py: a route's geometry)
 """
