@@ -10,6 +10,10 @@ InvisibleMapError            anything the core refuses, with a message fit for a
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from typing import Any
+
 
 class InvisibleMapError(Exception):
     """Base of every error the core raises on bad input; ``str(err)`` is one readable line."""
@@ -39,3 +43,13 @@ class MapFormatError(InvisibleMapError):
 
 class ParameterError(InvisibleMapError):
     """Raised for an unknown SLAM parameter name or a value out of its documented range."""
+
+
+def require_finite_non_negative(params: Any) -> None:
+    """Every field of the dataclass instance ``params`` a finite number ≥ 0: a
+    :class:`ParameterError` naming the first that is not (the common rule of the domain's
+    parameter sets; each adds its own stricter ones after it)."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")

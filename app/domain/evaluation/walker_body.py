@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from app.domain.errors import ParameterError
+from app.domain.errors import ParameterError, require_finite_non_negative
 from app.domain.evaluation.walker_space import FreeSpace
 from app.domain.frames import FloatArray
 from app.domain.navigation.routing import Step
@@ -53,10 +53,7 @@ class WalkerErrors:
     max_corrections: int = 3
 
     def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if not math.isfinite(float(value)) or float(value) < 0:
-                raise ParameterError(f"{name} must be finite and ≥ 0, got {value!r}")
+        require_finite_non_negative(self)
         if self.step_m <= 0 or self.stride_error >= 1 or self.feel_ahead_m <= 0:
             raise ParameterError("step_m and feel_ahead_m must be > 0 and stride_error < 1")
         if not self.hand_m < self.probe_m:

@@ -57,13 +57,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
-from app.domain.errors import ParameterError
+from app.domain.errors import ParameterError, require_finite_non_negative
 from app.domain.frames import FloatArray
 from app.domain.mapping.map_result import MapResult
 from app.domain.navigation.centreline import Branches, branches_of, clean
@@ -158,10 +158,7 @@ class SkeletonParams:
     elevator_min_rise_per_run: float = 2.0
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")
+        require_finite_non_negative(self)
         if self.cell_m <= 0 or self.corridor_width_m <= 0:
             raise ParameterError("cell_m and corridor_width_m must be > 0")
 

@@ -12,12 +12,12 @@ from typing import cast
 import networkx as nx
 import numpy as np
 
-from app.domain.errors import ParameterError
+from app.domain.errors import ParameterError, require_finite_non_negative
 from app.domain.frames import FloatArray
 
 from .building import Building, build_building
 from .config import CEILING_HEIGHT_M, OBLIQUE_STANDOFF_M, BoolArray, IntArray, SimulationConfig
-from .numeric import finite, gaussian_smooth, smooth_noise
+from .numeric import gaussian_smooth, smooth_noise
 from .walk import route
 
 # --------------------------------------------------------------------------- walkers (issue 18)
@@ -81,10 +81,7 @@ class WalkerConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if not finite(value) or value < 0:
-                raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")
+        require_finite_non_negative(self)
         if self.spacing_m <= 0 or self.length_m <= 0:
             raise ParameterError("spacing_m and length_m must be > 0")
         for name in (

@@ -61,14 +61,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import TypeAlias
 
 import networkx as nx
 import numpy as np
 import numpy.typing as npt
 
-from app.domain.errors import ParameterError
+from app.domain.errors import ParameterError, require_finite_non_negative
 from app.domain.frames import FloatArray
 from app.domain.mapping.map_result import MapResult
 from app.domain.navigation.floors import assign_floors, find_floor_levels
@@ -171,10 +171,7 @@ class PathGraphParams:
     attach_max_distance_m: float = 5.0
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise ParameterError(f"{f.name} must be a finite number ≥ 0, got {value!r}")
+        require_finite_non_negative(self)
         if self.floor_band_m <= 0:
             raise ParameterError(f"floor_band_m must be > 0, got {self.floor_band_m!r}")
         if self.merge_distance_m > 0 and self.merge_min_length_m <= 2 * self.merge_distance_m:
