@@ -154,7 +154,7 @@ class PostgresDatabases:
     test's copy. A copy that cannot be made fails the test that takes it; a drop that fails fails
     the run at its end."""
 
-    #: finished tests' databases dropped together (at most this many left at the end)
+    #: finished tests' databases dropped together, at once (those left over at the end of the run)
     DROP_BATCH = 8
 
     def __init__(self, template: str) -> None:
