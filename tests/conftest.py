@@ -12,6 +12,7 @@ makes it an error.
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import uuid
@@ -52,6 +53,22 @@ def postgres_unavailable_reason() -> str | None:
             + (str(err).splitlines()[0])
         )
     return None
+
+
+# The garbage collector, tuned for a test process (not for the servers, which keep their own). A
+# test process holds ~0.3 M long-lived objects once its tests are collected (modules, gtsam,
+# pydantic models, the items) and makes and drops whole apps test after test; with Python's
+# default thresholds (700, 10, 10) a full collection walked all of them every few tests: 13.5 s
+# of tests/unit's 96 s and 109 s of tests/service's 480 s (one process, 2026-12-02). What is
+# there when collection ends is frozen (never freed anyway), and young objects are collected
+# less often: tests/unit 96 → 86 s, 2.8 s of it collecting.
+GC_THRESHOLDS = (10_000, 20, 20)
+
+
+def pytest_collection_finish() -> None:
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*GC_THRESHOLDS)
 
 
 def pytest_report_header() -> list[str]:
