@@ -150,3 +150,75 @@ def test_malformed_earlier_rows_name_the_field_and_the_format(
     error = refused(document)
     assert error.field == field
     assert reason in error.reason
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "reason"),
+    [
+        (lambda d: d.pop("pose_data"), "pose_data", "missing"),
+        (lambda d: d.update(pose_data={"x": 1}), "pose_data", "expected a list, got an object"),
+        (
+            lambda d: d.update(camera_intrinsics="1,2"),
+            "camera_intrinsics",
+            "expected fx, fy, cx, cy, …, got 2 numbers",
+        ),
+        (
+            lambda d: d["tag_data"].__setitem__(0, {"x": 1}),
+            "tag_data[0]",
+            "expected a CSV string or an array of numbers, got an object",
+        ),
+        (
+            lambda d: d["tag_data"].__setitem__(0, [True] * 18),
+            "tag_data[0]",
+            "expected a row of numbers",
+        ),
+        (
+            lambda d: d["pose_data"][2].__setitem__(3, float("nan")),
+            "pose_data[2]",
+            "non-finite number",
+        ),
+        (
+            lambda d: d["pose_data"].__setitem__(2, ",".join(["nan"] * 17)),
+            "pose_data[2]",
+            "non-finite number",
+        ),
+        (
+            lambda d: d["tag_data"][0].__setitem__(0, -1),
+            "tag_data[0].tag_id",
+            "expected an id ≥ 0, got -1.0",
+        ),
+    ],
+)
+def test_each_refusal_of_an_earlier_row_says_exactly_what_is_wrong(
+    archive_round2, change, field, reason
+):
+    document = copy.deepcopy(archive_round2)
+    change(document)
+    error = refused(document)
+    assert (error.field, error.reason) == (field, f"{reason} ({EARLIER_FORMAT})")
+    assert str(error) == f"{field}: {reason} ({EARLIER_FORMAT})"
+
+
+def test_tag_zero_is_an_id(archive_round2):
+    document = copy.deepcopy(archive_round2)
+    document["tag_data"][0][0] = 0
+    session = parse_session(document)
+    assert 0 in session.tag_ids
+
+
+def test_csv_tag_rows_read_the_same_with_and_without_their_tag_prefix(archive_round2):
+    def as_csv(row: list[float], prefix: str) -> str:
+        return ",".join([*prefix.split(",")[:1], *(repr(float(v)) for v in row)]).lstrip(",")
+
+    with_prefix = copy.deepcopy(archive_round2)
+    with_prefix["tag_data"] = [as_csv(row, "TAG") for row in archive_round2["tag_data"]]
+    without = copy.deepcopy(archive_round2)
+    without["tag_data"] = [as_csv(row, "") for row in archive_round2["tag_data"]]
+
+    expected = parse_session(archive_round2)
+    for document in (with_prefix, without):
+        session = parse_session(document)
+        np.testing.assert_array_equal(session.detections.tag_id, expected.detections.tag_id)
+        np.testing.assert_allclose(
+            session.detections.phone_T_tag, expected.detections.phone_T_tag, atol=1e-12
+        )

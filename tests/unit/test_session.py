@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import gzip
+import hashlib
 import json
 import math
 from collections.abc import Iterator, Sequence
@@ -16,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from app.domain.errors import SessionFormatError
+from app.domain.errors import NoTagsRecorded, SessionFormatError
 from app.domain.upload.session import (
     NO_TAGS_REASON,
     Session,
@@ -24,6 +25,7 @@ from app.domain.upload.session import (
     first_observation_tag_poses,
     load_session,
     parse_session,
+    require_tags,
 )
 
 DATA_DIR = Path(__file__).parents[2] / "data"
@@ -664,6 +666,29 @@ def test_empty_map_id_is_named_from_the_upload_stably(map_id):
     other = make_upload(9)
     other["map_id"] = ""
     assert parse_session(other).map_id != session.map_id
+
+
+def test_the_name_of_an_unnamed_walk_is_a_digest_of_its_times_and_places():
+    """The name is kept with the map and must not change between releases: the first 10 hex
+    digits of SHA-256 over the poses' times, then their positions (x, y, z, float64)."""
+    document = make_upload()
+    document["map_id"] = ""
+    times = np.array([p["timestamp"] for p in document["pose_data"]], dtype=np.float64)
+    places = np.array([p["pose"][12:15] for p in document["pose_data"]], dtype=np.float64)
+    digest = hashlib.sha256(times.tobytes() + places.tobytes()).hexdigest()
+    assert parse_session(document).map_id == f"unnamed-{digest[:10]}"
+
+
+def test_a_walk_without_tags_is_refused_a_map_and_one_tag_seen_once_is_enough():
+    no_tags = parse_session(make_upload(frames=[]))
+    with pytest.raises(NoTagsRecorded) as info:
+        require_tags(no_tags)
+    assert (
+        str(info.value) == NO_TAGS_REASON == "no tags were recorded: a map needs at least one tag"
+    )
+    one_sighting = parse_session(make_upload(frames=[[make_detection(tag_id=3, pose_id=1)]]))
+    assert len(one_sighting.detections) == 1
+    require_tags(one_sighting)  # no error
 
 
 def test_empty_poi_names_get_stable_generated_names_and_are_reported():
