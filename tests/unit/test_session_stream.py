@@ -175,14 +175,18 @@ def test_a_cut_document_is_the_same_json_error(cut_share: float) -> None:
         b'\n\n  {"pose_data": [{"id": 1,\n "timestamp": tru}]}',
         b"",
         b"   ",
+        # newlines after the error (within the window), and one at the very start
+        b'{"map_id": x\n\n\n}',
+        b'\n{"map_id": "x", "pose_data": [1, x]\n\n\n}',
     ],
 )
 def test_syntax_errors_name_the_line_and_column_json_names(raw: bytes) -> None:
     expected = outcome(lambda: parse_session(decode_json_bytes(raw)))
     for size in (1, 3, 1000):
-        with pytest.raises(SessionFormatError) as info:
-            walk(JsonStream(pieces(raw, size), window_chars=4))
-        assert (info.value.field, info.value.reason) == expected
+        for window_chars in (4, 1 << 16):
+            with pytest.raises(SessionFormatError) as info:
+                walk(JsonStream(pieces(raw, size), window_chars=window_chars))
+            assert (info.value.field, info.value.reason) == expected
 
 
 def walk(stream: JsonStream) -> None:
