@@ -222,3 +222,76 @@ def test_csv_tag_rows_read_the_same_with_and_without_their_tag_prefix(archive_ro
         np.testing.assert_allclose(
             session.detections.phone_T_tag, expected.detections.phone_T_tag, atol=1e-12
         )
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "reason"),
+    [
+        (lambda d: d.update(pose_data=[]), "pose_data", "empty session: no poses"),
+        (
+            lambda d: d.pop("camera_intrinsics"),
+            "camera_intrinsics",
+            "missing: the earlier format keeps them at the top level",
+        ),
+        (
+            lambda d: d.update(camera_intrinsics="a,b,c,d"),
+            "camera_intrinsics",
+            "not a row of numbers: could not convert string to float: 'a'",
+        ),
+        (
+            lambda d: d["tag_data"].__setitem__(1, d["tag_data"][1][:17]),
+            "tag_data[1]",
+            "expected an id, 16 pose numbers, a timestamp and maybe a pose id, got 17",
+        ),
+        (
+            lambda d: [row.__setitem__(12, -abs(row[12])) for row in d["tag_data"]],
+            "tag_data",
+            "only 0% of the detections are in front of the camera read as OpenCV camera_T_tag: "
+            "the tags' frame cannot be pinned down",
+        ),
+    ],
+)
+def test_each_refusal_of_an_earlier_session_says_exactly_what_is_wrong(
+    archive_round2, change, field, reason
+):
+    document = copy.deepcopy(archive_round2)
+    change(document)
+    error = refused(document)
+    assert (error.field, error.reason) == (field, f"{reason} ({EARLIER_FORMAT})")
+
+
+def test_an_earlier_session_says_how_it_was_read(archive_round2):
+    session = parse_session(copy.deepcopy(archive_round2))
+    notes = [w for w in session.warnings if "earlier format" in w]
+    assert notes == [
+        f"read from {EARLIER_FORMAT}",
+        "tag corners projected from tag_pose (the earlier format has none): the reprojection "
+        "check cannot reject a detection",
+    ]
+
+
+def test_an_earlier_session_without_tag_data_is_a_walk_without_tags(archive_round2):
+    document = copy.deepcopy(archive_round2)
+    del document["tag_data"]
+    session = parse_session(document)
+    assert session.num_poses == len(archive_round2["pose_data"])
+    assert len(session.detections) == 0
+
+
+def test_four_intrinsics_are_enough(archive_round2):
+    document = copy.deepcopy(archive_round2)
+    document["camera_intrinsics"] = ",".join(document["camera_intrinsics"].split(",")[:4])
+    assert len(parse_session(document).detections) == len(archive_round2["tag_data"])
+
+
+def test_a_tag_rows_pose_id_wins_over_the_nearest_pose_in_time(archive_round2):
+    """A row of 19 numbers names its pose; only without a known pose id is it matched by time."""
+    document = copy.deepcopy(archive_round2)
+    pose_ids = [int(row[17]) for row in document["pose_data"]]
+    row = document["tag_data"][0]
+    nearest = parse_session(copy.deepcopy(document)).detections.pose_index[0]
+    named = (nearest + 3) % len(pose_ids)  # another pose, 3 poses away
+    document["tag_data"][0] = [*row[:18], pose_ids[named]]
+    assert parse_session(document).detections.pose_index[0] == named
+    document["tag_data"][0] = [*row[:18], max(pose_ids) + 1000]  # no such pose: by time
+    assert parse_session(document).detections.pose_index[0] == nearest

@@ -609,6 +609,7 @@ def test_missing_file(tmp_path):
     with pytest.raises(SessionFormatError) as info:
         load_session(tmp_path / "nope.json")
     check_format_error(info.value, "", "cannot read", "nope.json")
+    assert info.value.reason == f"cannot read {tmp_path / 'nope.json'}: No such file or directory"
 
 
 def test_nan_and_infinity_tokens_in_json_are_rejected():
