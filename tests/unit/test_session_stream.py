@@ -318,3 +318,16 @@ def test_a_top_level_array_is_passed_over_and_refused_as_no_object() -> None:
     assert outcome(streamed, raw[:-1]) == outcome(
         lambda: parse_session(decode_json_bytes(raw[:-1]))
     )
+
+
+def test_pose_columns_grow_past_their_first_capacity(monkeypatch) -> None:
+    """A stream starts its pose columns at ``_STREAM_CAPACITY`` rows (np.empty: pages cost
+    only once written) and doubles them past it; the rows past the first capacity are kept."""
+    import app.domain.upload.session as session_module
+
+    monkeypatch.setattr(session_module, "_STREAM_CAPACITY", 3)
+    document = make_upload(num_poses=13)  # grows 3 → 6 → 12 → 24
+    expected = parse_session(document)
+    got = streamed(json.dumps(document).encode(), size=64)
+    assert got.num_poses == 13
+    assert_same_session(got, expected)
