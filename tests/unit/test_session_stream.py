@@ -331,3 +331,52 @@ def test_pose_columns_grow_past_their_first_capacity(monkeypatch) -> None:
     got = streamed(json.dumps(document).encode(), size=64)
     assert got.num_poses == 13
     assert_same_session(got, expected)
+
+
+def test_the_limits_refusal_names_max_poses_by_default_and_the_source_in_syntax_errors() -> None:
+    with pytest.raises(SessionFormatError) as info:
+        streamed(json.dumps(make_upload(12)).encode(), max_poses=10)
+    assert "at most 10 (max_poses)" in info.value.reason
+    with pytest.raises(SessionFormatError) as info:
+        parse_session_stream(pieces(b'{"map_id": x}', 4), max_poses=10, source="walk.json")
+    assert info.value.reason == "walk.json is not valid JSON: Expecting value at line 1 column 12"
+
+
+def test_pose_data_after_tag_data_a_second_time_is_refused_by_name() -> None:
+    document = small_valid_upload()
+    raw = json.dumps(document)[:-1] + ', "pose_data": []}'
+    with pytest.raises(SessionFormatError) as info:
+        streamed(raw.encode())
+    assert (info.value.field, info.value.reason) == (
+        "pose_data",
+        "given twice, the second after tag_data",
+    )
+
+
+@pytest.mark.parametrize("correct", [True, False])
+def test_the_poi_correction_reaches_sessions_read_whole_from_a_stream(correct: bool) -> None:
+    """Sections in an order the app does not write (``tag_data`` first) are decoded whole and
+    parsed as before: the point of interest's pose id corrected as asked."""
+    from tests.unit.test_session import make_location
+
+    document = make_upload(locations=[make_location("door", 4)])
+    reordered = {"tag_data": document["tag_data"], **document}
+    raw = json.dumps(reordered).encode()
+    got = parse_session_stream(pieces(raw, 64), max_poses=100, correct_poi_pose_id=correct)
+    assert got.pois[0].pose_index == (3 if correct else 4)
+
+
+@pytest.mark.parametrize("correct", [True, False])
+def test_the_poi_correction_reaches_earlier_format_sessions_from_a_stream(correct: bool) -> None:
+    from tests.unit.test_session import make_location
+
+    document = json.loads((DATA_DIR / "archive" / "round2.json").read_text())
+    pose_id = int(document["pose_data"][5][17])
+    document["location_data"] = [make_location("door", pose_id)]
+    raw = json.dumps(document).encode()
+    got = parse_session_stream(pieces(raw, 4096), max_poses=10**5, correct_poi_pose_id=correct)
+    assert got.pois[0].pose_index == (4 if correct else 5)
+    assert (
+        got.pois[0].pose_index
+        == parse_session(document, correct_poi_pose_id=correct).pois[0].pose_index
+    )
