@@ -177,6 +177,7 @@ def test_a_cut_document_is_the_same_json_error(cut_share: float) -> None:
         b"   ",
         # newlines after the error (within the window), and one at the very start
         b'{"map_id": x\n\n\n}',
+        b"{}x",  # an empty object, then one character more
         b'\n{"map_id": "x", "pose_data": [1, x]\n\n\n}',
     ],
 )
