@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.domain.errors import ParameterError
+from app.domain.json_values import value_error_reason
 
 if TYPE_CHECKING:
     from app.config import Settings
@@ -229,5 +230,5 @@ def load_ground_truth_file(path: Path) -> dict[int, FloatArray]:
     except RecursionError:
         raise GroundTruthFormatError(f"{path}: nested too deeply to be a ground truth") from None
     except ValueError as err:  # an integer of more digits than Python converts
-        reason = str(err).partition(";")[0]
+        reason = value_error_reason(err)
         raise GroundTruthFormatError(f"{path}: not valid JSON: {reason}") from None

@@ -3,6 +3,7 @@
 json_type_name([1, 2])          # "a list", for messages like "expected an object, got a list"
 gunzip_if_compressed(raw)       # the bytes, decompressed when they start with gzip's magic
 finite_or_none(math.nan)        # None: JSON has no NaN or infinity, a measure not made is null
+value_error_reason(err)         # a ValueError of json.loads as one line, the same however read
 """
 
 from __future__ import annotations
@@ -14,6 +15,15 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 GZIP_MAGIC = b"\x1f\x8b"
+
+
+def value_error_reason(err: Exception) -> str:
+    """A ``ValueError`` of decoding JSON (bad UTF-8, an integer of more digits than Python
+    converts) as one line for a message. Python's advice to the programmer (after the ';') is
+    left out, and so is its count of an integer's digits: "Exceeds the limit (4300 digits) for
+    integer string conversion", the same whether the document was read whole or streamed (a
+    stream holds part of a long integer and would count that part)."""
+    return str(err).partition(";")[0].partition(": value has")[0]
 
 
 def json_type_name(value: Any) -> str:

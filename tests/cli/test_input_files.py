@@ -186,4 +186,4 @@ def test_a_number_python_does_not_read_is_one_line_error(
         (["process", ONETAG, "--gt", truth], f"{truth}: not valid JSON: "),
     ):
         status, _, err = run(*args)
-        assert_one_line_error(status, err, where, "value has 5000 digits")
+        assert_one_line_error(status, err, where, "for integer string conversion")

@@ -381,3 +381,14 @@ def test_the_poi_correction_reaches_earlier_format_sessions_from_a_stream(correc
         got.pois[0].pose_index
         == parse_session(document, correct_poi_pose_id=correct).pois[0].pose_index
     )
+
+
+def test_an_integer_of_too_many_digits_is_refused_as_the_whole_document_refuses_it() -> None:
+    raw = b'{"map_id": "x", "pose_data": [' + b"9" * 5000 + b"]}"
+    expected = outcome(lambda: parse_session(decode_json_bytes(raw)))
+    assert expected[0] == ""  # type: ignore[index]
+    assert expected[1] == (  # type: ignore[index]
+        "upload is not valid JSON: Exceeds the limit (4300 digits) for integer string conversion"
+    )
+    for window_chars in (48, 1 << 16):
+        assert outcome(streamed, raw, size=512, window_chars=window_chars) == expected

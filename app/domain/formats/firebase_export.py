@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from app.domain.json_values import value_error_reason
+
 #: The folder of the app's raw uploads in Cloud Storage.
 RAW_FOLDER = "rawMapData"
 #: The app's log written next to each upload (not a session).
@@ -276,7 +278,7 @@ def _database_exports(directory: Path, notes: list[str]) -> tuple[list[Path], di
         try:
             document = json.loads(encoded)
         except ValueError as err:  # not UTF-8, not JSON, an integer of too many digits
-            reason = str(err).partition(";")[0]
+            reason = value_error_reason(err)
             raise FirebaseExportError(f"{path.name} is not valid JSON: {reason}") from err
         except RecursionError:
             raise FirebaseExportError(

@@ -26,6 +26,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any
 
 from app.domain.errors import SessionFormatError
+from app.domain.json_values import value_error_reason
 
 #: Characters of text held ahead of the reading position (about 1 MiB of ASCII JSON).
 WINDOW_CHARS = 1 << 20
@@ -118,7 +119,7 @@ class JsonStream:
                 raise self.syntax_error(err.msg, err.pos) from None
             except ValueError as err:  # an integer of more digits than Python converts
                 raise SessionFormatError(
-                    "", f"{self.source} is not valid JSON: {str(err).partition(';')[0]}"
+                    "", f"{self.source} is not valid JSON: {value_error_reason(err)}"
                 ) from None
             except RecursionError:
                 raise SessionFormatError(

@@ -31,7 +31,7 @@ from app.domain.frames import (
     FloatArray,
     orthonormalized_stack,
 )
-from app.domain.json_values import gunzip_if_compressed, json_type_name
+from app.domain.json_values import gunzip_if_compressed, json_type_name, value_error_reason
 from app.domain.upload.earlier_format import (
     EARLIER_FORMAT,
     convert_earlier_format,
@@ -184,7 +184,7 @@ def decode_json_bytes(raw: bytes, *, source: str = "upload") -> Any:
         ) from err
     except ValueError as err:  # an integer of more digits than Python converts
         raise SessionFormatError(
-            "", f"{source} is not valid JSON: {str(err).partition(';')[0]}"
+            "", f"{source} is not valid JSON: {value_error_reason(err)}"
         ) from err
 
 

@@ -23,6 +23,7 @@ from sqlalchemy import (
     Table,
 )
 
+from app.domain.json_values import value_error_reason
 from app.domain.upload.fields import text_fault
 from app.storage.migrate import alembic_config
 from app.storage.orm import (
@@ -456,7 +457,7 @@ class ArchiveReader:
                 except NotAJsonNumber as err:
                     raise ArchiveInvalid(f"{self.path}: {where}: {err}") from None
                 except (ValueError, RecursionError) as err:
-                    reason = str(err).partition(";")[0]
+                    reason = value_error_reason(err)
                     raise ArchiveInvalid(f"{self.path}: {where}: not JSON: {reason}") from err
                 if not isinstance(row, dict):
                     raise ArchiveInvalid(f"{self.path}: {where}: not a JSON object")
