@@ -178,6 +178,10 @@ def test_a_cut_document_is_the_same_json_error(cut_share: float) -> None:
         # newlines after the error (within the window), and one at the very start
         b'{"map_id": x\n\n\n}',
         b"{}x",  # an empty object, then one character more
+        # errors far along a line whose start the window has dropped, on the first line and after
+        b'{"map_id": "' + b"a" * 300 + b'", "pose_data": [1 2]}',
+        b'{\n  "map_id": "' + b"a" * 300 + b'", "pose_data": [1 2]}',
+        b'{\n\n  "map_id": "' + b"a" * 300 + b'", "x": [1 2],\n "pose_data": []}',
         b'\n{"map_id": "x", "pose_data": [1, x]\n\n\n}',
     ],
 )
