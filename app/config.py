@@ -133,11 +133,15 @@ class Settings(BaseSettings):
     #: Building maps made incremental (issue 38; ``INVISIBLE_MAP_INCREMENTAL_BUILDS``): a build
     #: that adds or takes out one walk of a map whose current version has a current ISAM2 state
     #: (``app.storage.isam_states``) makes that change in the state restored from the database
-    #: (``incremental.changes``), and the worker logs how far it is from the batch build of the
-    #: same walks. Not yet served: the later stages read the batch build's ``JointMap``, which
-    #: is still made and served (docs/multi-session.md, "Incremental building maps"). Off by
-    #: default; every batch build of several walks stores its state either way.
+    #: (``incremental.changes``) and serves the engine's map, no batch solve, unless the batch
+    #: build's later steps would change a walk there (a walk rescaled, a tag set apart, a walk
+    #: down-weighted: ``incremental.served_map``), which the job's log then names. Off by default;
+    #: every batch build of several walks stores its state either way.
     incremental_builds: bool = False
+    #: With incremental builds on (``INVISIBLE_MAP_INCREMENTAL_CHECK``): run the batch build too
+    #: and serve it, and log how far the engine's map is from it (the bounds: 1 cm tags, 5 cm
+    #: poses), to check the engine on a lab's own walks before trusting it.
+    incremental_check: bool = False
     #: How long an API process answers from its memory of a key it checked, s (0: every request
     #: reads the key). The bound on seeing a revocation made by another process (the CLI,
     #: another API process); a revocation in this process and a key's ``expires_at`` count at

@@ -1,16 +1,20 @@
-"""A building map's incremental side of a build (issue 38), beside the batch build that
-``pipeline.joint.optimize_joint`` still serves.
+"""A building map's incremental side of a build (issue 38), used by
+``pipeline.joint.optimize_joint``.
 
-    state, line = state_of_batch(joint, walks, params, job_id)   # stored with the version
-    served, note = incremental_change(db, map_id, walks, params, load_removed, job_id)
-    note += "; " + compared_with_batch(served, joint, params)   # how far from the batch map
-    save_state(tx, map_id, version_id, state, job_id)          # in the version's transaction
+    change, note = incremental_change(db, map_id, walks, params, load_removed, job_id)
+    joint = served_joint_map(change.building, change.served, params)   # str: the batch decides
+    note += "; " + compared_with_batch(change.served, joint, params)   # "check": the batch's
+    state, line = state_of_batch(joint, walks, params, job_id)   # a batch build's state
+    save_state(tx, map_id, version_id, state, job_id)           # in the version's transaction
 
 Every batch build of several walks makes the ISAM2 state its next add can start from
-(``incremental.from_batch``: no solve) and the store keeps it with the version; with
-``Settings.incremental_builds`` a change of one walk is also made in the state restored from the
-database (``incremental.changes``) and compared with the batch build in the job's log. None of
-it fails a build: the state is an optimization, and a build without one is a batch build.
+(``incremental.from_batch``: no solve) and the store keeps it with the version. With
+``Settings.incremental_builds`` a change of one walk is made in the state restored from the
+database (``incremental.changes``) and, where the batch build's later steps would change no walk
+(``incremental.served_map``), served without a batch solve, the engine's own state stored with
+the version; with ``Settings.incremental_check`` too the batch build still runs and is served,
+and the job's log says how far the engine's map is from it. None of it fails a build: the state
+is an optimization, and a build without one is a batch build.
 """
 
 from __future__ import annotations
@@ -21,10 +25,18 @@ from collections.abc import Callable, Sequence
 
 from sqlalchemy.orm import Session as DbSession
 
+from app.config import Settings
 from app.domain.errors import InvisibleMapError
-from app.domain.mapping.incremental import IncrementalMap, IsamState, StaleStateError, Walk
+from app.domain.mapping.incremental import (
+    IncrementalMap,
+    IsamBuilding,
+    IsamState,
+    StaleStateError,
+    Walk,
+)
 from app.domain.mapping.incremental.changes import apply_change, one_walk_change
 from app.domain.mapping.incremental.from_batch import state_from_batch, why_not_incremental
+from app.domain.mapping.incremental.served_map import served_joint_map
 from app.domain.mapping.joint import JointMap
 from app.domain.mapping.params import SlamParams
 from app.domain.upload.session import Session
@@ -37,6 +49,14 @@ logger = logging.getLogger(__name__)
 #: How far the incremental map may be from the batch build's, m (issue 38: tags, poses).
 INCREMENTAL_TAG_BOUND_M = 0.01
 INCREMENTAL_POSE_BOUND_M = 0.05
+
+
+def mode_of(settings: Settings) -> str:
+    """The worker's incremental mode: "off", "serve" (the engine's map served where the checks
+    pass) or "check" (the batch build served, the engine's compared with it)."""
+    if not settings.incremental_builds:
+        return "off"
+    return "check" if settings.incremental_check else "serve"
 
 
 def session_id_of(name: str) -> int | None:
@@ -52,14 +72,14 @@ def incremental_change(
     params: SlamParams,
     load_session: Callable[[int], Session | None],
     job_id: int,
-) -> tuple[IncrementalMap | None, str]:
+) -> tuple[tuple[IsamBuilding, IncrementalMap] | None, str]:
     """The build's change made in the ISAM2 state stored with the map's current version
     (``app.storage.isam_states``; restored from the database, so any worker, restarted or not,
     takes this path), when it is one walk added last or taken out and the state is current for
     the others (``incremental.changes.one_walk_change``); and a note for the job's log: what was
-    made and how long it took, or why the batch build alone makes the version (the map served
-    None). ``load_session``: a stored session by id, None when it is gone (a walk taken out: its
-    factors come out of its data). Never fails the build."""
+    made and how long it took, or why the batch build alone makes the version (None instead
+    of the tree and its map). ``load_session``: a stored session by id, None when it is gone
+    (a walk taken out: its factors come out of its data). Never fails the build."""
     started_s = time.perf_counter()
     try:
         with db.read() as tx:
@@ -76,18 +96,31 @@ def incremental_change(
         change = one_walk_change(stored.state, wanted, params, by_id)
         if isinstance(change, str):
             return None, f"a batch build ({change})"
-        _, served, timings_ms = apply_change(stored.state, change, params)
+        building, served, timings_ms = apply_change(stored.state, change, params)
     except (InvisibleMapError, StaleStateError) as err:  # AlignmentError among them
         return None, f"a batch build ({type(err).__name__}: {err})"
     except Exception as err:
         log_failure(logger, f"job {job_id}: the incremental change failed", err)
         return None, f"a batch build (failed: {type(err).__name__})"
-    return served, (
+    return (building, served), (
         f"{change.summary} in version {stored.version_number}'s state, "
         f"{(time.perf_counter() - started_s) * 1e3:.0f} ms (restore "
         f"{timings_ms['restore']:.0f} ms, change {timings_ms['change']:.0f} ms, "
         f"{served.rounds} updates)"
     )
+
+
+def engine_joint_map(
+    building: IsamBuilding, served: IncrementalMap, params: SlamParams, job_id: int
+) -> JointMap | str:
+    """The engine's map as the ``JointMap`` the later stages read
+    (``incremental.served_map``), or why the batch build makes the version instead. Never
+    fails the build."""
+    try:
+        return served_joint_map(building, served, params)
+    except Exception as err:
+        log_failure(logger, f"job {job_id}: the incremental map could not be served", err)
+        return f"the engine's map could not be served ({type(err).__name__})"
 
 
 def compared_with_batch(served: IncrementalMap, joint: JointMap, params: SlamParams) -> str:

@@ -45,6 +45,7 @@ from app.storage import job_metrics, queue
 from app.storage.db import Database, ServerTimeouts, database_fault, first_line
 from app.storage.queue import Lease
 from app.storage.sweeps import SWEEP_TRIALS
+from workers import incremental_builds
 from workers.allocator import preloading_jemalloc
 from workers.failures import log_failure
 from workers.lease import JobControl, LeaseKeeper
@@ -154,7 +155,7 @@ class Worker:
                     control=control,
                     retry_backoff_s=self.settings.retry_backoff_s,
                     time_budget_s=self.settings.job_time_budget_s,
-                    incremental_builds=self.settings.incremental_builds,
+                    incremental_builds=incremental_builds.mode_of(self.settings),
                 )
         except Exception as err:
             # Recording the outcome failed (the database went away for longer than the lease):

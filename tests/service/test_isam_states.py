@@ -44,6 +44,8 @@ def a_state(walk_ids: tuple[str, ...] = ("session 1", "session 2")) -> IsamState
             map_T_world=pose(k),
             keyframes=np.arange(0, 400, 7, dtype=np.int64),
             map_T_keyframe=np.stack([pose(k + 0.01 * i) for i in range(0, 400, 7)]),
+            alone_tag_ids=np.array([0, 3], dtype=np.int64),
+            world_T_tag_alone=np.stack([pose(k + 0.5), pose(k + 1.5)]),
         )
         for k, walk_id in enumerate(walk_ids)
     )
@@ -108,6 +110,8 @@ def assert_same(a: IsamState, b: IsamState) -> None:
         np.testing.assert_allclose(wa.noise_scales, wb.noise_scales, atol=0.0)
         np.testing.assert_allclose(wa.map_T_keyframe, wb.map_T_keyframe, atol=0.0)
         np.testing.assert_allclose(wa.map_T_world, wb.map_T_world, atol=0.0)
+        np.testing.assert_array_equal(wa.alone_tag_ids, wb.alone_tag_ids)
+        np.testing.assert_allclose(wa.world_T_tag_alone, wb.world_T_tag_alone, atol=0.0)
 
 
 def test_a_state_reads_back_as_saved_and_only_the_current_versions(db: Database) -> None:

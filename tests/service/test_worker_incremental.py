@@ -3,8 +3,10 @@ PostgreSQL: a batch build of several walks stores, with its version and in its t
 state that makes the next add incremental (``app.storage.isam_states``), made from the batch's
 optimum; restored from the database, it is the batch map, and an add to it is the batch map of
 one walk more. With ``Settings.incremental_builds`` the worker makes a change of one walk in the
-stored state (restored from the database: a restarted worker too) and checks it against the
-batch build, which a stale state leaves to the batch build alone."""
+stored state (restored from the database: a restarted worker too) and serves the engine's map
+without a batch solve, within the bounds of the batch build that a rebuild of the same walks
+makes; with ``Settings.incremental_check`` too it serves the batch build and logs how far the
+engine's map is from it. A stale state leaves the change to the batch build alone."""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from app.domain.mapping.incremental import IsamBuilding, Walk
 from app.domain.mapping.joint import optimize_sessions
 from app.domain.mapping.params import SlamParams
 from app.domain.upload.session import decode_json_bytes, parse_session
-from app.services.maps import add_session_to_map, remove_session_from_map
+from app.services.maps import add_session_to_map, enqueue_rebuild, remove_session_from_map
 from app.storage import isam_states, maps, queue
 from app.storage.db import Database
 from tests.service.helpers import get_job, insert_session
@@ -51,39 +53,42 @@ def walk(k: int, session_id: int) -> Walk:
     )
 
 
-def run_all(db: Database, *, incremental: bool = False) -> None:
+def run_all(db: Database, *, mode: str = "off") -> None:
+    """Run the worker until the queue is empty; ``mode``: incremental builds "off", "serve" or
+    "check" (``workers.incremental_builds.mode_of``)."""
     settings = Settings(
         database_url=db.url.render_as_string(hide_password=False),
         lease_s=30.0,
         heartbeat_s=5.0,
         poll_s=0.05,
         retry_backoff_s=0.0,
-        incremental_builds=incremental,
+        incremental_builds=mode != "off",
+        incremental_check=mode == "check",
     )
     runner = Worker(db, settings, pipelines={"build_map": BUILD_MAP_STAGES})
     while runner.run_once():
         pass
 
 
-def map_of(db: Database, walks: int, *, incremental: bool = False) -> tuple[int, list[int]]:
+def map_of(db: Database, walks: int, *, mode: str = "off") -> tuple[int, list[int]]:
     """A map of the first ``walks`` simulated walks, each added and built in turn (the other
     uploads' own maps are not built); its id and its sessions."""
     first = insert_session(db, building_uploads()[0])
-    run_all(db, incremental=incremental)
+    run_all(db, mode=mode)
     session_ids = [first.session_id]
     for k in range(1, walks):
-        session_ids.append(add_walk(db, first.map_id, k, incremental=incremental)[0])
+        session_ids.append(add_walk(db, first.map_id, k, mode=mode)[0])
     return first.map_id, session_ids
 
 
-def add_walk(db: Database, map_id: int, k: int, *, incremental: bool) -> tuple[int, str]:
+def add_walk(db: Database, map_id: int, k: int, *, mode: str) -> tuple[int, str]:
     """Upload simulated walk ``k``, add it to map ``map_id`` and build; its session id and the
     build's log."""
     other = insert_session(db, building_uploads()[k])
     with db.transaction() as tx:
         queue.request_cancel(tx, other.job_id)
         job_id = add_session_to_map(tx, map_id, other.session_id, max_attempts=3).job_id
-    run_all(db, incremental=incremental)
+    run_all(db, mode=mode)
     return other.session_id, finished_log(db, job_id)
 
 
@@ -158,10 +163,12 @@ def test_a_map_of_one_walk_has_no_state_and_deleting_a_map_deletes_its_state(
         assert isam_states.state_count(tx) == 0
 
 
-def test_one_walk_added_is_made_in_the_stored_state_after_a_restart(db: Database) -> None:
-    map_id, session_ids = map_of(db, 3, incremental=True)
+def test_one_walk_added_is_checked_against_the_batch_build_after_a_restart(
+    db: Database,
+) -> None:
+    map_id, session_ids = map_of(db, 3, mode="check")
     pipeline.LAST_JOINT_MAPS.clear()  # a restarted worker: nothing of the map in memory
-    added, log = add_walk(db, map_id, 3, incremental=True)
+    added, log = add_walk(db, map_id, 3, mode="check")
     lines = incremental_lines(log)
     assert len(lines) == 1, lines
     assert f"session {added} added in version 3's state" in lines[0]
@@ -173,11 +180,11 @@ def test_one_walk_added_is_made_in_the_stored_state_after_a_restart(db: Database
     assert stored.state.walk_ids == tuple(f"session {s}" for s in [*session_ids, added])
 
 
-def test_one_walk_taken_out_is_made_in_the_stored_state(db: Database) -> None:
-    map_id, session_ids = map_of(db, 3, incremental=True)
+def test_one_walk_taken_out_is_checked_against_the_batch_build(db: Database) -> None:
+    map_id, session_ids = map_of(db, 3, mode="check")
     with db.transaction() as tx:
         job_id = remove_session_from_map(tx, map_id, session_ids[1], max_attempts=3).job_id
-    run_all(db, incremental=True)
+    run_all(db, mode="check")
     lines = incremental_lines(finished_log(db, job_id))
     assert len(lines) == 1, lines
     assert f"session {session_ids[1]} taken out in version 3's state" in lines[0]
@@ -190,18 +197,71 @@ def test_a_stale_state_leaves_the_change_to_the_batch_build(db: Database) -> Non
     with db.read() as tx:
         old = isam_states.current_state(tx, map_id)
     assert old is not None
-    third, _ = add_walk(db, map_id, 2, incremental=False)
+    third, _ = add_walk(db, map_id, 2, mode="off")
     # version 3 with version 2's state: a walk was added behind the state's back
     with db.transaction() as tx:
         version = maps.get_map(tx, map_id).current
         assert version is not None
         isam_states.save_state(tx, map_id=map_id, map_version_id=version.id, state=old.state)
-    fourth, log = add_walk(db, map_id, 3, incremental=True)
+    fourth, log = add_walk(db, map_id, 3, mode="serve")
     lines = incremental_lines(log)
     assert len(lines) == 1, lines
     assert "a batch build (not one walk added to or taken out of" in lines[0]
+    assert "optimize: 4 sessions, " in log  # the batch build's line
     assert current_session_ids(db, map_id) == [*session_ids, third, fourth]
     with db.read() as tx:
         stored = isam_states.current_state(tx, map_id)
     assert stored is not None  # the batch build's state: the next add is incremental again
     assert len(stored.state.walk_ids) == 4
+
+
+def served_tags(db: Database, map_id: int, number: int) -> dict[int, np.ndarray]:
+    """Version ``number``'s tag positions as the store keeps them, m."""
+    with db.read() as tx:
+        version = maps.get_version(tx, map_id, number)
+        return {t.tag_id: np.array(t.position_m) for t in maps.tag_poses(tx, version.id)}
+
+
+def test_one_walk_added_and_one_taken_out_are_served_by_the_engine(db: Database) -> None:
+    """No batch solve: the engine's map is stored as the version (its tags within 1 cm of the
+    batch build a rebuild of the same walks then makes), the engine's state with it, so that
+    the next change, after a restart, is the engine's again."""
+    map_id, session_ids = map_of(db, 3)
+    pipeline.LAST_JOINT_MAPS.clear()  # a restarted worker: nothing of the map in memory
+    added, log = add_walk(db, map_id, 3, mode="serve")
+    lines = incremental_lines(log)
+    assert len(lines) == 1, lines
+    assert f"session {added} added in version 3's state" in lines[0]
+    assert "; served (" in lines[0]
+    assert "warm start" not in log
+    assert "incremental state made" not in log
+    assert "optimize: 4 sessions, 1 rounds" in log
+    assert "optimize: incremental state of the engine kept" in log
+    everyone = [*session_ids, added]
+    assert current_session_ids(db, map_id) == everyone
+    with db.read() as tx:
+        stored = isam_states.current_state(tx, map_id)
+    assert stored is not None
+    assert stored.version_number == 4
+    assert stored.state.walk_ids == tuple(f"session {s}" for s in everyone)
+
+    pipeline.LAST_JOINT_MAPS.clear()
+    with db.transaction() as tx:
+        job_id = remove_session_from_map(tx, map_id, added, max_attempts=3).job_id
+    run_all(db, mode="serve")
+    lines = incremental_lines(finished_log(db, job_id))
+    assert len(lines) == 1, lines
+    assert f"session {added} taken out in version 4's state" in lines[0]
+    assert "; served (" in lines[0]
+    left = session_ids
+    assert current_session_ids(db, map_id) == left
+
+    # the batch build of the same walks, on demand: the served tags within the issue's bound
+    with db.transaction() as tx:
+        _, job_id = enqueue_rebuild(tx, map_id, {}, max_attempts=3)
+    run_all(db, mode="serve")
+    log = finished_log(db, job_id)
+    assert "a batch build (the same walks (a rebuild))" in incremental_lines(log)[0]
+    engine, batch = served_tags(db, map_id, 5), served_tags(db, map_id, 6)
+    assert engine.keys() == batch.keys()
+    assert max(np.linalg.norm(engine[t] - batch[t]) for t in batch) <= TAG_BOUND_M

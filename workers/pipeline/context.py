@@ -110,9 +110,10 @@ class JobContext:
     #: joint optimum; stored with the version (``app.storage.isam_states``); None when the
     #: batch graph is not the tree's (``incremental.from_batch``)
     isam_state: IsamState | None = None
-    #: ``Settings.incremental_builds``: a change of one walk is made in the stored state too
-    #: (``workers.incremental_builds``) and checked against the batch build
-    incremental_builds: bool = False
+    #: ``workers.incremental_builds.mode_of(settings)``: "off"; "serve" (a change of one walk
+    #: made in the stored state and served when the checks pass); "check" (made there too, and
+    #: compared with the batch build, which is served)
+    incremental_builds: str = "off"
     #: build_map with ``auto_tune_trials``: sampler trials by the shift metric before optimizing
     auto_tune_trials: int = 0
     #: build_map with ``ground_truth``: tag id → world_T_tag, for the ground-truth metric

@@ -74,7 +74,9 @@ def optimize_joint(ctx: JobContext) -> None:
     """Several sessions into one map (``app.domain.mapping.joint``): each walk alone with its
     noise estimated, all placed together, one graph; progress by step, a cancel between LM
     iterations' rounds and walks. A session the others' tags cannot place fails the job with the
-    reason (AlignmentError is an InvisibleMapError)."""
+    reason (AlignmentError is an InvisibleMapError). With incremental builds, a change of one
+    walk is made in the map's stored ISAM2 state and, where the checks pass, served without the
+    batch build (``workers.incremental_builds``)."""
     started_s = time.perf_counter()
     names = [f"session {session_id}" for session_id in ctx.session_ids]
 
@@ -94,10 +96,24 @@ def optimize_joint(ctx: JobContext) -> None:
             functools.partial(_stored_session, ctx.db),
             ctx.lease.job_id,
         )
-        if ctx.incremental_builds
+        if ctx.incremental_builds != "off"
         else None
     )
     fingerprints = {name: _fingerprint(s) for name, s in zip(names, ctx.sessions, strict=True)}
+    change, note = incremental if incremental is not None else (None, "")
+    if change is not None and ctx.incremental_builds == "serve":
+        building, served = change
+        ctx.report(0.7)
+        ctx.check_interrupted()
+        engine = incremental_builds.engine_joint_map(building, served, params, ctx.lease.job_id)
+        if isinstance(engine, JointMap):
+            remember_joint_map(map_id, fingerprints, engine)
+            _serve(ctx, engine, started_s)
+            _log_incremental(ctx, f"{note}; served ({_timings(engine)})")
+            ctx.isam_state = building.state()
+            ctx.log("optimize: incremental state of the engine kept")
+            return
+        incremental = change, f"{note}; the batch build decides: {engine}"
     previous, reused = warm_start(map_id, fingerprints, need(ctx.params, "params"))
     if previous is not None:
         ctx.log(
@@ -112,15 +128,26 @@ def optimize_joint(ctx: JobContext) -> None:
         on_progress=on_progress,
     )
     remember_joint_map(map_id, fingerprints, joint)
+    _serve(ctx, joint, started_s)
+    if incremental is not None:  # after the walks' lines: the log keeps its last lines
+        change, note = incremental
+        if change is not None and ctx.incremental_builds == "check":
+            note = f"{note}; {incremental_builds.compared_with_batch(change[1], joint, params)}"
+        _log_incremental(ctx, note)
+    ctx.isam_state, line = incremental_builds.state_of_batch(joint, walks, params, ctx.lease.job_id)
+    ctx.log(line)
+
+
+def _serve(ctx: JobContext, joint: JointMap, started_s: float) -> None:
+    """``joint`` as the job's map, and its lines in the job's log (the map, then each walk)."""
     ctx.joint, ctx.result, ctx.session = joint, joint.map, joint.combined
     stats = joint.map.stats
     if joint.map.detections_used == 0:
         raise PermanentJobError("every tag detection of every session was rejected")
-    timings = ", ".join(f"{k} {v:.0f} ms" for k, v in joint.timings_ms.items())
     ctx.log(
-        f"optimize: {len(ctx.sessions)} sessions, {joint.rounds} rounds, {stats.iterations} "
+        f"optimize: {len(joint.parts)} sessions, {joint.rounds} rounds, {stats.iterations} "
         f"iterations, error {stats.initial_error:.6g} → {stats.final_error:.6g}, "
-        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms ({timings})"
+        f"{(time.perf_counter() - started_s) * 1e3:.0f} ms ({_timings(joint)})"
     )
     for part in joint.parts:
         ctx.log(
@@ -128,19 +155,20 @@ def optimize_joint(ctx: JobContext) -> None:
             f"{len(part.alignment.shared_tags)} shared tags, {part.detections_used} detections "
             f"used; {part.weighting}"
         )
-    if incremental is not None:  # after the walks' lines: the log keeps its last lines
-        served, note = incremental
-        if served is not None:
-            note = f"{note}; {incremental_builds.compared_with_batch(served, joint, params)}"
-        ctx.log(f"optimize: incremental: {note}")
-        logger.info(
-            "job %d: incremental: %s",
-            ctx.lease.job_id,
-            note,
-            extra={"action": "incremental_build", "job_id": ctx.lease.job_id},
-        )
-    ctx.isam_state, line = incremental_builds.state_of_batch(joint, walks, params, ctx.lease.job_id)
-    ctx.log(line)
+
+
+def _timings(joint: JointMap) -> str:
+    return ", ".join(f"{k} {v:.0f} ms" for k, v in joint.timings_ms.items())
+
+
+def _log_incremental(ctx: JobContext, note: str) -> None:
+    ctx.log(f"optimize: incremental: {note}")
+    logger.info(
+        "job %d: incremental: %s",
+        ctx.lease.job_id,
+        note,
+        extra={"action": "incremental_build", "job_id": ctx.lease.job_id},
+    )
 
 
 def _stored_session(db: Database, session_id: int) -> Session | None:

@@ -75,12 +75,12 @@ def run_job(
     control: JobControl,
     retry_backoff_s: float,
     time_budget_s: float = 0.0,
-    incremental_builds: bool = False,
+    incremental_builds: str = "off",
 ) -> JobReport:
     """Run ``stages`` for ``lease``'s job and record how it ended; see the package docstring.
     ``time_budget_s`` > 0: the attempt fails for good (PermanentJobError, with the reason) once
     it has run that long, at the next :meth:`JobContext.check_interrupted`.
-    ``incremental_builds``: ``Settings.incremental_builds`` (``workers.incremental_builds``).
+    ``incremental_builds``: "off", "serve" or "check" (``workers.incremental_builds.mode_of``).
 
     Never raises for an ``Exception`` of a stage (it is recorded on the job), only when recording
     fails too (the database unreachable: the lease then expires and the reaper requeues the job).

@@ -1,11 +1,13 @@
 """Building maps that grow a walk at a time (§10, issue 38): two designs, measured.
 
 Status: a domain engine whose state every batch build of several walks stores with its version
-(``from_batch.py``, ``app.storage.isam_states``) and which the worker runs and checks against the
-batch build with ``INVISIBLE_MAP_INCREMENTAL_BUILDS`` (``changes.py``); not yet what it serves
-(docs/multi-session.md, "Incremental building maps", says what serving it needs).
+(``from_batch.py``, ``app.storage.isam_states``) and which, with
+``INVISIBLE_MAP_INCREMENTAL_BUILDS``, the worker uses for a change of one walk (``changes.py``)
+and serves as the batch build's ``JointMap`` where the batch build's later steps would change
+no walk (``served_map.py``); docs/multi-session.md, "Incremental building maps", says what is
+left.
 
-**gtsam's ISAM2 on the batch build's joint graph** (``isam.py``, the engine to wire in): each
+**gtsam's ISAM2 on the batch build's joint graph** (``isam.py``, the engine the worker uses): each
 walk's factors are those of its chain in the batch graph, known by their indices in the tree, so
 an add puts one walk's factors in and a removal takes them out (ISAM2 drops the variables left
 without factors), and the tree is updated until it relinearizes nothing. Its graph is the batch
@@ -64,6 +66,7 @@ isam.py        IsamBuilding: the building map in an ISAM2 tree (build, add, remo
 isam_state.py  IsamState, IsamWalkState: what makes the tree again, as rows
 from_batch.py  state_from_batch: the state of a batch build's optimum, no solve
 changes.py     one_walk_change, apply_change: which change the engine makes from a stored state
+served_map.py  served_joint_map: the engine's map as the batch build's JointMap, or why not
 state.py     BuildingState, WalkSummary, Walk, fingerprints, StaleStateError
 summary.py   one walk's summary (gtsam: its graph linearized, its poses eliminated)
 building.py  the building problem: tags and placements under the summaries

@@ -86,6 +86,7 @@ def state_from_batch(
         )
         graph_tags.update(inputs.tag_rows)
         map_T_phone = joint.map.world_T_phone[part.pose_rows]
+        alone_tag_ids = np.asarray(fit.alone.tag_ids, dtype=np.int64)
         states.append(
             IsamWalkState(
                 walk_id=walk.walk_id,
@@ -97,6 +98,10 @@ def state_from_batch(
                 map_T_world=np.array(part.alignment.map_T_world, dtype=np.float64),
                 keyframes=np.asarray(inputs.keyframes, dtype=np.int64),
                 map_T_keyframe=np.array(map_T_phone[inputs.keyframes], dtype=np.float64),
+                alone_tag_ids=alone_tag_ids,
+                world_T_tag_alone=np.array(fit.alone.world_T_tag, dtype=np.float64).reshape(
+                    len(alone_tag_ids), 4, 4
+                ),
             )
         )
         next_key += session.num_poses

@@ -78,7 +78,7 @@ _TAG_KEY = ord("l") << 56
 
 
 @dataclass(slots=True, kw_only=True, eq=False)
-class _WalkInTree:
+class WalkInTree:
     """A walk in the tree: what makes its factors, where they are, where its poses are keyed."""
 
     walk_id: str
@@ -95,6 +95,12 @@ class _WalkInTree:
     tag_ids: frozenset[int]
     #: its factors' indices in the tree (a gauge prior it holds among them)
     factor_indices: list[int]
+    #: which of its sightings the graph uses (the parameters' screening of its session)
+    screening: Screening
+    #: its own map's tags alone, in its own world (``IsamWalkState.alone_tag_ids``)
+    alone_tags: dict[int, FloatArray]
+    #: its fit alone, when this process made it or was given it (a restored walk has none)
+    fit: WalkFit | None = None
 
 
 class IsamBuilding:
@@ -109,7 +115,7 @@ class IsamBuilding:
         settings.relinearizeSkip = 1
         settings.findUnusedFactorSlots = True  # a removed walk's slots serve the next one
         self._isam = gtsam.ISAM2(settings)
-        self._walks: list[_WalkInTree] = []
+        self._walks: list[WalkInTree] = []
         #: the map frame (the first walk's world) from the tree's: the identity until the
         #: walk that held the gauge is removed
         self._map_T_graph = np.eye(4)
@@ -118,6 +124,15 @@ class IsamBuilding:
     @property
     def walk_ids(self) -> tuple[str, ...]:
         return tuple(w.walk_id for w in self._walks)
+
+    @property
+    def walks(self) -> tuple[WalkInTree, ...]:
+        """The walks in the map's order, as the tree holds them (read, do not change)."""
+        return tuple(self._walks)
+
+    def map_T_world(self, walk: WalkInTree) -> FloatArray:
+        """(4, 4) where ``walk``'s world sits in the map frame."""
+        return np.asarray(self._map_T_graph @ walk.graph_T_world, dtype=np.float64)
 
     # ------------------------------------------------------------------ the three changes
 
@@ -164,7 +179,9 @@ class IsamBuilding:
                 positions.setdefault(t, []).append(pose[:3, 3])
                 rotations.setdefault(t, pose[:3, :3])
             building._walks.append(
-                building._walk(walk, plan.sessions[s], fit, inputs, alignment.map_T_world)
+                building._walk(
+                    walk, plan.sessions[s], plan.screenings[s], fit, inputs, alignment.map_T_world
+                )
             )
             building._next_key += plan.sessions[s].num_poses
         for t, p in positions.items():
@@ -212,7 +229,7 @@ class IsamBuilding:
             if not self._isam.valueExists(L(t)):
                 pose = alone[t] if t in alone else _initial(inputs, t)
                 values.insert(L(t), to_pose3(graph_T_world @ pose))
-        added = self._walk(walk, plan.sessions[0], fit, inputs, graph_T_world)
+        added = self._walk(walk, plan.sessions[0], plan.screenings[0], fit, inputs, graph_T_world)
         clock.lap("graph")
         result = self._isam.update(graph, values)
         self._walks.append(added)
@@ -251,6 +268,43 @@ class IsamBuilding:
         clock.lap("isam")
         return self.served(clock, updates)
 
+    def odometry_scale_drop(self, walk_id: str, scale: float) -> float | None:
+        """How much the map's cost (χ², 2 × gtsam's error) drops when walk ``walk_id``'s
+        odometry lengths are multiplied by ``scale``: the batch build's scale test
+        (``joint.scale.tested_scales``) made in the tree. The walk's factors are swapped for
+        ones made from its scaled odometry, the tree settles, the cost is read, and its own
+        factors are swapped back (the tree then settles where it was, to the relinearization
+        threshold). None where the tree cannot test it: the walk holding the gauge, whose
+        scaling moves the map frame itself, or other keyframes once scaled."""
+        ids = self.walk_ids
+        s = ids.index(walk_id)
+        walk = self._walks[s]
+        if s == 0:
+            return None
+        scaled = dataclasses.replace(
+            walk.session, world_T_phone=_scaled_translations(walk.session.world_T_phone, scale)
+        )
+        scaled_inputs = self._inputs(scaled, walk.screening, walk.noise_scales)
+        if not np.array_equal(scaled_inputs.keyframes, walk.keyframes):
+            return None
+        unscaled = 2.0 * self._cost()
+        self._swap_factors(walk, scaled_inputs)
+        rescaled = 2.0 * self._cost()
+        self._swap_factors(walk, self._inputs(walk.session, walk.screening, walk.noise_scales))
+        return unscaled - rescaled
+
+    def _swap_factors(self, walk: WalkInTree, inputs: GraphInputs) -> None:
+        """``walk``'s factors in the tree replaced by those of ``inputs`` (its session, scaled
+        or not), on the same variables; settled."""
+        graph = chain_graph(inputs, self._fixed, key_offset=walk.key_offset, gauge=False)
+        result = self._isam.update(graph, gtsam.Values(), walk.factor_indices)
+        walk.factor_indices = [int(k) for k in result.getNewFactorsIndices()]
+        self._settle()
+
+    def _cost(self) -> float:
+        """gtsam's error of the tree's factors at its estimate (removed slots skipped)."""
+        return float(self._isam.getFactorsUnsafe().error(self._isam.calculateEstimate()))
+
     # ------------------------------------------------------------------ state as data
 
     def state(self) -> IsamState:
@@ -268,6 +322,8 @@ class IsamBuilding:
                 keyframes=w.keyframes.copy(),
                 map_T_keyframe=self._map_T_graph
                 @ graph_T[_rows(keys, _POSE_KEY + w.key_offset + w.keyframes)],
+                alone_tag_ids=np.array(sorted(w.alone_tags), dtype=np.int64),
+                world_T_tag_alone=_stacked([w.alone_tags[t] for t in sorted(w.alone_tags)]),
             )
             for w in self._walks
         )
@@ -310,7 +366,7 @@ class IsamBuilding:
             for i, pose in zip(stored.keyframes.tolist(), stored.map_T_keyframe, strict=True):
                 values.insert(X(stored.key_offset + i), to_pose3(pose))
             building._walks.append(
-                _WalkInTree(
+                WalkInTree(
                     walk_id=walk.walk_id,
                     fingerprint=stored.fingerprint,
                     session=session,
@@ -322,6 +378,8 @@ class IsamBuilding:
                     graph_T_world=stored.map_T_world.copy(),
                     tag_ids=frozenset(inputs.tag_rows),
                     factor_indices=[],
+                    screening=screening,
+                    alone_tags=stored.alone_tag_poses(),
                 )
             )
         for t, pose in zip(state.tag_ids.tolist(), state.map_T_tag, strict=True):
@@ -379,11 +437,12 @@ class IsamBuilding:
         self,
         walk: Walk,
         session: Session,
+        screening: Screening,
         fit: WalkFit,
         inputs: GraphInputs,
         graph_T_world: FloatArray,
-    ) -> _WalkInTree:
-        return _WalkInTree(
+    ) -> WalkInTree:
+        return WalkInTree(
             walk_id=walk.walk_id,
             fingerprint=walk_fingerprint(walk.session),
             session=session,
@@ -395,10 +454,13 @@ class IsamBuilding:
             graph_T_world=np.array(graph_T_world, dtype=np.float64),
             tag_ids=frozenset(inputs.tag_rows),
             factor_indices=[],
+            screening=screening,
+            alone_tags=fit.alone.tag_poses(),
+            fit=fit,
         )
 
     def _take_indices(
-        self, walks: Sequence[_WalkInTree], counts: Sequence[int], result: gtsam.ISAM2Result
+        self, walks: Sequence[WalkInTree], counts: Sequence[int], result: gtsam.ISAM2Result
     ) -> None:
         """Each walk's share of the factor indices an update gave its new factors, in order."""
         indices = [int(k) for k in result.getNewFactorsIndices()]
@@ -442,6 +504,18 @@ class IsamBuilding:
         return keys[rows] - _TAG_KEY, self._map_T_graph @ graph_T[rows]
 
 
+def _scaled_translations(world_T_phone: FloatArray, scale: float) -> FloatArray:
+    """Poses with their translations × ``scale`` about the world's origin (how
+    ``SessionAlignment.place`` scales a walk's odometry)."""
+    scaled = np.array(world_T_phone, dtype=np.float64)
+    scaled[..., :3, 3] *= scale
+    return scaled
+
+
+def _stacked(poses: Sequence[FloatArray]) -> FloatArray:
+    return np.stack(poses) if poses else np.empty((0, 4, 4))
+
+
 def _estimate(values: gtsam.Values) -> tuple[IntArray, FloatArray]:
     """Every variable's key (sorted, as ``Values`` keeps them) and pose, (V,) and (V, 4, 4)."""
     keys = np.array(list(values.keys()), dtype=np.int64)
@@ -474,7 +548,7 @@ def _turn_and_shift(graph_T_phone: FloatArray, world_T_phone: FloatArray) -> Flo
     return make_pose(turn, world_T_phone[:3, 3] - turn @ graph_T_phone[:3, 3])
 
 
-def _require_placed(walks: Sequence[_WalkInTree]) -> None:
+def _require_placed(walks: Sequence[WalkInTree]) -> None:
     """Every walk shares at least ``MIN_SHARED_TAGS`` tags with the others, and the walks form
     one group through such tags (as a batch build of them would place them)."""
     if len(walks) < 2:

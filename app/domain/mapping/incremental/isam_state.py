@@ -46,7 +46,7 @@ from .state import (
 )
 
 #: Version of the serialized form; :meth:`IsamState.from_dict` refuses any other.
-ISAM_STATE_FORMAT = "isam-building/1"
+ISAM_STATE_FORMAT = "isam-building/2"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -61,6 +61,10 @@ class IsamWalkState:
     map_T_world: (4, 4) its world placed in the map frame (the poses between keyframes are
         its odometry placed there, corrected as the keyframes around them are).
     keyframes: (K,) its pose rows in the graph; map_T_keyframe: (K, 4, 4) their optimum, m.
+    alone_tag_ids: (A,) the tags of its own map alone, sorted; world_T_tag_alone: (A, 4, 4) their
+        poses there, in its own world, m: what the batch build places it by and tests its
+        odometry scale on (``joint.placing``), so that the served map's report and the scale
+        test's guard need no walk fitted again (``served_map.py``).
     """
 
     walk_id: str
@@ -72,6 +76,14 @@ class IsamWalkState:
     map_T_world: FloatArray
     keyframes: IntArray
     map_T_keyframe: FloatArray
+    alone_tag_ids: IntArray
+    world_T_tag_alone: FloatArray
+
+    def alone_tag_poses(self) -> dict[int, FloatArray]:
+        """Its own map's tags alone, by id, in its own world."""
+        return {
+            int(t): pose for t, pose in zip(self.alone_tag_ids, self.world_T_tag_alone, strict=True)
+        }
 
     def to_dict(self) -> dict[str, Any]:
         """One table row: plain values and ``arrays`` (``.npz`` bytes)."""
@@ -86,6 +98,8 @@ class IsamWalkState:
                 map_T_world=self.map_T_world[:3, :],
                 keyframes=self.keyframes,
                 map_T_keyframe=self.map_T_keyframe[:, :3, :],
+                alone_tag_ids=self.alone_tag_ids,
+                world_T_tag_alone=self.world_T_tag_alone[:, :3, :],
             ),
         }
 
@@ -102,6 +116,8 @@ class IsamWalkState:
             map_T_world=full_poses(arrays["map_T_world"]),
             keyframes=arrays["keyframes"].astype(np.int64),
             map_T_keyframe=full_poses(arrays["map_T_keyframe"]),
+            alone_tag_ids=arrays["alone_tag_ids"].astype(np.int64),
+            world_T_tag_alone=full_poses(arrays["world_T_tag_alone"]),
         )
 
 

@@ -79,6 +79,18 @@ def align_walks(
     return tuple(_alignment(s, datasets, world_T_tag, placed, odometry_scale) for s in range(n))
 
 
+def placed_alignments(
+    datasets: Sequence[str],
+    world_T_tag: Sequence[Mapping[int, FloatArray]],
+    placed: Mapping[int, FloatArray],
+) -> tuple[SessionAlignment, ...]:
+    """The walks' alignments at placements made elsewhere (``placed``: each walk's
+    ``map_T_world``, e.g. the ISAM2 engine's), unscaled: their shared tags and distances from
+    the others', as :func:`align_walks` reports its own placements."""
+    ones = dict.fromkeys(range(len(datasets)), 1.0)
+    return tuple(_alignment(s, datasets, world_T_tag, placed, ones) for s in range(len(datasets)))
+
+
 def walk_placements(
     datasets: Sequence[str],
     world_T_tag: Sequence[Mapping[int, FloatArray]],

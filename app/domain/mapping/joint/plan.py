@@ -249,27 +249,13 @@ def joint_inputs(
     variance_scales: Mapping[str, tuple[float, float]] | None,
     initial: JointMap | None,
 ) -> JointInputs:
-    combined, starts, detection_starts = combine_sessions(plan)
-    screening = _combined_screening(plan, starts, detection_starts)
     base = np.stack([fit.noise_scales for fit in plan.fits])
     for s, dataset in enumerate(plan.datasets):
         tag_k, odometry_k = (variance_scales or {}).get(dataset, (1.0, 1.0))
         base[s] *= (odometry_k, odometry_k, tag_k, tag_k)
-    climbs = tuple(tuple(walk_climbs(session)) for session in plan.sessions)
-    added = np.concatenate(
-        [
-            stairs_variance(session, params, walk)
-            for session, walk in zip(plan.sessions, climbs, strict=True)
-        ]
-    )
-    inputs = GraphInputs(
-        combined,
-        params,
-        screening=screening,
-        chain_starts=starts,
-        noise_scales=base,
-        odometry_added_variance=added,
-    )
+    graph = _JointGraph.of(plan, params, base)
+    combined, starts = graph.combined, graph.starts
+    added = graph.added_variance
     # start: each walk's own optimum, placed; each tag where the walks put it (mean position)
     ends = [*starts[1:], combined.num_poses]
     world_T_phone = np.concatenate(
@@ -308,23 +294,100 @@ def joint_inputs(
             for t, pose in initial.map.tag_poses().items():
                 if t in world_T_tag:
                     world_T_tag[t] = new_T_previous @ pose
-    return JointInputs(
-        plan=plan,
-        combined=combined,
-        starts=starts,
-        detection_starts=detection_starts,
-        screening=screening,
-        inputs=inputs,
-        base_scales=base,
-        start_T_keyframe=world_T_phone[inputs.keyframes],
-        start_T_tag=world_T_tag,
-        start_disagreement=disagreement,
-        added_variance=added,
-        climbs=climbs,
-        cost_alone=_costs_alone(
-            plan, params, [added[a:b] for a, b in zip(starts, ends, strict=True)]
-        ),
+    return graph.inputs_from(
+        world_T_phone,
+        world_T_tag,
+        disagreement,
+        _costs_alone(plan, params, [added[a:b] for a, b in zip(starts, ends, strict=True)]),
     )
+
+
+def joint_inputs_at(
+    plan: JointPlan,
+    params: SlamParams,
+    base_scales: FloatArray,
+    cost_alone: FloatArray,
+    world_T_phone: FloatArray,
+    world_T_tag: Mapping[int, FloatArray],
+) -> JointInputs:
+    """The joint graph's inputs of ``plan`` with each walk's noise scales ``base_scales``
+    ((S, 4)) and cost alone ``cost_alone`` ((S,)), at the map ``world_T_phone`` ((N, 4, 4),
+    the combined session's poses) and ``world_T_tag``: an optimum made elsewhere (the ISAM2
+    engine's, ``incremental.served_map``), which the batch build's report, weighing and residuals
+    then read as they read their own. ``plan.fits`` is not read."""
+    graph = _JointGraph.of(plan, params, np.array(base_scales, dtype=np.float64))
+    return graph.inputs_from(
+        world_T_phone, dict(world_T_tag), np.ones(len(plan.datasets)), cost_alone
+    )
+
+
+@dataclass(slots=True, kw_only=True, eq=False)
+class _JointGraph:
+    """The walks of a plan laid out as one graph (no start yet)."""
+
+    plan: JointPlan
+    combined: Session
+    starts: list[int]
+    detection_starts: list[int]
+    screening: Screening
+    climbs: tuple[tuple[Climb, ...], ...]
+    added_variance: FloatArray
+    base_scales: FloatArray
+    inputs: GraphInputs
+
+    @classmethod
+    def of(cls, plan: JointPlan, params: SlamParams, base_scales: FloatArray) -> _JointGraph:
+        combined, starts, detection_starts = combine_sessions(plan)
+        screening = combined_screening(plan, starts, detection_starts)
+        climbs = tuple(tuple(walk_climbs(session)) for session in plan.sessions)
+        added = np.concatenate(
+            [
+                stairs_variance(session, params, walk)
+                for session, walk in zip(plan.sessions, climbs, strict=True)
+            ]
+        )
+        inputs = GraphInputs(
+            combined,
+            params,
+            screening=screening,
+            chain_starts=starts,
+            noise_scales=base_scales,
+            odometry_added_variance=added,
+        )
+        return cls(
+            plan=plan,
+            combined=combined,
+            starts=starts,
+            detection_starts=detection_starts,
+            screening=screening,
+            climbs=climbs,
+            added_variance=added,
+            base_scales=base_scales,
+            inputs=inputs,
+        )
+
+    def inputs_from(
+        self,
+        world_T_phone: FloatArray,
+        world_T_tag: dict[int, FloatArray],
+        disagreement: FloatArray,
+        cost_alone: FloatArray,
+    ) -> JointInputs:
+        return JointInputs(
+            plan=self.plan,
+            combined=self.combined,
+            starts=self.starts,
+            detection_starts=self.detection_starts,
+            screening=self.screening,
+            inputs=self.inputs,
+            base_scales=self.base_scales,
+            start_T_keyframe=world_T_phone[self.inputs.keyframes],
+            start_T_tag=world_T_tag,
+            start_disagreement=disagreement,
+            added_variance=self.added_variance,
+            climbs=self.climbs,
+            cost_alone=cost_alone,
+        )
 
 
 def _costs_alone(plan: JointPlan, params: SlamParams, added: Sequence[FloatArray]) -> FloatArray:
@@ -418,10 +481,11 @@ def combine_sessions(plan: JointPlan) -> tuple[Session, list[int], list[int]]:
     return combined, starts, detection_starts
 
 
-def _combined_screening(
+def combined_screening(
     plan: JointPlan, starts: list[int], detection_starts: list[int]
 ) -> Screening:
-    """The sessions' own screenings, end to end (rows renumbered, warnings named)."""
+    """The sessions' own screenings, end to end (rows renumbered, warnings named): the joint
+    graph's, as ``combine_sessions`` lays the sessions out."""
     rejections: list[Rejection] = []
     for s, screening in enumerate(plan.screenings):
         rejections.extend(

@@ -8,12 +8,12 @@ rescaled, down-weighted or with tags set apart.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from app.domain.frames import FloatArray
-from app.domain.mapping.joint.model import SessionPart
+from app.domain.mapping.joint.model import SessionPart, WalkFit
 from app.domain.mapping.joint.plan import JointInputs, JointPlan
 from app.domain.mapping.joint.stairs import StairLink, stair_link_trust, tag_levels
 from app.domain.mapping.joint.weights import MAX_DISAGREEMENT_FACTOR, Weighing
@@ -97,7 +97,11 @@ def session_parts(
     disagreement: FloatArray,
     weighing: Weighing,
     scale_drops: Mapping[int, float],
+    fits: Sequence[WalkFit | None] | None = None,
 ) -> tuple[SessionPart, ...]:
+    """Each walk's share of the map ``result``. ``fits``: the walks' fits alone (default the
+    plan's); None for a walk whose fit is not at hand (an incremental map's walks kept from the
+    stored state: their part has no noise estimate and no map alone)."""
     plan = joint.plan
     ends = [*joint.starts[1:], joint.combined.num_poses]
     detection_ends = [*joint.detection_starts[1:], len(joint.combined.detections)]
@@ -128,7 +132,7 @@ def session_parts(
             tag_chi2_by_row[r] for r in range(rows.start, rows.stop) if r in tag_chi2_by_row
         ]
         local = tuple(sorted(t for w, t in splits if w == s))
-        fit = plan.fits[s]
+        fit = plan.fits[s] if fits is None else fits[s]
         parts.append(
             SessionPart(
                 dataset=dataset,
@@ -147,7 +151,7 @@ def session_parts(
                 detections_used=int(used.sum()),
                 detections_rejected=int((~used).sum()),
                 tag_chi2_mean=float(np.mean(session_chi2)) if session_chi2 else math.nan,
-                noise=fit.noise,
+                noise=None if fit is None else fit.noise,
                 noise_scales=inputs.noise_scales[s].copy(),
                 disagreement_factor=float(disagreement[s]),
                 cost_alone=float(joint.cost_alone[s]),
@@ -163,7 +167,7 @@ def session_parts(
                     if note
                 ),
                 stair_links=tuple(links[s]),
-                alone=fit.alone,
+                alone=None if fit is None else fit.alone,
                 fit=fit,
             )
         )
