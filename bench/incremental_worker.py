@@ -16,7 +16,9 @@ upload's own build is canceled), then, each timed in wall seconds from the enque
   session ids, incremental builds off); it stores the ISAM2 state the next add starts from;
 - *add, engine* and *remove, engine*: with incremental builds on ("serve"), walk N + 1 added
   (``add_session_to_map``) and taken out again (``remove_session_from_map``), three times; the
-  worker's warm-start cache (``workers.pipeline.LAST_JOINT_MAPS``) is cleared before every job,
+  worker's memory (its warm-start cache ``workers.pipeline.LAST_JOINT_MAPS`` and its parsed
+  walks ``workers.pipeline.loading.PARSED_SESSIONS``) is cleared before every job (unless
+  ``--keep-worker-memory``: a long-lived worker's jobs),
   so that each starts as a restarted worker's would (from the state in the database);
 - *add, batch path*: once, the same add with incremental builds off (cache cleared too).
 
@@ -67,7 +69,7 @@ from app.storage.orm import JobStageRun, JobState  # noqa: E402
 from app.storage.sessions import StoredUpload  # noqa: E402
 from workers import pipeline  # noqa: E402
 from workers.main import Worker  # noqa: E402
-from workers.pipeline import BUILD_MAP_STAGES  # noqa: E402
+from workers.pipeline import BUILD_MAP_STAGES, loading  # noqa: E402
 
 SIZES = (5, 10, 20, 30)
 SIMULATED_POSES = 1_200
@@ -75,6 +77,8 @@ SEED = 7
 REPETITIONS = 3
 MAX_ATTEMPTS = 3
 INCREMENTAL_MARK = "optimize: incremental: "
+#: ``--keep-worker-memory``: the worker's caches kept between jobs (else cleared before each)
+KEEP_WORKER_MEMORY = False
 SERVED_MARK = "; served ("
 
 
@@ -99,7 +103,14 @@ def main() -> int:
         "--sizes", type=int, nargs="+", default=list(SIZES), help="map sizes N (5 10 20 30)"
     )
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument(
+        "--keep-worker-memory",
+        action="store_true",
+        help="keep the worker's caches between jobs (a long-lived worker; default: cleared)",
+    )
     args = parser.parse_args()
+    global KEEP_WORKER_MEMORY
+    KEEP_WORKER_MEMORY = args.keep_worker_memory
     handler = IncrementalLines()
     pipeline_logger = logging.getLogger("workers.pipeline")
     pipeline_logger.addHandler(handler)
@@ -171,6 +182,7 @@ def one_size(n: int, handler: IncrementalLines) -> dict[str, Any]:
         finally:
             db.dispose()
             pipeline.LAST_JOINT_MAPS.clear()
+            loading.PARSED_SESSIONS.clear()
     return row
 
 
@@ -219,7 +231,9 @@ def timed_job(
 ) -> dict[str, Any]:
     """Enqueue a job (``enqueue``, in one transaction) and run the worker until the queue is
     empty, the warm-start cache cleared first; the job's timings and what its log says."""
-    pipeline.LAST_JOINT_MAPS.clear()  # a restarted worker: nothing of the map in memory
+    if not KEEP_WORKER_MEMORY:  # a restarted worker: nothing of the map in memory
+        pipeline.LAST_JOINT_MAPS.clear()
+        loading.PARSED_SESSIONS.clear()
     started_s, started_cpu_s = time.perf_counter(), time.process_time()
     try:
         with db.transaction() as tx:

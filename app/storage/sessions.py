@@ -25,7 +25,7 @@ import hashlib
 import sqlite3
 import struct
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -344,6 +344,15 @@ def _build_taking_in(
 
 
 # --------------------------------------------------------------------------- reading
+
+
+def raw_sha256s(db_session: Session, session_ids: Sequence[int]) -> dict[int, str]:
+    """The SHA-256 of each stored upload by session id (ids not stored left out): what a
+    worker's cache of parsed sessions knows an upload by."""
+    rows = db_session.execute(
+        select(SessionRow.id, SessionRow.raw_sha256).where(SessionRow.id.in_(list(session_ids)))
+    )
+    return {int(session_id): str(sha) for session_id, sha in rows}
 
 
 def get_session(db_session: Session, session_id: int) -> SessionInfo:

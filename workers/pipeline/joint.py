@@ -16,10 +16,11 @@ from app.domain.mapping.joint import JointMap, optimize_sessions
 from app.domain.mapping.params import SlamParams
 from app.domain.upload.session import Session
 from app.storage.db import Database
+from app.storage.sessions import raw_sha256s
 from workers import incremental_builds
 
 from .context import JobContext, PermanentJobError, need
-from .loading import load_session_upload
+from .loading import PARSED_SESSIONS, load_session_upload
 
 #: the package's one logger (its records keep the name they had before the split)
 logger = logging.getLogger("workers.pipeline")
@@ -172,7 +173,15 @@ def _log_incremental(ctx: JobContext, note: str) -> None:
 
 
 def _stored_session(db: Database, session_id: int) -> Session | None:
-    """A stored session by id, None when it is gone (a walk taken out of a building map)."""
+    """A stored session by id, None when it is gone (a walk taken out of a building map): from
+    this process's cache of parsed walks when it holds it (``loading.PARSED_SESSIONS``)."""
+    with db.read() as tx:
+        digest = raw_sha256s(tx, [session_id]).get(session_id)
+    if digest is None:
+        return None
+    key = (db.url.render_as_string(hide_password=True), session_id, digest)
+    if (kept := PARSED_SESSIONS.get(key)) is not None:
+        return kept
     try:
         return load_session_upload(db, session_id)[1]
     except PermanentJobError:
