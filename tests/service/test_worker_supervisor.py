@@ -129,7 +129,13 @@ def test_the_job_of_a_killed_worker_process_is_requeued_at_once(
         info = get_job(db, job_id)
         assert info.attempts == 2
         assert "lease expired (worker lost); requeued" in info.log_tail
-        assert worker_pids(db) == set(supervisor.pids)  # the dead one's row is gone
+        # the dead one's row is gone, the replacement's alive (a row counts as alive for 1.5 s
+        # after its last beat, which a loaded machine can make late)
+        wait_for(
+            lambda: worker_pids(db) == set(supervisor.pids),
+            timeout_s=20,
+            what="the worker rows to be the live processes'",
+        )
     finally:
         supervisor.stop(timeout_s=20)
 
