@@ -20,7 +20,7 @@ from app.storage.sessions import raw_sha256s
 from workers import incremental_builds
 
 from .context import JobContext, PermanentJobError, need
-from .loading import PARSED_SESSIONS, load_session_upload
+from .loading import PARSED_SESSIONS, load_session_upload, parsed_session_key
 
 #: the package's one logger (its records keep the name they had before the split)
 logger = logging.getLogger("workers.pipeline")
@@ -179,8 +179,7 @@ def _stored_session(db: Database, session_id: int) -> Session | None:
         digest = raw_sha256s(tx, [session_id]).get(session_id)
     if digest is None:
         return None
-    key = (db.url.render_as_string(hide_password=True), session_id, digest)
-    if (kept := PARSED_SESSIONS.get(key)) is not None:
+    if (kept := PARSED_SESSIONS.get(parsed_session_key(db, session_id, digest))) is not None:
         return kept
     try:
         return load_session_upload(db, session_id)[1]

@@ -78,10 +78,9 @@ def load_walks(ctx: JobContext, session_ids: list[int]) -> list[Session]:
     db = ctx.db
     with db.read() as tx:
         digests = raw_sha256s(tx, session_ids)
-    url = db.url.render_as_string(hide_password=True)
     walks, kept = [], 0
     for session_id in session_ids:
-        key = (url, session_id, digests.get(session_id, ""))
+        key = parsed_session_key(db, session_id, digests.get(session_id, ""))
         session = PARSED_SESSIONS.get(key)
         if session is not None:
             PARSED_SESSIONS.move_to_end(key)
@@ -100,6 +99,12 @@ def load_walks(ctx: JobContext, session_ids: list[int]) -> list[Session]:
     if kept:
         ctx.log(f"load: {kept} of {len(session_ids)} sessions as this worker parsed them before")
     return walks
+
+
+def parsed_session_key(db: Database, session_id: int, digest: str) -> tuple[str, int, str]:
+    """A stored upload's key in :data:`PARSED_SESSIONS`: its database, session id and SHA-256
+    (``digest``, "" when the session is not stored: never kept)."""
+    return (db.url.render_as_string(hide_password=True), session_id, digest)
 
 
 def _read_only(session: Session) -> Session:

@@ -5,8 +5,8 @@
 The later stages of a build (evaluation, the corridor skeleton, the documents) read a
 ``JointMap``: the map with its residuals and tag covariances, and per walk a ``SessionPart``
 saying how it was placed and why it weighs what it does. Here the engine's optimum is read
-through the batch build's own code (``joint.plan.joint_inputs_at``, ``slam.map_result``,
-``joint.report.session_parts``), so the served figures are the ones the batch build would
+through the batch build's own code (``joint.plan.joint_inputs_at``,
+``joint.report.report_as_planned``), so the served figures are the ones the batch build would
 compute at the same optimum; no solve is run.
 
 The engine's graph is the batch build's step 4 only. Before serving, the batch build's later
@@ -36,13 +36,13 @@ import numpy as np
 from app.domain.mapping.joint.model import JointMap
 from app.domain.mapping.joint.placing import odometry_scale_candidates, placed_alignments
 from app.domain.mapping.joint.plan import JointPlan, joint_inputs_at
-from app.domain.mapping.joint.report import joint_warnings, session_parts
+from app.domain.mapping.joint.report import report_as_planned
 from app.domain.mapping.joint.scale import MIN_SCALE_COVERAGE, SCALE_TEST_QUANTILE
 from app.domain.mapping.joint.stairs import stairs_on
 from app.domain.mapping.joint.weights import factors_changed, weigh_walks, worst_split
 from app.domain.mapping.noise import chi2_quantile
 from app.domain.mapping.params import SlamParams
-from app.domain.mapping.slam import Solution, build_problem, map_result, values_from
+from app.domain.mapping.slam import Solution, build_problem, values_from
 
 from .isam import IsamBuilding
 from .updates import IncrementalMap
@@ -127,16 +127,14 @@ def served_joint_map(
         s = int(np.argmax(weighing.factors))
         return f"{datasets[s]} would be down-weighted ×{weighing.factors[s]:.2f}"
     checked_s = time.perf_counter()
-    result = map_result(
-        inputs,
+    result, parts = report_as_planned(
+        joint,
         params,
         solution,
+        weighing,
         build_ms=0.0,
         optimize_ms=sum(served.timings_ms.values()),
-        warnings=joint_warnings(joint, frozenset(), {}, ones, weighing, {}),
-    )
-    parts = session_parts(
-        joint, inputs, result, frozenset(), ones, weighing, {}, fits=[w.fit for w in walks]
+        fits=[w.fit for w in walks],
     )
     done_s = time.perf_counter()
     return JointMap(

@@ -18,7 +18,8 @@ from app.domain.mapping.joint.plan import JointInputs, JointPlan
 from app.domain.mapping.joint.stairs import StairLink, stair_link_trust, tag_levels
 from app.domain.mapping.joint.weights import MAX_DISAGREEMENT_FACTOR, Weighing
 from app.domain.mapping.map_result import MapResult
-from app.domain.mapping.slam import GraphInputs
+from app.domain.mapping.params import SlamParams
+from app.domain.mapping.slam import GraphInputs, Solution, map_result
 
 
 def joint_warnings(
@@ -87,6 +88,33 @@ def _scale_note(s: int, plan: JointPlan, scale_drops: Mapping[int, float]) -> st
         f"used: the map's cost {'fell' if drop > 0 else 'rose'} by {abs(drop):.1f}, which a "
         f"drift explains as well"
     )
+
+
+def report_as_planned(
+    joint: JointInputs,
+    params: SlamParams,
+    solution: Solution,
+    weighing: Weighing,
+    *,
+    build_ms: float,
+    optimize_ms: float,
+    fits: Sequence[WalkFit | None] | None = None,
+) -> tuple[MapResult, tuple[SessionPart, ...]]:
+    """The map of ``joint``'s graph as planned (no tag set apart, no walk's variances raised)
+    solved at ``solution``, and each walk's part: what the build with the variances as given
+    serves, and what the ISAM2 engine's map is served as (``incremental.served_map``).
+    ``fits``: as :func:`session_parts`'s."""
+    ones = np.ones(len(joint.plan.datasets))
+    result = map_result(
+        joint.inputs,
+        params,
+        solution,
+        build_ms=build_ms,
+        optimize_ms=optimize_ms,
+        warnings=joint_warnings(joint, frozenset(), {}, ones, weighing, {}),
+    )
+    parts = session_parts(joint, joint.inputs, result, frozenset(), ones, weighing, {}, fits=fits)
+    return result, parts
 
 
 def session_parts(

@@ -27,7 +27,7 @@ from app.domain.mapping.joint.plan import (
     joint_inputs,
     plan_sessions,
 )
-from app.domain.mapping.joint.report import joint_warnings, session_parts
+from app.domain.mapping.joint.report import joint_warnings, report_as_planned, session_parts
 from app.domain.mapping.joint.scale import tested_scales
 from app.domain.mapping.joint.weights import Weighing, factors_changed, weigh_walks, worst_split
 from app.domain.mapping.params import SlamParams
@@ -196,15 +196,14 @@ def _as_given_map(
     ones = np.ones(len(plan.datasets))
     weighing = weigh_walks(joint, joint.inputs, params, solution, ones, frozenset())
     weighing = dataclasses.replace(weighing, factors=ones, significant=np.zeros_like(ones, bool))
-    result = map_result(
-        joint.inputs,
+    result, parts = report_as_planned(
+        joint,
         params,
         solution,
+        weighing,
         build_ms=plan.timings_ms.get("walks_alone", 0.0) + plan.timings_ms.get("placing", 0.0),
         optimize_ms=(optimized - solved) * 1e3,
-        warnings=joint_warnings(joint, frozenset(), {}, ones, weighing, {}),
     )
-    parts = session_parts(joint, joint.inputs, result, frozenset(), ones, weighing, {})
     parts = tuple(
         dataclasses.replace(part, weighting="the variances as given (no noise estimate)")
         for part in parts
